@@ -1,0 +1,1 @@
+"""FastAPI service: jobs, scenes, artifacts. Never imports torch."""

@@ -1,0 +1,90 @@
+"""Fused CPU kernels: small C++/OpenMP sources compiled into shared libraries, called through ctypes.
+
+Why ctypes rather than a torch C++ extension: a source without torch headers compiles in a
+couple of seconds, so `make` (and the first use on a machine where `make` was skipped) builds
+it quickly. Each kernel works on raw float32/int32 buffers of contiguous CPU tensors; the
+differentiable torch reference next to it stays the source of truth and tests compare the two.
+
+A library's file name carries a hash of its source, so an edited source is rebuilt and two
+processes never load a half-written file (builds go to a temporary name and are renamed).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import warnings
+from functools import lru_cache
+from pathlib import Path
+
+SOURCE_DIR = Path(__file__).resolve().parent
+BUILD_DIR = SOURCE_DIR / "_build"
+CXX_FLAGS = ["-O3", "-std=c++17", "-fopenmp", "-fPIC", "-shared", "-ffp-contract=fast"]
+
+
+def sources() -> list[str]:
+    """Names of the kernel sources shipped with fluidcore (`NAME.cpp` in this folder)."""
+    return sorted(p.stem for p in SOURCE_DIR.glob("*.cpp"))
+
+
+def library_path(name: str) -> Path:
+    """Where the library built from the current `NAME.cpp` lives."""
+    digest = hashlib.sha256((SOURCE_DIR / f"{name}.cpp").read_bytes()).hexdigest()[:12]
+    return BUILD_DIR / f"{name}-{digest}.so"
+
+
+def build(name: str) -> Path:
+    """Compile `NAME.cpp` unless the library for this exact source already exists."""
+    target = library_path(name)
+    if target.exists():
+        return target
+    compiler = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
+    if compiler is None:
+        raise RuntimeError("no C++ compiler found (set CXX); fused CPU kernels cannot be built")
+    BUILD_DIR.mkdir(parents=True, exist_ok=True)
+    with tempfile.NamedTemporaryFile(dir=BUILD_DIR, suffix=".so", delete=False) as tmp:
+        tmp_path = Path(tmp.name)
+    cmd = [compiler, *CXX_FLAGS, str(SOURCE_DIR / f"{name}.cpp"), "-o", str(tmp_path)]
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        tmp_path.unlink(missing_ok=True)
+        raise RuntimeError(f"building kernel {name!r} failed:\n{result.stderr}")
+    tmp_path.replace(target)
+    for stale in BUILD_DIR.glob(f"{name}-*.so"):
+        if stale != target:
+            stale.unlink(missing_ok=True)
+    return target
+
+
+@lru_cache(maxsize=None)
+def load(name: str) -> ctypes.CDLL | None:
+    """The compiled kernel library, building it if needed; None (with a warning) if it cannot be built.
+
+    Callers fall back to their torch reference path on None, so a machine without a
+    compiler is slower, never wrong.
+    """
+    try:
+        return ctypes.CDLL(str(build(name)))
+    except (OSError, RuntimeError) as exc:
+        warnings.warn(f"fused CPU kernel {name!r} unavailable, using the torch path: {exc}")
+        return None
+
+
+def pointer(tensor) -> ctypes.c_void_p:
+    """Raw data pointer of a contiguous CPU tensor, for passing to a kernel."""
+    if tensor.device.type != "cpu" or not tensor.is_contiguous():
+        raise ValueError("kernels take contiguous CPU tensors")
+    return ctypes.c_void_p(tensor.data_ptr())
+
+
+def main() -> None:
+    """`python -m fluidcore.kernels build`: compile every kernel source (used by `make`)."""
+    if sys.argv[1:] != ["build"]:
+        raise SystemExit("usage: python -m fluidcore.kernels build")
+    for name in sources():
+        print(f"kernel {name}: {build(name)}")

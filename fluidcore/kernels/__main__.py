@@ -1,0 +1,3 @@
+from fluidcore.kernels import main
+
+main()

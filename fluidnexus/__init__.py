@@ -1,0 +1,1 @@
+"""The `fluidnexus` command line: the front door to fluidcore, the service and the benchmarks."""

@@ -1,0 +1,29 @@
+"""The `fluidnexus` command line.
+
+Each module of this package owns one group of commands and exposes
+`register(app, bench)`. Modules import torch and fluidcore inside the command
+bodies only, so `fluidnexus --help` and `fluidnexus serve` start without torch.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from fluidnexus.cli import benchmarks, interaction, scenes, service
+
+app = typer.Typer(
+    name="fluidnexus",
+    help="Reconstruct smoke from video, predict it, and ask what-if questions.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+)
+bench = typer.Typer(help="Benchmarks: print a table, or one JSON object with --json.", no_args_is_help=True)
+app.add_typer(bench, name="bench")
+
+for module in (scenes, interaction, service, benchmarks):
+    module.register(app, bench)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
