@@ -1,32 +1,45 @@
 """Counterfactual parameters: wind and ball, validated once and shared by the CLI, the API and the browser.
 
 Plain pydantic models with no torch import, so the API process can validate a job's
-parameters before anything is queued. World units throughout; frames are counted from the
-first new (predicted) frame.
+parameters before anything is queued. World units and seconds throughout; frames are
+counted from the first new (predicted) frame.
+
+Validation happens in two stages because the scene is not known when a request arrives:
+the models themselves reject what is wrong in any scene (NaN, a zero direction, a negative
+radius, a strength no smoke survives), and `check_scene` rejects what is wrong in the run's
+scene (a ball outside the scene box, a wind that would blow a particle across the whole box
+in a single frame, an intervention that starts after the last predicted frame).
 """
 
 from __future__ import annotations
 
+import json
 import math
+from collections.abc import Mapping
+from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 Vec3 = tuple[float, float, float]
 
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
 MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far past physical
 
+_STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-def _finite(vector: Vec3, field: str) -> Vec3:
-    if not all(math.isfinite(c) for c in vector):
-        raise ValueError(f"{field} must be finite, got {list(vector)}")
-    return vector
+
+class InteractionError(ValueError):
+    """Counterfactual parameters that cannot be applied; the message names the field."""
 
 
 class WindParams(BaseModel):
-    """Wind: force = strength * direction * exp(growth * height above the source), from start_frame on."""
+    """Wind: force = strength * direction * exp(growth * height above the source), from start_frame on.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    `strength` is an acceleration (world units / s^2) at the source height; `end_frame` is
+    exclusive, None means the wind blows until the end of the prediction.
+    """
+
+    model_config = _STRICT
 
     direction: Vec3
     strength: float = Field(ge=0.0, le=MAX_WIND_STRENGTH)
@@ -37,7 +50,6 @@ class WindParams(BaseModel):
     @field_validator("direction")
     @classmethod
     def _unit_direction(cls, direction: Vec3) -> Vec3:
-        _finite(direction, "direction")
         norm = math.sqrt(sum(c * c for c in direction))
         if norm < 1e-9:
             raise ValueError("direction must be a non-zero vector")
@@ -53,41 +65,121 @@ class WindParams(BaseModel):
         """Whether the wind blows during new frame `frame`."""
         return frame >= self.start_frame and (self.end_frame is None or frame < self.end_frame)
 
+    def peak_acceleration(self, lo: Vec3, hi: Vec3, base_height: float, up: Vec3 = (0.0, 1.0, 0.0)) -> float:
+        """The largest wind acceleration anywhere in the box [lo, hi] (the exponential peaks at a corner)."""
+        heights = [sum(u * c for u, c in zip(up, corner)) - base_height for corner in _corners(lo, hi)]
+        exponent = max(self.growth * h for h in heights)
+        if exponent > 700.0:  # exp overflows a float64 just above 709
+            return math.inf
+        return self.strength * math.exp(exponent)
+
 
 class BallParams(BaseModel):
-    """A rigid ball with one-way coupling: fluid never inside it; it moves at a constant velocity."""
+    """A rigid ball with one-way coupling: the fluid is never inside it, it never feels the fluid.
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    The ball enters the scene at `center` on new frame `start_frame` and from then on moves at
+    the constant `velocity` (world units / s); before `start_frame` the scene has no ball.
+    """
+
+    model_config = _STRICT
 
     center: Vec3
     radius: float = Field(gt=0.0)
     start_frame: int = Field(default=0, ge=0)
     velocity: Vec3 = (0.0, 0.0, 0.0)
 
-    @field_validator("center", "velocity")
-    @classmethod
-    def _finite_vectors(cls, vector: Vec3, info) -> Vec3:  # type: ignore[no-untyped-def]
-        return _finite(vector, info.field_name)
-
-    @field_validator("radius")
-    @classmethod
-    def _finite_radius(cls, radius: float) -> float:
-        if not math.isfinite(radius):
-            raise ValueError("radius must be finite")
-        return radius
-
     def check_in_box(self, lo: Vec3, hi: Vec3) -> None:
         """Reject a ball whose centre lies outside the scene box (it could never touch the smoke)."""
         if not all(l <= c <= h for c, l, h in zip(self.center, lo, hi)):
-            raise ValueError(f"ball center {list(self.center)} is outside the scene box {list(lo)}..{list(hi)}")
+            raise InteractionError(
+                f"ball.center {list(self.center)} is outside the scene box {list(lo)}..{list(hi)}"
+            )
         if self.radius > max(h - l for l, h in zip(lo, hi)):
-            raise ValueError(f"ball radius {self.radius} is larger than the scene box")
+            raise InteractionError(f"ball.radius {self.radius} is larger than the scene box {list(lo)}..{list(hi)}")
 
 
 class InteractionParams(BaseModel):
     """Wind, ball, or both."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _STRICT
 
     wind: WindParams | None = None
     ball: BallParams | None = None
+
+    def check_scene(
+        self,
+        *,
+        lo: Vec3,
+        hi: Vec3,
+        base_height: float,
+        dt: float,
+        frames: int,
+        up: Vec3 = (0.0, 1.0, 0.0),
+    ) -> None:
+        """Reject parameters that are valid in general but meaningless in this run's scene.
+
+        A wind is absurd when, at its peak inside the box, it alone would carry a particle at
+        rest across the box's smallest side within one frame (a * dt^2 > side): the smoke would
+        simply vanish from the scene, which no user asking "what if" wants.
+        """
+        if self.wind is not None:
+            _check_start(self.wind.start_frame, frames, "wind")
+            peak = self.wind.peak_acceleration(lo, hi, base_height, up)
+            side = min(h - l for l, h in zip(lo, hi))
+            if peak * dt * dt > side:
+                raise InteractionError(
+                    f"wind.strength {self.wind.strength} with wind.growth {self.wind.growth} reaches "
+                    f"{peak:.3g} units/s^2 in the scene box, which blows smoke across the whole box "
+                    f"({side:.3g} units) in one frame; lower the strength or the growth"
+                )
+        if self.ball is not None:
+            _check_start(self.ball.start_frame, frames, "ball")
+            self.ball.check_in_box(lo, hi)
+
+
+def parse_interaction(wind: str | Mapping[str, Any] | None, ball: str | Mapping[str, Any] | None) -> InteractionParams:
+    """Build validated parameters from JSON text or dicts, with one readable message on failure.
+
+    Pydantic's own message spans several lines with documentation links; the CLI and the API
+    show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
+    """
+    fields = {"wind": _as_dict(wind, "wind"), "ball": _as_dict(ball, "ball")}
+    try:
+        return InteractionParams(**fields)
+    except ValidationError as exc:
+        raise InteractionError(_describe(exc)) from None
+
+
+def _as_dict(value: str | Mapping[str, Any] | None, field: str) -> dict[str, Any] | None:
+    if value is None:
+        return None
+    if isinstance(value, str):
+        try:
+            value = json.loads(value)
+        except json.JSONDecodeError as exc:
+            raise InteractionError(f"{field} is not valid JSON: {exc}") from None
+    if not isinstance(value, Mapping):
+        raise InteractionError(f"{field} must be a JSON object, got {type(value).__name__}")
+    return dict(value)
+
+
+def _describe(exc: ValidationError) -> str:
+    parts = []
+    for error in exc.errors(include_url=False):
+        location = ""
+        for key in error["loc"]:
+            location += f"[{key}]" if isinstance(key, int) else (f".{key}" if location else str(key))
+        parts.append(f"{location}: {error['msg']}")
+    return "; ".join(parts)
+
+
+def _check_start(start_frame: int, frames: int, field: str) -> None:
+    if start_frame >= frames:
+        raise InteractionError(
+            f"{field}.start_frame ({start_frame}) is not within the {frames} predicted frames; "
+            f"it would never act"
+        )
+
+
+def _corners(lo: Vec3, hi: Vec3) -> list[Vec3]:
+    return [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]

@@ -1,0 +1,107 @@
+"""Counterfactual parameters: what a user may ask for, and the clear refusals of what makes no sense."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+
+from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
+
+BOX = dict(lo=(-1.0, 0.0, -1.0), hi=(1.0, 2.0, 1.0), base_height=0.0, dt=1 / 30, frames=30)
+
+
+def test_wind_direction_is_normalised_and_window_is_exclusive() -> None:
+    wind = WindParams(direction=(3.0, 0.0, 4.0), strength=2.0, start_frame=2, end_frame=5)
+    assert wind.direction == pytest.approx((0.6, 0.0, 0.8))
+    assert [wind.active(f) for f in range(7)] == [False, False, True, True, True, False, False]
+
+
+def test_open_ended_wind_blows_until_the_end() -> None:
+    wind = WindParams(direction=(1, 0, 0), strength=1.0, start_frame=3)
+    assert not wind.active(2) and wind.active(3) and wind.active(10_000)
+
+
+@pytest.mark.parametrize(
+    ("wind", "ball", "field"),
+    [
+        ('{"direction": [1, 0, 0], "strength": NaN}', None, "wind.strength"),
+        ('{"direction": [0, 0, 0], "strength": 1}', None, "wind.direction"),
+        ('{"direction": [1, 0, Infinity], "strength": 1}', None, "wind.direction[2]"),
+        ('{"direction": [1, 0, 0], "strength": -1}', None, "wind.strength"),
+        ('{"direction": [1, 0, 0], "strength": 1e9}', None, "wind.strength"),
+        ('{"direction": [1, 0, 0], "strength": 1, "start_frame": 4, "end_frame": 4}', None, "end_frame"),
+        ('{"direction": [1, 0, 0], "strength": 1, "gust": true}', None, "wind.gust"),
+        (None, '{"center": [0, 1, 0], "radius": -0.1}', "ball.radius"),
+        (None, '{"center": [0, 1, 0], "radius": 0}', "ball.radius"),
+        (None, '{"center": [0, NaN, 0], "radius": 0.1}', "ball.center[1]"),
+        (None, '{"center": [0, 1], "radius": 0.1}', "ball.center[2]"),
+        (None, '{"center": [0, 1, 0], "radius": 0.1, "start_frame": -1}', "ball.start_frame"),
+        ("{not json", None, "wind is not valid JSON"),
+        (None, "[0, 1, 0]", "ball must be a JSON object"),
+    ],
+)
+def test_invalid_parameters_name_the_field(wind: str | None, ball: str | None, field: str) -> None:
+    with pytest.raises(InteractionError, match=field.replace("[", r"\[").replace("]", r"\]")) as info:
+        parse_interaction(wind, ball)
+    assert "\n" not in str(info.value) and "errors.pydantic.dev" not in str(info.value)
+
+
+def test_both_at_once_and_from_dicts() -> None:
+    params = parse_interaction({"direction": [0, 0, 2], "strength": 5}, '{"center": [0, 1, 0], "radius": 0.2}')
+    assert params.wind is not None and params.wind.direction == (0.0, 0.0, 1.0)
+    assert params.ball is not None and params.ball.radius == 0.2 and params.ball.velocity == (0.0, 0.0, 0.0)
+    assert parse_interaction(None, None) == InteractionParams()
+
+
+def test_ball_outside_the_scene_box_is_refused() -> None:
+    params = InteractionParams(ball=BallParams(center=(0.0, 3.0, 0.0), radius=0.1))
+    with pytest.raises(InteractionError, match="ball.center .* outside the scene box"):
+        params.check_scene(**BOX)
+    InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=0.1)).check_scene(**BOX)
+
+
+def test_ball_larger_than_the_scene_is_refused() -> None:
+    with pytest.raises(InteractionError, match="ball.radius"):
+        InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=5.0)).check_scene(**BOX)
+
+
+def test_wind_that_empties_the_box_in_one_frame_is_absurd_for_this_scene() -> None:
+    # side 2 units, dt 1/30: anything above 2 * 900 = 1800 units/s^2 crosses the box in a frame.
+    calm = WindParams(direction=(1, 0, 0), strength=100.0)
+    InteractionParams(wind=calm).check_scene(**BOX)
+    # The same strength is absurd once it grows tenfold per unit of height over a 2-unit box.
+    growing = WindParams(direction=(1, 0, 0), strength=100.0, growth=math.log(10.0))
+    assert growing.peak_acceleration(BOX["lo"], BOX["hi"], 0.0) == pytest.approx(100.0 * 100.0)
+    with pytest.raises(InteractionError, match="wind.strength"):
+        InteractionParams(wind=growing).check_scene(**BOX)
+
+
+def test_wind_peak_is_at_the_bottom_when_it_decays_with_height() -> None:
+    wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=-2.0)
+    assert wind.peak_acceleration((0, -1, 0), (1, 1, 1), base_height=0.0) == pytest.approx(math.exp(2.0))
+
+
+def test_overflowing_growth_is_refused_not_inf() -> None:
+    wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=50.0)
+    box = dict(BOX, hi=(1.0, 20.0, 1.0))
+    assert wind.peak_acceleration(box["lo"], box["hi"], 0.0) == math.inf
+    with pytest.raises(InteractionError, match="wind.strength"):
+        InteractionParams(wind=wind).check_scene(**box)
+
+
+@pytest.mark.parametrize("which", ["wind", "ball"])
+def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
+    params = parse_interaction(
+        {"direction": [1, 0, 0], "strength": 1, "start_frame": 30} if which == "wind" else None,
+        {"center": [0, 1, 0], "radius": 0.1, "start_frame": 30} if which == "ball" else None,
+    )
+    with pytest.raises(InteractionError, match=f"{which}.start_frame"):
+        params.check_scene(**BOX)
+
+
+def test_parameters_import_without_torch() -> None:
+    code = "import sys, fluidcore.interaction; sys.exit('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
