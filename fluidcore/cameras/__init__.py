@@ -1,8 +1,76 @@
-"""Cameras: one pinhole Camera type (OpenCV axes, continuous pixels) and helpers that place cameras.
+"""Cameras: one pinhole Camera type (OpenCV axes, continuous pixels), the readers for the camera
+files users bring, and scene boxes.
+
+`load(path)` recognises the format from the content, never from the file name, because uploads
+arrive under arbitrary names:
+  - a folder, or a file starting with the zip signature: a COLMAP sparse model (fluidcore.cameras.colmap);
+  - a JSON object with `frames` or PINF's `train_videos`: nerfstudio transforms.json or PINF/HyFluid
+    info.json (fluidcore.cameras.json_formats).
 
 No torch at import time: the API validates uploaded camera files with this package.
 """
 
-from fluidcore.cameras.camera import Camera, CameraError, check_rigid, look_at, orbit
+from __future__ import annotations
 
-__all__ = ["Camera", "CameraError", "check_rigid", "look_at", "orbit"]
+from pathlib import Path
+
+from fluidcore.cameras.boxes import Box, box_center, box_corners, frusta_box, scene_box
+from fluidcore.cameras.camera import Camera, CameraError, check_rigid, look_at, orbit
+from fluidcore.cameras.colmap import load_colmap_dir, load_colmap_zip
+from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json
+
+ZIP_MAGIC = b"PK\x03\x04"
+JSON_START = (b"{", b"\xef\xbb\xbf{")  # optionally after a UTF-8 byte-order mark
+
+
+def load(path: str | Path) -> dict[str, Camera]:
+    """Cameras by name from a nerfstudio transforms.json, a PINF info.json, or a COLMAP model
+    (folder or .zip). Raises CameraError naming the file and field on any invalid input."""
+    path = Path(path)
+    if path.is_dir():
+        return load_colmap_dir(path)
+    if not path.is_file():
+        raise CameraError(f"{path}: no such file or folder")
+    with path.open("rb") as handle:
+        head = handle.read(64)
+    if head.startswith(ZIP_MAGIC):
+        return load_colmap_zip(path)
+    if head.lstrip().startswith(JSON_START):
+        data = read_json(path)
+        if not is_camera_json(data):
+            raise CameraError(f"{path.name}: JSON without camera entries (missing field frames)")
+        return load_json_cameras(path, data)
+    raise CameraError(
+        f"{path.name}: unrecognised camera file; expected transforms.json / info.json (JSON), "
+        "a COLMAP sparse model folder, or a .zip of one"
+    )
+
+
+def check_video_size(camera: Camera, width: int, height: int) -> None:
+    """Raise CameraError unless the video's frames are exactly the camera's size.
+
+    The intrinsics are in pixels of one particular frame size; a video at another size would
+    put every projected point in the wrong place. When the video is a resized copy, the caller
+    can deliberately use `camera.scaled(width, height)` instead.
+    """
+    if (width, height) != (camera.width, camera.height):
+        raise CameraError(
+            f"camera {camera.name!r}: width/height {camera.width}x{camera.height} do not match the video "
+            f"({width}x{height}); calibrate at the video's size or resize the video"
+        )
+
+
+__all__ = [
+    "Box",
+    "Camera",
+    "CameraError",
+    "box_center",
+    "box_corners",
+    "check_rigid",
+    "check_video_size",
+    "frusta_box",
+    "load",
+    "look_at",
+    "orbit",
+    "scene_box",
+]

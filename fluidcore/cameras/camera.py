@@ -30,12 +30,18 @@ class CameraError(ValueError):
 
 
 def check_rigid(matrix: np.ndarray, field_name: str) -> np.ndarray:
-    """Return `matrix` as a float64 (4, 4) rigid transform, or raise naming `field_name`.
+    """Return `matrix` (4x4, or 3x4 without the last row) as a float64 (4, 4) rigid transform,
+    or raise naming `field_name`.
 
     A rigid transform has a finite orthonormal rotation with determinant +1 (a reflection
     would silently mirror the scene) and a last row of (0, 0, 0, 1).
     """
-    m = np.asarray(matrix, dtype=np.float64)
+    try:
+        m = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraError(f"{field_name} must be a 4x4 matrix of numbers") from None
+    if m.shape == (3, 4):  # some writers leave out the constant last row
+        m = np.vstack((m, (0.0, 0.0, 0.0, 1.0)))
     if m.shape != (4, 4):
         raise CameraError(f"{field_name} must be a 4x4 matrix, got shape {m.shape}")
     if not np.all(np.isfinite(m)):

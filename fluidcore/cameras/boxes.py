@@ -1,0 +1,144 @@
+"""Where the smoke is: a scene's bounding box from its camera file, or estimated from the cameras.
+
+PINF's voxel box (also copied into FluidNexus transforms.json files): simulation coordinates
+s in [0, 1]^3 map to world coordinates as
+
+    world = V' @ (voxel_scale * s) + t,
+
+where t is the translation of `voxel_matrix` and V' is its rotation with the first and third
+columns swapped: PINF's loader swaps them ("swap_zx") before use, and its world-to-simulation
+transform is the inverse of that swapped matrix divided by voxel_scale. The box is the image of
+the unit cube; we return its axis-aligned bounds in world coordinates.
+
+Scenes without a box get `frusta_box`: the bounds of the region every camera sees (the
+intersection of the view frusta), which is where reconstruction can be constrained at all.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.json_formats import read_json
+
+Box = tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) float64, world coordinates
+
+
+def scene_box(path: str | Path) -> Box | None:
+    """The world-space box a camera JSON file declares (`voxel_scale` + `voxel_matrix`), or None
+    when the file declares none (or is not JSON, e.g. a COLMAP model)."""
+    path = Path(path)
+    if path.is_dir() or _is_zip(path):
+        return None
+    data = read_json(path)
+    if data.get("voxel_matrix") is None and data.get("voxel_scale") is None:
+        return None
+    return voxel_box(data, path.name)
+
+
+def _is_zip(path: Path) -> bool:
+    with path.open("rb") as handle:
+        return handle.read(4) == b"PK\x03\x04"
+
+
+def voxel_box(data: dict[str, Any], source: str) -> Box:
+    """Axis-aligned world bounds of PINF's voxel box (see the module docstring)."""
+    scale = _voxel_scale(data.get("voxel_scale"), source)
+    try:
+        matrix = np.asarray(data.get("voxel_matrix"), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraError(f"{source}: voxel_matrix must be a 4x4 matrix of numbers") from None
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise CameraError(f"{source}: voxel_matrix must be a finite 4x4 matrix, got shape {matrix.shape}")
+    rotation = matrix[:3, [2, 1, 0]]  # PINF's swap_zx
+    if abs(np.linalg.det(rotation)) < 1e-9:
+        raise CameraError(f"{source}: voxel_matrix is singular")
+    corners = np.array(list(itertools.product((0.0, 1.0), repeat=3)))
+    world = (corners * scale) @ rotation.T + matrix[:3, 3]
+    return world.min(axis=0), world.max(axis=0)
+
+
+def _voxel_scale(value: Any, source: str) -> np.ndarray:
+    try:
+        scale = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,)).copy()
+    except (TypeError, ValueError):
+        raise CameraError(f"{source}: voxel_scale must be one or three positive numbers, got {value!r}") from None
+    if not np.all(np.isfinite(scale)) or np.any(scale <= 0):
+        raise CameraError(f"{source}: voxel_scale must be positive and finite, got {scale.tolist()}")
+    return scale
+
+
+def frusta_box(cameras: Sequence[Camera] | dict[str, Camera]) -> Box:
+    """Axis-aligned bounds of the region inside every camera's view frustum.
+
+    Each frustum is 5 half-spaces (the four image-edge planes through the centre, and "in front
+    of the camera"); their intersection is a convex polytope whose vertices we enumerate (every
+    triple of planes, kept when it satisfies all constraints). A guard box far outside the
+    cameras detects an unbounded overlap (one camera, or cameras looking the same way), which
+    raises CameraError, as does an empty overlap.
+    """
+    cams = list(cameras.values()) if isinstance(cameras, dict) else list(cameras)
+    if not cams:
+        raise CameraError("frusta_box needs at least one camera")
+    normals, offsets = zip(*(_frustum_planes(c) for c in cams))
+    centers = np.array([c.center() for c in cams])
+    reach = 1e3 * max(1.0, float(np.ptp(centers, axis=0).max()), *(float(np.linalg.norm(c)) for c in centers))
+    guard_normals = np.vstack((np.eye(3), -np.eye(3)))
+    guard_offsets = np.full(6, -reach) + np.concatenate((centers.mean(0), -centers.mean(0)))
+    a = np.vstack((*normals, guard_normals))  # inside: a @ x >= b
+    b = np.concatenate((*offsets, guard_offsets))
+    vertices = _polytope_vertices(a, b)
+    if len(vertices) == 0:
+        raise CameraError("the cameras' view frusta do not overlap; no common region to reconstruct")
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+    if np.any(np.abs(vertices - centers.mean(0)) > 0.5 * reach):
+        raise CameraError(
+            "the cameras' view frusta overlap in an unbounded region (a single camera, or cameras "
+            "looking the same way); give the scene a box (voxel_scale/voxel_matrix)"
+        )
+    return lo, hi
+
+
+def _frustum_planes(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(5, 3) inward normals n and (5,) offsets b such that inside means n @ x >= b."""
+    # Camera-frame inward normals of the planes through the centre and the image edges.
+    w, h = camera.width, camera.height
+    local = np.array(
+        [
+            [camera.fx, 0.0, camera.cx],  # u >= 0  <=>  fx x + cx z >= 0
+            [-camera.fx, 0.0, w - camera.cx],  # u <= width
+            [0.0, camera.fy, camera.cy],  # v >= 0
+            [0.0, -camera.fy, h - camera.cy],  # v <= height
+            [0.0, 0.0, 1.0],  # in front
+        ]
+    )
+    rotation = camera.world_to_camera[:3, :3]
+    normals = local @ rotation  # n_world = R^T n_cam, as rows
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals, normals @ camera.center()
+
+
+def _polytope_vertices(a: np.ndarray, b: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
+    """Vertices of {x : a @ x >= b} by brute force over plane triples (fine for tens of planes)."""
+    triples = np.array(list(itertools.combinations(range(len(a)), 3)))
+    systems = a[triples]  # (T, 3, 3)
+    solvable = np.abs(np.linalg.det(systems)) > 1e-12
+    points = np.linalg.solve(systems[solvable], b[triples[solvable]][..., None])[..., 0]
+    scale = tolerance * max(1.0, float(np.abs(b).max()))
+    inside = np.all(points @ a.T >= b - scale, axis=1)
+    return points[inside]
+
+
+def box_center(box: Box) -> np.ndarray:
+    """(3,) centre of a box."""
+    return 0.5 * (box[0] + box[1])
+
+
+def box_corners(box: Box) -> np.ndarray:
+    """(8, 3) corners of a box."""
+    return np.array([[box[i][0], box[j][1], box[k][2]] for i, j, k in itertools.product((0, 1), repeat=3)])
+

@@ -1,0 +1,125 @@
+"""COLMAP sparse models (cameras/images as .bin or .txt, in a folder or a .zip) read through pycolmap.
+
+COLMAP already uses OpenCV camera axes and continuous pixel coordinates (the upper-left pixel's
+centre is at (0.5, 0.5)), so `cam_from_world` is our `world_to_camera` unchanged. A camera is
+named by its image's file stem (the video or frame it was calibrated from); only registered
+images (with a pose) become cameras.
+
+Lens models: pinhole ones are taken as they are; radial / OpenCV models are accepted only when
+every distortion coefficient is zero (the renderer is a pinhole: undistort the frames with
+COLMAP's image_undistorter first). Fisheye and other models are rejected.
+
+Zips (what the API receives) are opened defensively: member names may not escape the folder,
+and the unpacked size is capped, so an upload cannot write elsewhere or fill the disk.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import zipfile
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from fluidcore.cameras.camera import Camera, CameraError
+
+PINHOLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE"}
+DISTORTED_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}  # pinhole when coefficients are 0
+MODEL_FILES = ("cameras", "images")
+MAX_UNZIPPED_BYTES = 512 * 1024 * 1024
+
+
+def find_model_dir(root: Path) -> Path | None:
+    """The folder holding cameras.{bin,txt} and images.{bin,txt}: `root` itself or one below it
+    (COLMAP writes sparse/0/). None when there is none; CameraError when there are several."""
+    candidates = sorted({p.parent for p in root.rglob("cameras.*") if _is_model_dir(p.parent)})
+    if not candidates:
+        return None
+    if len(candidates) > 1:
+        listed = ", ".join(str(c.relative_to(root)) or "." for c in candidates)
+        raise CameraError(f"{root.name}: several COLMAP models ({listed}); upload exactly one")
+    return candidates[0]
+
+
+def _is_model_dir(folder: Path) -> bool:
+    return all(any((folder / f"{stem}.{ext}").is_file() for ext in ("bin", "txt")) for stem in MODEL_FILES)
+
+
+def load_colmap_dir(folder: Path) -> dict[str, Camera]:
+    """Cameras by name from a folder that is (or contains) one COLMAP sparse model."""
+    model_dir = find_model_dir(folder)
+    if model_dir is None:
+        raise CameraError(f"{folder.name}: no COLMAP model (cameras.bin/.txt and images.bin/.txt) found")
+    import pycolmap
+
+    try:
+        reconstruction = pycolmap.Reconstruction(str(model_dir))
+    except (ValueError, RuntimeError) as error:
+        raise CameraError(f"{folder.name}: unreadable COLMAP model: {error}") from None
+    return _cameras_from_reconstruction(reconstruction, folder.name)
+
+
+def load_colmap_zip(path: Path) -> dict[str, Camera]:
+    """Cameras by name from a .zip holding one COLMAP sparse model (at any depth)."""
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-colmap-") as tmp:
+        _safe_extract(path, Path(tmp))
+        return load_colmap_dir(Path(tmp))
+
+
+def _safe_extract(path: Path, target: Path) -> None:
+    try:
+        archive = zipfile.ZipFile(path)
+    except zipfile.BadZipFile as error:
+        raise CameraError(f"{path.name}: not a readable zip archive ({error})") from None
+    with archive:
+        members = [m for m in archive.infolist() if not m.is_dir()]
+        if sum(m.file_size for m in members) > MAX_UNZIPPED_BYTES:
+            raise CameraError(f"{path.name}: unpacks to more than {MAX_UNZIPPED_BYTES >> 20} MiB")
+        for member in members:
+            name = PurePosixPath(member.filename)
+            if name.is_absolute() or ".." in name.parts:
+                raise CameraError(f"{path.name}: member {member.filename!r} escapes the archive folder")
+            if name.name.split(".")[0] in (*MODEL_FILES, "points3D", "rigs", "frames"):
+                try:
+                    archive.extract(member, target)
+                except (zipfile.BadZipFile, OSError) as error:
+                    raise CameraError(f"{path.name}: cannot unpack {member.filename}: {error}") from None
+
+
+def _cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera]:
+    cameras: dict[str, Camera] = {}
+    for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
+        if not image.has_pose:
+            continue
+        name = PurePosixPath(image.name).stem
+        context = f"{source}: image {image.name!r}"
+        if name in cameras:
+            raise CameraError(f"{context}: duplicated camera name {name!r}")
+        colmap_camera = reconstruction.cameras[image.camera_id]
+        fx, fy, cx, cy = _pinhole_intrinsics(colmap_camera, context)
+        world_to_camera = np.eye(4)
+        world_to_camera[:3, :] = image.cam_from_world().matrix()  # pycolmap 4.x: a method
+        try:
+            cameras[name] = Camera(
+                name, fx, fy, cx, cy, colmap_camera.width, colmap_camera.height, world_to_camera, file_path=image.name
+            )
+        except CameraError as error:
+            raise CameraError(f"{context}: {error}") from None
+    if not cameras:
+        raise CameraError(f"{source}: the COLMAP model has no registered images")
+    return cameras
+
+
+def _pinhole_intrinsics(colmap_camera, context: str) -> tuple[float, float, float, float]:
+    model = colmap_camera.model.name
+    if model not in PINHOLE_MODELS | DISTORTED_MODELS:
+        raise CameraError(f"{context}: camera model {model} is not supported (use a pinhole model)")
+    params = np.asarray(colmap_camera.params, dtype=np.float64)
+    extra = params[list(colmap_camera.extra_params_idxs())]
+    if np.any(extra != 0.0):
+        raise CameraError(
+            f"{context}: camera model {model} has non-zero distortion {extra.tolist()}; "
+            "undistort first (COLMAP image_undistorter) and export a PINHOLE model"
+        )
+    k = np.asarray(colmap_camera.calibration_matrix(), dtype=np.float64)
+    return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])

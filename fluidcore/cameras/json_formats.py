@@ -1,0 +1,183 @@
+"""Camera JSON files: nerfstudio `transforms.json` and PINF/HyFluid `info.json`.
+
+Both store one camera-to-world `transform_matrix` per entry in OpenGL/Blender camera axes
+(x right, y up, looking along -z); we flip y and z to OpenCV axes and invert.
+
+Entries come from `frames` (nerfstudio, and FluidNexus's own transforms.json) or from PINF's
+`train_videos` / `val_videos` / `test_videos` lists. Intrinsics are looked up per entry first,
+then at the top level (nerfstudio allows both), in this order:
+  1. `fl_x`, `fl_y` (fl_y defaults to fl_x), `cx`, `cy` (default w/2, h/2), `w`, `h`;
+  2. `camera_angle_x` (horizontal field of view, radians) with the size from `camera_hw` = [H, W]
+     or `w`/`h`, or, as PINF does, from the entry's video (`file_name`/`file_path`) when
+     that file exists; square pixels and a centred principal point.
+
+Lens distortion: a pinhole renderer cannot honour it, and ignoring it would silently misplace
+every pixel away from the centre, so non-zero `k1..k4`, `p1`, `p2` are REJECTED with a message
+that asks for undistorted frames (e.g. COLMAP's image_undistorter). Zero coefficients (as in
+the ScalarFlow file) are accepted. `camera_model` must be PINHOLE, OPENCV or absent.
+
+A camera's name is the entry's `camera` field, else the stem of its `file_path` / `file_name`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fluidcore.cameras.camera import Camera, CameraError, check_rigid
+
+OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z axes
+DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
+PINF_VIDEO_LISTS = ("train_videos", "val_videos", "test_videos")
+SUPPORTED_MODELS = ("PINHOLE", "OPENCV")
+
+
+def read_json(path: Path) -> dict[str, Any]:
+    """Parse a camera JSON file; anything but a JSON object is a CameraError."""
+    try:
+        data = json.loads(path.read_text(encoding="utf-8-sig"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise CameraError(f"{path.name}: not valid JSON ({error})") from error
+    if not isinstance(data, dict):
+        raise CameraError(f"{path.name}: top level must be a JSON object, got {type(data).__name__}")
+    return data
+
+
+def is_camera_json(data: dict[str, Any]) -> bool:
+    """True when the object has camera entries in either layout."""
+    return isinstance(data.get("frames"), list) or any(isinstance(data.get(k), list) for k in PINF_VIDEO_LISTS)
+
+
+def load_json_cameras(path: Path, data: dict[str, Any]) -> dict[str, Camera]:
+    """Cameras by name from a parsed transforms.json / info.json (see the module docstring)."""
+    entries = _entries(data)
+    if not entries:
+        raise CameraError(f"{path.name}: frames is empty (no cameras)")
+    cameras: dict[str, Camera] = {}
+    for where, entry in entries:
+        camera = _entry_camera(path, data, where, entry)
+        if camera.name in cameras:
+            if camera == cameras[camera.name]:  # PINF lists the same video in train and test
+                continue
+            raise CameraError(f"{path.name}: {where}: duplicated camera name {camera.name!r}")
+        cameras[camera.name] = camera
+    return cameras
+
+
+def _entries(data: dict[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    lists = ["frames"] if isinstance(data.get("frames"), list) else [k for k in PINF_VIDEO_LISTS if k in data]
+    entries = []
+    for key in lists:
+        for i, entry in enumerate(data[key]):
+            if not isinstance(entry, dict):
+                raise CameraError(f"{key}[{i}] must be an object, got {type(entry).__name__}")
+            entries.append((f"{key}[{i}]", entry))
+    return entries
+
+
+def _entry_camera(path: Path, data: dict[str, Any], where: str, entry: dict[str, Any]) -> Camera:
+    video = entry.get("file_path", entry.get("file_name"))
+    if video is not None and not isinstance(video, str):
+        raise CameraError(f"{path.name}: {where}.file_path must be a string or null, got {video!r}")
+    name = entry.get("camera") or (Path(video).stem if video else None)
+    if not isinstance(name, str) or not name:
+        raise CameraError(f"{path.name}: {where}: missing field camera (and no file_path to name it by)")
+    context = f"{path.name}: {where} ({name})"
+    try:
+        fx, fy, cx, cy, width, height = _intrinsics(path, data, entry, video)
+        _check_distortion(data, entry)
+        camera_to_world = check_rigid(_field(entry, "transform_matrix"), "transform_matrix")
+        world_to_camera = np.linalg.inv(camera_to_world @ OPENGL_TO_OPENCV)
+        return Camera(name, fx, fy, cx, cy, width, height, world_to_camera, file_path=video)
+    except CameraError as error:
+        raise CameraError(f"{context}: {error}") from None
+
+
+def _field(entry: dict[str, Any], key: str) -> Any:
+    if key not in entry or entry[key] is None:
+        raise CameraError(f"missing field {key}")
+    return entry[key]
+
+
+def _lookup(data: dict[str, Any], entry: dict[str, Any], key: str) -> Any:
+    """Per-entry value first, then the shared top-level one (nerfstudio semantics)."""
+    return entry[key] if entry.get(key) is not None else data.get(key)
+
+
+def _number(value: Any, key: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CameraError(f"{key} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise CameraError(f"{key} must be finite, got {value}")
+    return float(value)
+
+
+def _size(value: Any, key: str) -> int:
+    number = _number(value, key)
+    if number != int(number) or number <= 0:
+        raise CameraError(f"{key} must be a positive integer, got {value!r}")
+    return int(number)
+
+
+def _intrinsics(
+    path: Path, data: dict[str, Any], entry: dict[str, Any], video: str | None
+) -> tuple[float, float, float, float, int, int]:
+    width, height = _image_size(path, data, entry, video)
+    fl_x = _lookup(data, entry, "fl_x")
+    if fl_x is not None:
+        fx = _number(fl_x, "fl_x")
+        fl_y = _lookup(data, entry, "fl_y")
+        fy = fx if fl_y is None else _number(fl_y, "fl_y")
+    else:
+        angle = _lookup(data, entry, "camera_angle_x")
+        if angle is None:
+            raise CameraError("missing field fl_x (or camera_angle_x)")
+        angle = _number(angle, "camera_angle_x")
+        if not 0.0 < angle < math.pi:
+            raise CameraError(f"camera_angle_x must be in (0, pi) radians, got {angle}")
+        fx = fy = 0.5 * width / math.tan(0.5 * angle)
+    for key, value in (("fl_x", fx), ("fl_y", fy)):
+        if value <= 0:
+            raise CameraError(f"{key} must be positive (focal length), got {value}")
+    cx = _lookup(data, entry, "cx")
+    cy = _lookup(data, entry, "cy")
+    cx = 0.5 * width if cx is None else _number(cx, "cx")
+    cy = 0.5 * height if cy is None else _number(cy, "cy")
+    return fx, fy, cx, cy, width, height
+
+
+def _image_size(path: Path, data: dict[str, Any], entry: dict[str, Any], video: str | None) -> tuple[int, int]:
+    w, h = _lookup(data, entry, "w"), _lookup(data, entry, "h")
+    if w is not None or h is not None:
+        return _size(w, "w"), _size(h, "h")
+    hw = _lookup(data, entry, "camera_hw")
+    if hw is not None:
+        if not isinstance(hw, (list, tuple)) or len(hw) != 2:
+            raise CameraError(f"camera_hw must be [height, width], got {hw!r}")
+        return _size(hw[1], "camera_hw[1] (width)"), _size(hw[0], "camera_hw[0] (height)")
+    if video and (path.parent / video).is_file():
+        from fluidcore.video import VideoError, probe
+
+        try:
+            info = probe(path.parent / video)
+        except VideoError as error:
+            raise CameraError(f"missing fields w/h, and the size cannot be read from {video}: {error}") from None
+        return info.width, info.height
+    raise CameraError("missing fields w and h (or camera_hw, or a readable video in file_path)")
+
+
+def _check_distortion(data: dict[str, Any], entry: dict[str, Any]) -> None:
+    model = _lookup(data, entry, "camera_model")
+    if model is not None and model not in SUPPORTED_MODELS:
+        raise CameraError(f"camera_model {model!r} is not supported; use one of {', '.join(SUPPORTED_MODELS)}")
+    for key in DISTORTION_FIELDS:
+        value = _lookup(data, entry, key)
+        if value is not None and _number(value, key) != 0.0:
+            raise CameraError(
+                f"{key} = {value}: lens distortion is not supported (the renderer is a pinhole); "
+                "undistort the frames first (e.g. COLMAP image_undistorter) and give zero coefficients"
+            )

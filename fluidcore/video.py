@@ -1,0 +1,234 @@
+"""Video files in and out: probe, decode (MP4/MOV/WebM/... through PyAV) and encode browser-ready MP4.
+
+Decoding returns uint8 RGB arrays (T, H, W, 3), the in-memory video convention of
+docs/architecture.md. Colour conversion follows the stream's colorspace tag (BT.709 HD video
+is not decoded as BT.601), untagged streams are BT.601 as ffmpeg assumes.
+
+Encoding writes H.264 (libx264) in yuv420p, which every browser plays, with `+faststart` so
+playback starts before the download ends, tagged BT.601 to match the conversion used. yuv420p
+needs even dimensions: odd sizes are PADDED by one edge-replicated row/column at the bottom/right
+(cropping would drop real pixels). Files are written to a temporary name and renamed, so a
+failed encode never leaves a half-written file where a good one was.
+
+Any file PyAV cannot read as video (random bytes, text named .mp4, truncated downloads) raises
+VideoError with the file name and the reason. No torch here: the API probes uploads.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+
+import av
+import numpy as np
+
+CRF = 18  # visually lossless for smoke; the shared benchmark files use the same
+GREY_TOLERANCE = 3  # max |R-G|, |G-B| of a grey pixel after 4:2:0 chroma rounding
+GREY_FRACTION = 0.999  # share of pixels that must be grey (a few noisy pixels do not make colour)
+_COLORSPACES = {1: "itu709", 5: "itu601", 6: "itu601", 7: "smpte240m", 9: "bt2020"}  # AVColorSpace -> swscale
+
+
+class VideoError(ValueError):
+    """A file is not a readable video, or a video request/write is invalid; the message says why."""
+
+
+@dataclass(frozen=True)
+class VideoInfo:
+    """What a video file holds; n_frames is counted from the packets actually present."""
+
+    width: int
+    height: int
+    fps: float
+    n_frames: int
+    codec: str
+    pix_fmt: str = ""
+
+
+def _open(path: str | Path) -> av.container.InputContainer:
+    path = Path(path)
+    if not path.is_file():
+        raise VideoError(f"{path}: no such file")
+    try:
+        container = av.open(str(path), mode="r")
+    except (av.FFmpegError, UnicodeDecodeError) as error:
+        raise VideoError(f"{path.name}: not a readable video ({_reason(error)})") from None
+    if not container.streams.video:
+        container.close()
+        raise VideoError(f"{path.name}: contains no video stream")
+    return container
+
+
+def _reason(error: Exception) -> str:
+    return getattr(error, "strerror", None) or str(error)
+
+
+def probe(path: str | Path) -> VideoInfo:
+    """Size, frame rate, frame count and codec of the first video stream; VideoError when the
+    file is not a video or is truncated."""
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        context = stream.codec_context
+        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+        fps = float(rate) if rate else 0.0
+        declared, n_frames = stream.frames, _count_packets(container, stream, Path(path))
+        if declared and n_frames < declared:
+            raise VideoError(f"{Path(path).name}: truncated video: header says {declared} frames, only {n_frames} present")
+        if not (context.width > 0 and context.height > 0 and n_frames > 0 and math.isfinite(fps) and fps > 0):
+            raise VideoError(
+                f"{Path(path).name}: unusable video stream ({context.width}x{context.height}, "
+                f"{n_frames} frames, {fps} fps)"
+            )
+        return VideoInfo(context.width, context.height, fps, n_frames, context.name, context.pix_fmt or "")
+
+
+def _count_packets(container: av.container.InputContainer, stream: av.VideoStream, path: Path) -> int:
+    """Frame count by demuxing (reads the file, decodes nothing): WebM stores no count, and a
+    count below the header's reveals a truncated upload at probe time."""
+    try:
+        return sum(1 for packet in container.demux(stream) if packet.size > 0)
+    except av.FFmpegError as error:
+        raise VideoError(f"{path.name}: corrupt or truncated video ({_reason(error)})") from None
+
+
+def read_frames(
+    path: str | Path,
+    start: int = 0,
+    stop: int | None = None,
+    step: int = 1,
+    size: tuple[int, int] | None = None,
+) -> np.ndarray:
+    """Frames start, start+step, ... before stop (None: to the end) as uint8 RGB (T, H, W, 3).
+
+    `size=(width, height)` resizes while converting (area filter when shrinking, bicubic when
+    enlarging). Asking for frames past the end, or a file that ends before its header says it
+    should (a truncated upload), raises VideoError rather than returning fewer frames.
+    """
+    _check_range(start, stop, step)
+    if size is not None and not (len(size) == 2 and all(int(s) == s and s > 0 for s in size)):
+        raise VideoError(f"size must be (width, height) positive integers, got {size!r}")
+    path = Path(path)
+    with _open(path) as container:
+        stream = container.streams.video[0]
+        stream.thread_type = "AUTO"
+        declared = stream.frames
+        frames, index = [], -1
+        try:
+            for index, frame in enumerate(container.decode(stream)):
+                if stop is not None and index >= stop:
+                    break
+                if index >= start and (index - start) % step == 0:
+                    frames.append(_to_rgb(frame, size))
+        except av.FFmpegError as error:
+            raise VideoError(f"{path.name}: corrupt or truncated video after {index + 1} frames ({_reason(error)})") from None
+    decoded = index + 1
+    if stop is None and declared and decoded < declared:
+        raise VideoError(f"{path.name}: truncated video: header says {declared} frames, only {decoded} decode")
+    if stop is not None and decoded < stop:
+        raise VideoError(f"{path.name}: frames up to {stop} requested but the video has only {decoded}")
+    if not frames:
+        raise VideoError(f"{path.name}: no frames in [{start}, {stop}) (the video has {decoded})")
+    return np.stack(frames)
+
+
+def _check_range(start: int, stop: int | None, step: int) -> None:
+    if int(start) != start or start < 0:
+        raise VideoError(f"start must be a non-negative integer, got {start!r}")
+    if stop is not None and (int(stop) != stop or stop <= start):
+        raise VideoError(f"stop must be an integer greater than start ({start}), got {stop!r}")
+    if int(step) != step or step < 1:
+        raise VideoError(f"step must be a positive integer, got {step!r}")
+
+
+def _to_rgb(frame: av.VideoFrame, size: tuple[int, int] | None) -> np.ndarray:
+    options: dict[str, object] = {"format": "rgb24"}
+    colorspace = _COLORSPACES.get(int(frame.colorspace))
+    if colorspace:
+        options["src_colorspace"] = colorspace
+    if size is not None and tuple(size) != (frame.width, frame.height):
+        shrinking = size[0] * size[1] < frame.width * frame.height
+        options.update(width=int(size[0]), height=int(size[1]), interpolation="AREA" if shrinking else "BICUBIC")
+    return frame.to_ndarray(**options)
+
+
+def is_grayscale(frames: np.ndarray) -> bool:
+    """True when (almost) every pixel has R = G = B up to codec rounding: grey smoke footage.
+
+    One channel is trivially grey. A few deviating pixels (compression noise, a timestamp
+    overlay) are tolerated; coloured smoke or a coloured scene is not.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim < 3:
+        raise VideoError(f"frames must be (..., H, W, C), got shape {frames.shape}")
+    if frames.shape[-1] == 1:
+        return True
+    if frames.shape[-1] not in (3, 4):
+        raise VideoError(f"frames must have 1, 3 or 4 channels, got {frames.shape[-1]}")
+    rgb = frames[..., :3].astype(np.int16) if frames.dtype == np.uint8 else np.asarray(frames[..., :3]) * 255.0
+    spread = np.max(rgb, axis=-1) - np.min(rgb, axis=-1)
+    return bool(np.mean(spread <= GREY_TOLERANCE) >= GREY_FRACTION)
+
+
+def write_mp4(path: str | Path, frames: np.ndarray, fps: float = 30.0) -> Path:
+    """Encode frames (T, H, W, C), C in {1, 3}, uint8 or float in [0, 1], as H.264 yuv420p MP4.
+
+    Odd widths/heights are padded by one replicated edge row/column (see the module docstring).
+    Returns the path written.
+    """
+    path = Path(path)
+    video = _as_uint8_rgb(frames)
+    if not (isinstance(fps, (int, float)) and math.isfinite(fps) and 0 < fps <= 1000):
+        raise VideoError(f"fps must be a positive finite number up to 1000, got {fps!r}")
+    pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2
+    if pad_h or pad_w:
+        video = np.pad(video, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".mp4", dir=path.parent)
+    os.close(handle)
+    try:
+        _encode(Path(temporary), video, fps)
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+    return path
+
+
+def _as_uint8_rgb(frames: np.ndarray) -> np.ndarray:
+    video = np.asarray(frames)
+    if video.ndim != 4 or video.shape[-1] not in (1, 3) or 0 in video.shape:
+        raise VideoError(f"frames must be a non-empty (T, H, W, C) array with C = 1 or 3, got shape {video.shape}")
+    if video.dtype == np.uint8:
+        pass
+    elif np.issubdtype(video.dtype, np.floating):
+        if not np.all(np.isfinite(video)):
+            raise VideoError("frames contain NaN or infinite values")
+        low, high = float(video.min()), float(video.max())
+        if low < -1e-6 or high > 1 + 1e-6:
+            raise VideoError(f"float frames must lie in [0, 1], got values in [{low:.4g}, {high:.4g}]")
+        video = np.round(np.clip(video, 0.0, 1.0) * 255.0).astype(np.uint8)
+    else:
+        raise VideoError(f"frames must be uint8 or float in [0, 1], got dtype {video.dtype}")
+    if video.shape[-1] == 1:
+        video = np.repeat(video, 3, axis=-1)
+    return np.ascontiguousarray(video)
+
+
+def _encode(path: Path, video: np.ndarray, fps: float) -> None:
+    with av.open(str(path), mode="w", format="mp4", options={"movflags": "+faststart"}) as container:
+        stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        stream.width, stream.height = video.shape[2], video.shape[1]
+        stream.pix_fmt = "yuv420p"
+        stream.options = {"crf": str(CRF), "preset": "medium"}
+        context = stream.codec_context
+        context.color_primaries = context.color_trc = context.colorspace = 6  # SMPTE 170M = BT.601
+        context.color_range = 1  # limited ("tv") range, what players assume for yuv420p
+        for image in video:
+            frame = av.VideoFrame.from_ndarray(image, format="rgb24").reformat(
+                format="yuv420p", dst_colorspace="itu601"
+            )
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode(None))
