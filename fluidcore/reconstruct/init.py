@@ -1,0 +1,212 @@
+"""What a reconstruction needs before its first frame, estimated from the input videos alone.
+
+* the background: a colour for empty space (what every novel view shows where there is no
+  smoke) and, only when a view's background is textured, a static image for that view;
+* the smoke mask of a frame: where it differs from the background;
+* the source: where smoke enters the scene (the lowest smoke of the first frames, along the
+  scene's up axis), as a 3D centre and radius;
+* the length scale: simulator units per world unit, from the scene box.
+
+Only the videos handed in are used (never a held-out view), and nothing here is tuned to a
+particular clip: thresholds are in units of the image's own noise or of the scene box.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
+TEXTURED_FRACTION = 0.2  # a background image is kept when this much of the view is not flat
+FLAT_TOLERANCE = 0.04  # |pixel - background colour| below this counts as flat (8-bit video noise is ~0.01)
+SMOKE_THRESHOLD = 0.04  # |frame - background| above this is smoke
+SOURCE_FRAMES = 5  # the first frames say where smoke enters
+SOURCE_BAND = 0.1  # the lowest 10% of a view's smoke pixels outline the source
+SIM_BOX_HEIGHT = 75.0  # simulator units spanned by the scene box's height (paper: ScalarFlow x100)
+
+
+class EstimationError(ValueError):
+    """The videos do not show what an estimate needs (e.g. no smoke in the first frames)."""
+
+
+@dataclass(frozen=True)
+class Background:
+    """A view's background: a colour, plus a static image when the view's background is textured."""
+
+    color: np.ndarray  # (C,) float32 in [0, 1]
+    image: np.ndarray | None  # (H, W, C) float32, or None: the colour everywhere
+
+    def as_image(self, height: int, width: int) -> np.ndarray:
+        """(H, W, C) float32 at the requested size (area-resampled from the stored image)."""
+        if self.image is None:
+            return np.broadcast_to(self.color, (height, width, len(self.color))).astype(np.float32)
+        return resize_image(self.image, width, height)
+
+
+@dataclass(frozen=True)
+class SourceEstimate:
+    center: np.ndarray  # (3,) world
+    radius: float  # world units
+    pixels: dict[str, tuple[float, float, float]]  # per view: (u, v, radius in px) at full resolution
+
+
+def to_float(frames: np.ndarray, channels: int) -> np.ndarray:
+    """uint8 (T, H, W, 3) -> float32 (T, H, W, channels) in [0, 1] (grey = channel mean)."""
+    data = frames.astype(np.float32) / 255.0
+    return data.mean(axis=-1, keepdims=True) if channels == 1 else data
+
+
+def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area-style resize of an (H, W, C) float image (torch's antialiased bilinear)."""
+    if image.shape[:2] == (height, width):
+        return image.astype(np.float32)
+    import torch
+    import torch.nn.functional as F
+
+    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    out = F.interpolate(tensor, size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return out[0].permute(1, 2, 0).numpy()
+
+
+def estimate_background(frames: np.ndarray) -> Background:
+    """Background of one view from its frames (float (T, H, W, C) in [0, 1]).
+
+    The colour is the median over the frame of the per-pixel temporal median: smoke covers
+    well under half of a typical frame. The per-pixel image keeps, for each pixel, the value
+    over time closest to that colour ("the least smoky moment"), which is the true background
+    wherever the smoke ever leaves; it is only returned when the view's background is
+    textured, because a flat background is better described by its colour than by an image
+    that still holds the smoke that never leaves (e.g. right above the source).
+    """
+    if frames.ndim != 4 or frames.shape[0] == 0:
+        raise EstimationError(f"video: expected frames (T, H, W, C), got shape {frames.shape}")
+    step = max(1, len(frames) // MAX_BACKGROUND_FRAMES)
+    sample = frames[::step]
+    median = np.median(sample, axis=0)
+    color = np.median(median.reshape(-1, median.shape[-1]), axis=0).astype(np.float32)
+    distance = np.abs(sample - color).mean(axis=-1)  # (T, H, W)
+    least_smoky = np.take_along_axis(sample, distance.argmin(axis=0)[None, ..., None], axis=0)[0]
+    off = np.abs(least_smoky - color).mean(axis=-1) > FLAT_TOLERANCE
+    image = least_smoky.astype(np.float32) if off.mean() > TEXTURED_FRACTION else None
+    return Background(color=color, image=image)
+
+
+def smoke_mask(frame: np.ndarray, background: Background) -> np.ndarray:
+    """(H, W) bool: where a frame (H, W, C) differs visibly from the background."""
+    bg = background.as_image(frame.shape[0], frame.shape[1])
+    return np.abs(frame - bg).mean(axis=-1) > SMOKE_THRESHOLD
+
+
+def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(2,) unit direction in the image in which the world's up axis points, at `point`."""
+    scale = max(float(np.linalg.norm(camera.center() - point)), 1e-6) * 0.05
+    uv, _ = camera.project_numpy(np.stack([point, point + scale * up]))
+    direction = uv[1] - uv[0]
+    norm = np.linalg.norm(direction)
+    if norm < 1e-9:
+        raise EstimationError(f"camera {camera.name} looks along the up axis; cannot tell where smoke rises")
+    return direction / norm
+
+
+def source_in_view(masks: np.ndarray, up2d: np.ndarray) -> tuple[float, float, float]:
+    """(u, v, radius_px) of the source in one view from smoke masks (T, H, W) of the first frames:
+    the centre and half-width of the lowest band of smoke pixels along the image's up direction."""
+    union = masks.any(axis=0)
+    rows, cols = np.nonzero(union)
+    if len(rows) < 4:
+        raise EstimationError("source: no smoke visible in the first frames; give the source explicitly")
+    uv = np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64)
+    height = uv @ up2d
+    across = uv @ np.array([-up2d[1], up2d[0]])
+    low = height <= np.quantile(height, SOURCE_BAND)
+    lo_across, hi_across = np.quantile(across[low], [0.05, 0.95])
+    center_across = 0.5 * (lo_across + hi_across)
+    center_height = float(np.quantile(height, 0.02))  # the bottom edge, robust to a stray pixel
+    center = center_height * up2d + center_across * np.array([-up2d[1], up2d[0]])
+    return float(center[0]), float(center[1]), max(0.5 * float(hi_across - lo_across), 1.0)
+
+
+def pixel_ray(camera, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:
+    """World origin and unit direction of the ray through continuous pixel (u, v)."""
+    direction_cam = np.array([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, 1.0])
+    c2w = camera.camera_to_world()
+    direction = c2w[:3, :3] @ direction_cam
+    return c2w[:3, 3].copy(), direction / np.linalg.norm(direction)
+
+
+def closest_point_to_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """Least-squares point nearest to several rays (needs two non-parallel ones)."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for o, d in zip(origins, directions, strict=True):
+        projector = np.eye(3) - np.outer(d, d)
+        a += projector
+        b += projector @ o
+    return np.linalg.solve(a, b)
+
+
+def ray_point_nearest_axis(origin: np.ndarray, direction: np.ndarray, axis_point: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """The point of a ray closest to a line (the box's vertical axis): one view's depth guess."""
+    w = origin - axis_point
+    b = direction @ axis
+    denom = 1.0 - b * b
+    if denom < 1e-9:
+        raise EstimationError("source: the input ray is parallel to the scene's up axis")
+    s = (b * (axis @ w) - direction @ w) / denom
+    return origin + max(s, 0.0) * direction
+
+
+def estimate_source(
+    cameras: Mapping[str, object],
+    masks: Mapping[str, np.ndarray],
+    box: tuple[np.ndarray, np.ndarray],
+    up: Sequence[float] = (0.0, 1.0, 0.0),
+) -> SourceEstimate:
+    """Source centre and radius from the smoke masks of the first frames of each input view.
+
+    Two or more views triangulate the centre. One view leaves depth open: the centre is put
+    on the input ray where it passes closest to the box's vertical axis (the box is where the
+    smoke is). Masks may be at any resolution; cameras are scaled to match them.
+    """
+    up_v = np.asarray(up, dtype=np.float64)
+    up_v = up_v / np.linalg.norm(up_v)
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
+    box_center = 0.5 * (lo + hi)
+    origins, directions, pixels, px_radii = [], [], {}, []
+    for name, mask in masks.items():
+        camera = cameras[name].scaled(mask.shape[2], mask.shape[1])
+        u, v, r = source_in_view(mask, image_up(camera, box_center, up_v))
+        origin, direction = pixel_ray(camera, u, v)
+        origins.append(origin)
+        directions.append(direction)
+        sx = cameras[name].width / mask.shape[2]
+        pixels[name] = (u * sx, v * cameras[name].height / mask.shape[1], r * sx)
+        px_radii.append((camera, r))
+    if len(origins) >= 2:
+        center = closest_point_to_rays(np.array(origins), np.array(directions))
+    else:
+        center = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v)
+    center = np.clip(center, lo, hi)
+    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, r in px_radii]
+    return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels)
+
+
+def length_scale(box: tuple[np.ndarray, np.ndarray], up: Sequence[float] = (0.0, 1.0, 0.0)) -> float:
+    """Simulation units per world unit (`PBFConfig.length_scale`) so the box's height spans
+    SIM_BOX_HEIGHT of them.
+
+    Scaling by the box rather than assuming metres keeps the paper's constants (buoyancy,
+    drag, kernel radius in simulation units) meaningful for scenes in any unit, e.g. an
+    arbitrary-scale COLMAP model; for ScalarFlow's 0.736-tall box it gives ~100, the
+    official release's factor.
+    """
+    up_v = np.asarray(up, dtype=np.float64)
+    up_v = up_v / np.linalg.norm(up_v)
+    lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
+    height = float(np.abs(hi - lo) @ np.abs(up_v))
+    if not height > 0:
+        raise EstimationError(f"box: height along up is {height}; the box must have volume")
+    return SIM_BOX_HEIGHT / height

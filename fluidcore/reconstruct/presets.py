@@ -1,0 +1,132 @@
+"""Quality presets: how much work a reconstruction spends per frame, and at what resolution.
+
+`paper` mirrors the paper and its official release: 250 optimiser iterations per frame (one
+random view per iteration), full input resolution, the next-step incompressibility term on.
+`preview` is what a CPU can do in minutes (docs/bench_reconstruct.md measures how few
+iterations give the same PSNR); `standard` sits between them and is the GPU default.
+
+Loss weights are the official release's: 0.8 L1 + 0.2 (1 - SSIM) for the image, 0.1 L_sim,
+1.0 L_incomp, 0.1 next-step L_incomp; appearance regularisers lambda_c 10, lambda_s 0,
+lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any
+
+
+class PresetError(ValueError):
+    """An unknown preset name or an invalid override."""
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    l1: float = 0.8
+    dssim: float = 0.2
+    sim: float = 0.1
+    incomp: float = 1.0
+    incomp_next: float = 0.1
+    color: float = 10.0  # lambda_c: temporal colour change
+    scale: float = 0.0  # lambda_s
+    opacity: float = 8.0  # lambda_o
+    rotation: float = 0.1  # lambda_r
+    anisotropy: float = 1.0
+    max_anisotropy: float = 3.0  # scale ratio above which the anisotropy loss starts
+
+
+@dataclass(frozen=True)
+class Quality:
+    """Everything a reconstruction's cost depends on.
+
+    Resolution is the rendered long side in pixels (the input's own when larger than it);
+    `coarse_to_fine` are the fractions of it used in turn within a frame's position
+    optimisation: coarse images constrain where smoke is cheaply, fine ones its detail.
+    """
+
+    name: str
+    long_side: int
+    position_iterations: int
+    appearance_iterations: int
+    first_frame_factor: int  # frame 0 starts from a simulated blob: give it this many times more
+    coarse_to_fine: tuple[float, ...]
+    particle_spacing: float  # physical particle spacing at rest density, in units of the kernel radius h
+    visual_per_physical: int  # visual Gaussians spawned per new physical particle
+    next_step_incompressibility: bool
+    symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off)
+    symmetry_weight: float  # their loss weight relative to a real view
+    lr_position: float = 0.02  # in units of h per iteration
+    lr_color: float = 0.02
+    lr_scale: float = 0.02
+    lr_opacity: float = 0.05
+    lr_rotation: float = 0.01
+    weights: LossWeights = field(default_factory=LossWeights)
+    seed: int = 0
+
+    def to_json(self) -> dict[str, Any]:
+        return asdict(self)
+
+    def with_overrides(self, **overrides: Any) -> Quality:
+        unknown = set(overrides) - set(self.__dataclass_fields__)
+        if unknown:
+            raise PresetError(f"quality overrides: unknown fields {sorted(unknown)}")
+        return replace(self, **overrides)
+
+
+PRESETS: dict[str, Quality] = {
+    "preview": Quality(
+        name="preview",
+        long_side=480,
+        position_iterations=20,
+        appearance_iterations=10,
+        first_frame_factor=4,
+        coarse_to_fine=(0.5, 1.0),
+        particle_spacing=0.5,
+        visual_per_physical=2,
+        next_step_incompressibility=False,
+        symmetry_views=4,
+        symmetry_weight=0.5,
+    ),
+    "standard": Quality(
+        name="standard",
+        long_side=1160,
+        position_iterations=100,
+        appearance_iterations=50,
+        first_frame_factor=4,
+        coarse_to_fine=(0.25, 0.5, 1.0),
+        particle_spacing=0.5,
+        visual_per_physical=4,
+        next_step_incompressibility=True,
+        symmetry_views=6,
+        symmetry_weight=0.5,
+    ),
+    "paper": Quality(
+        name="paper",
+        long_side=100_000,  # i.e. the input's own resolution
+        position_iterations=250,
+        appearance_iterations=250,
+        first_frame_factor=4,
+        coarse_to_fine=(0.25, 0.5, 1.0),
+        particle_spacing=0.5,
+        visual_per_physical=8,
+        next_step_incompressibility=True,
+        symmetry_views=6,
+        symmetry_weight=0.5,
+    ),
+}
+
+
+def get(name: str) -> Quality:
+    """The preset called `name`, or a PresetError naming the choices."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise PresetError(f"quality must be one of {', '.join(PRESETS)}, got {name!r}") from None
+
+
+def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
+    """(W, H) for rendering an input of width x height at `long_side * fraction`, never upscaled,
+    aspect kept, at least 8 px per side."""
+    target = min(max(width, height), long_side) * fraction
+    factor = target / max(width, height)
+    return max(8, round(width * factor)), max(8, round(height * factor))
