@@ -153,6 +153,9 @@ def _intrinsics(
 def _image_size(path: Path, data: dict[str, Any], entry: dict[str, Any], video: str | None) -> tuple[int, int]:
     w, h = _lookup(data, entry, "w"), _lookup(data, entry, "h")
     if w is not None or h is not None:
+        for key, value in (("w", w), ("h", h)):
+            if value is None:
+                raise CameraError(f"missing field {key}")
         return _size(w, "w"), _size(h, "h")
     hw = _lookup(data, entry, "camera_hw")
     if hw is not None:
