@@ -1,0 +1,29 @@
+"""Position-based-fluid smoke (Macklin & Mueller 2013, as used by FluidNexus), torch in and out.
+
+Units: world lengths, seconds; density is dimensionless (1 = 8 particles per h^3, so the
+paper's rho0 values keep their meaning); gravity is scaled by `PBFConfig.length_scale`
+(see `config`). The density constraint is one-sided (only rho > rho0 is corrected), and the
+residual reported everywhere (StepStats, the benchmark) is max(0, rho/rho0 - 1).
+
+Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
+`density_residual`, `incompressibility_loss`) and a fused C++/OpenMP CPU kernel
+(`fluidcore/kernels/pbf.cpp`) that `Simulator` uses on CPU when no gradient is needed.
+"""
+
+from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
+from fluidcore.physics.forces import ForceField, wind_force
+from fluidcore.physics.functional import (
+    density,
+    density_residual,
+    incompressibility_loss,
+    interpolate_velocity,
+    sim_step,
+)
+from fluidcore.physics.simulator import Simulator, StepStats
+from fluidcore.physics.state import ParticleState
+
+__all__ = [
+    "PRESETS", "Box", "ForceField", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
+    "sim_step", "wind_force",
+]

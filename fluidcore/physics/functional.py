@@ -1,0 +1,80 @@
+"""Stateless, differentiable entry points used inside the reconstruction's optimiser.
+
+Sim(p, u) = `sim_step`, L_incomp = `incompressibility_loss`, and the velocity field that
+advects the visual particles = `interpolate_velocity`. Gradients flow to positions (and
+velocities); neighbour lists are rebuilt from detached positions, as they are piecewise
+constant in them.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from fluidcore.physics import checks
+from fluidcore.physics.config import PBFConfig, PhysicsInputError
+from fluidcore.physics.forces import ForceField
+from fluidcore.physics.neighbours import neighbour_pairs
+from fluidcore.physics.solver import residual
+from fluidcore.physics.sph import SELF_DENSITY, poly6
+from fluidcore.physics.step import advance, use_fused
+
+
+def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: ForceField | None = None,
+             time: float = 0.0, backend: str = "auto") -> tuple[Tensor, Tensor]:
+    """One PBF step of the given particles (no source, no box, no spheres): new (positions, velocities).
+
+    Differentiable w.r.t. positions and velocities; with backend="auto" the fused CPU kernel
+    is used only when no gradient is needed.
+    """
+    _check_config(config)
+    positions = checks.points(positions, "positions")
+    velocities = checks.points(velocities, "velocities", positions.shape[0])
+    out = advance(positions, velocities, config, time=float(time), force=force,
+                  fast=use_fused(backend, positions) and not velocities.requires_grad)
+    return checks.finite_result(out.positions, "sim_step positions"), checks.finite_result(out.velocities, "sim_step velocities")
+
+
+def density(positions: Tensor, h: float) -> Tensor:
+    """Dimensionless density (8 particles per h^3 = 1) of each particle, differentiable."""
+    positions = checks.points(positions, "positions")
+    i, j = neighbour_pairs(positions, positions, h, exclude_self=True)
+    r = positions[i] - positions[j]
+    rho = torch.full((positions.shape[0],), SELF_DENSITY, dtype=positions.dtype, device=positions.device)
+    return rho.index_add(0, i, poly6((r * r).sum(1) / (h * h)))
+
+
+def density_residual(positions: Tensor, config: PBFConfig) -> Tensor:
+    """Per-particle one-sided residual max(0, rho/rho0 - 1), differentiable w.r.t. positions."""
+    _check_config(config)
+    return residual(density(positions, config.h), config.rho0)
+
+
+def incompressibility_loss(positions: Tensor, config: PBFConfig) -> Tensor:
+    """L_incomp: mean squared one-sided density residual (0 for no particles), a scalar."""
+    r = density_residual(positions, config)
+    return (r * r).mean() if r.numel() else r.sum()
+
+
+def interpolate_velocity(query: Tensor, positions: Tensor, velocities: Tensor, h: float) -> Tensor:
+    """Velocity at query points (Q, 3): Poly6-weighted average of particle velocities within h.
+
+    A Shepard (normalised) average, so a uniform flow is reproduced exactly; a query with no
+    particle within h gets zero velocity.
+    """
+    query = checks.points(query, "query")
+    positions = checks.points(positions, "positions")
+    velocities = checks.points(velocities, "velocities", positions.shape[0])
+    if not (isinstance(h, (int, float)) and h > 0 and h < float("inf")):
+        raise PhysicsInputError(f"h must be a positive finite number, got {h!r}")
+    qi, pj = neighbour_pairs(query, positions, float(h))
+    r = query[qi] - positions[pj]
+    w = poly6((r * r).sum(1) / (h * h))
+    total = torch.zeros(query.shape[0], dtype=query.dtype, device=query.device).index_add(0, qi, w)
+    weighted = torch.zeros_like(query).index_add(0, qi, w[:, None] * velocities[pj])
+    return weighted / total.clamp_min(1e-12)[:, None]
+
+
+def _check_config(config: object) -> None:
+    if not isinstance(config, PBFConfig):
+        raise PhysicsInputError(f"config must be a PBFConfig, got {type(config).__name__}")

@@ -1,0 +1,97 @@
+"""One PBF step on a compact set of particles: the core shared by `Simulator` and `sim_step`.
+
+Order (Macklin & Mueller 2013, Algorithm 1, with the smoke model's forces):
+  1. v* = v + dt (alpha g + f_ext(x, t));  p = x + dt v*
+  2. neighbours of p (built once, reused by every solver iteration and the filters below)
+  3. density-constraint iterations on p
+  4. displacement capped at speed_limit * dt; spheres push particles out
+  5. v = (p - x) / dt, then drag (needs the density just solved), XSPH, vorticity,
+     sliding along spheres, and the speed limit.
+Drag is applied after the solve, as a velocity filter, because it needs the density of the
+new positions, which the solver has just computed: no extra neighbour pass.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from fluidcore.physics import coupling, forces, fused
+from fluidcore.physics.checks import points
+from fluidcore.physics.config import PBFConfig, PhysicsInputError, Sphere
+from fluidcore.physics.forces import ForceField
+from fluidcore.physics.neighbours import NeighbourList, neighbours_torch
+from fluidcore.physics.solver import solve_torch
+from fluidcore.physics.sph import density as sph_density
+
+BACKENDS = ("auto", "torch", "fused")
+
+
+@dataclass(frozen=True)
+class Advanced:
+    """Result of one step: new positions and velocities, their density, solver iterations used."""
+
+    positions: Tensor
+    velocities: Tensor
+    density: Tensor
+    iterations: int
+
+
+def use_fused(backend: str, positions: Tensor) -> bool:
+    """Resolve a backend name: the fused kernel runs on CPU without gradients, torch everywhere."""
+    if backend not in BACKENDS:
+        raise PhysicsInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    differentiable = torch.is_grad_enabled() and positions.requires_grad
+    if backend == "fused":
+        if positions.device.type != "cpu" or differentiable or not fused.available():
+            raise PhysicsInputError("backend='fused' needs CPU tensors without gradients and a C++ compiler")
+        return True
+    return backend == "auto" and positions.device.type == "cpu" and not differentiable and fused.available()
+
+
+def external_force(force: ForceField, positions: Tensor, time: float) -> Tensor:
+    """Evaluate a user force field, checking what it returns."""
+    value = force(positions, time)
+    if not isinstance(value, Tensor) or value.shape != positions.shape:
+        shape = tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
+        raise PhysicsInputError(f"force must return a tensor of shape {tuple(positions.shape)}, got {shape}")
+    return points(value, "force(positions, time)")
+
+
+def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: ForceField | None = None,
+            spheres: Sequence[Sphere] = (), fast: bool = False) -> Advanced:
+    """Advance particles x, v (N, 3) by one step of config.dt (differentiable when fast=False)."""
+    dt = config.dt
+    acceleration = x.new_tensor(config.body_acceleration)
+    if force is not None:
+        acceleration = acceleration + external_force(force, x, time)
+    p = x + dt * (v + dt * acceleration)
+
+    neighbours: NeighbourList = fused.neighbours_fused(p, config.h) if fast else neighbours_torch(p, config.h)
+    solution = (fused.solve_fused if fast else solve_torch)(p, neighbours, config)
+    p, density = solution.positions, solution.density
+
+    p = x + cap_length(p - x, config.speed_limit * dt)
+    contacts: list[coupling.Contact] = []
+    if spheres:
+        p, contacts = coupling.push_out(p, spheres, time + dt)
+        density = fused.density_fused(p, neighbours, config.h) if fast else sph_density(p, *neighbours.pairs(), config.h)
+
+    velocities = forces.drag((p - x) / dt, density, config)
+    if config.xsph > 0.0 or config.vorticity > 0.0:
+        i, j = neighbours.pairs()
+        if config.xsph > 0.0:
+            velocities = forces.xsph(velocities, p, i, j, config)
+        if config.vorticity > 0.0:
+            velocities = forces.vorticity_confinement(velocities, p, i, j, config)
+    velocities = cap_length(coupling.slide(velocities, contacts), config.speed_limit)
+    return Advanced(p, velocities, density, solution.iterations)
+
+
+def cap_length(vectors: Tensor, limit: float) -> Tensor:
+    """Scale rows longer than `limit` down to it (differentiable, safe at zero)."""
+    norm = torch.linalg.vector_norm(vectors, dim=1, keepdim=True)
+    return vectors * torch.clamp(limit / norm.clamp_min(1e-30), max=1.0)
