@@ -1,0 +1,63 @@
+"""FastAPI dependencies: the database session, storage, job queue and the calling owner.
+
+They read what `create_app` put on `app.state`, so a test builds an app with its own
+settings (database, storage folder, queue) and nothing is global.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from sqlalchemy.orm import Session
+
+from api.auth import owner_for_key
+from api.queue import JobQueue
+from api.settings import Settings
+from api.storage import Storage
+
+_bearer = HTTPBearer(auto_error=False, description="an API key from `fluidnexus keys create`")
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_session(request: Request) -> Iterator[Session]:
+    session = request.app.state.sessionmaker()
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def get_storage(request: Request) -> Storage:
+    return request.app.state.storage
+
+
+def get_queue(request: Request) -> JobQueue:
+    return request.app.state.queue
+
+
+def current_owner(
+    session: Annotated[Session, Depends(get_session)],
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> str:
+    """The owner of the Bearer key, or 401."""
+    owner = owner_for_key(session, credentials.credentials) if credentials else None
+    if owner is None:
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            "missing or invalid API key (send 'Authorization: Bearer KEY')",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+    return owner
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+StorageDep = Annotated[Storage, Depends(get_storage)]
+QueueDep = Annotated[JobQueue, Depends(get_queue)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+OwnerDep = Annotated[str, Depends(current_owner)]

@@ -1,0 +1,62 @@
+"""How the API hands a job to the workers. The Celery implementation is the real one; tests of the
+API's own logic may pass another `JobQueue` to `create_app`."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from api.database import session_scope
+from api.models import Job, JobState
+from api.settings import GPU_QUEUE, Settings
+
+
+class QueueUnavailable(Exception):
+    """The broker did not take the message."""
+
+
+class JobQueue(Protocol):
+    def enqueue(self, job_id: str, job_type: str) -> str:
+        """Send the job to a worker; returns the broker's task id."""
+
+    def ping(self) -> None:
+        """Raise QueueUnavailable unless the broker answers (for /readyz)."""
+
+
+class CeleryQueue:
+    """Sends `fluidnexus.<type>` tasks to the `gpu` queue by name (the API never imports the tasks)."""
+
+    def __init__(self, settings: Settings) -> None:
+        from worker.celery_app import make_celery
+
+        self.app = make_celery(settings)
+
+    def enqueue(self, job_id: str, job_type: str) -> str:
+        try:
+            result = self.app.send_task(f"fluidnexus.{job_type}", args=[job_id], queue=GPU_QUEUE)
+        except Exception as exc:  # kombu raises many transport-specific errors
+            raise QueueUnavailable(f"the job broker did not accept the job: {exc}") from exc
+        return result.id
+
+    def ping(self) -> None:
+        try:
+            with self.app.connection_for_write() as connection:
+                connection.ensure_connection(max_retries=1, timeout=2)
+        except Exception as exc:
+            raise QueueUnavailable(f"broker unreachable: {exc}") from exc
+
+
+def requeue_orphans(sessions: sessionmaker[Session], queue: JobQueue) -> list[str]:
+    """Send again every job a previous embedded server left `running`: its worker died with it, and
+    the filesystem broker does not redeliver a message that was already taken. The new run resumes
+    from the job's checkpoints. Returns the job ids."""
+    with session_scope(sessions) as session:
+        jobs = session.scalars(select(Job).where(Job.state == JobState.RUNNING)).all()
+        for job in jobs:
+            job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to resume", None
+        orphans = [(job.id, job.type) for job in jobs]
+    for job_id, job_type in orphans:
+        queue.enqueue(job_id, job_type)
+    return [job_id for job_id, _ in orphans]

@@ -1,0 +1,114 @@
+"""`/v1/jobs/{id}/artifacts`: list a job's results and download them (streamed, HTTP Range aware)."""
+
+from __future__ import annotations
+
+import re
+from urllib.parse import quote
+
+from fastapi import APIRouter, Header, HTTPException, status
+from fastapi.responses import StreamingResponse
+from sqlalchemy import select
+
+from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
+from api.models import Artifact
+from api.routers.jobs import owned_job
+from api.schemas import ArtifactList, ArtifactOut
+from api.storage import ObjectNotFound
+
+router = APIRouter(prefix="/v1/jobs", tags=["artifacts"])
+
+_RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
+
+
+class RangeNotSatisfiable(Exception):
+    pass
+
+
+def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
+    """The single byte range [start, end] (inclusive) asked for, or None for the whole object.
+
+    Multi-range requests and malformed headers get the whole object, which RFC 9110 allows.
+    """
+    if not header:
+        return None
+    match = _RANGE.match(header.strip())
+    if match is None:
+        return None
+    first, last = match.groups()
+    if not first and not last:
+        return None
+    if not first:  # suffix: the last N bytes
+        length = int(last)
+        if length == 0 or size == 0:
+            raise RangeNotSatisfiable
+        return max(0, size - length), size - 1
+    start = int(first)
+    end = min(int(last), size - 1) if last else size - 1
+    if start >= size or (last and int(last) < start):
+        raise RangeNotSatisfiable
+    return start, end
+
+
+@router.get("/{job_id}/artifacts", response_model=ArtifactList)
+def list_artifacts(
+    job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
+) -> ArtifactList:
+    """MP4s per camera, the orbit video, particle-state files and the manifest, with download URLs."""
+    job = owned_job(session, job_id, owner)
+    rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id).order_by(Artifact.name)).all()
+    items = [
+        ArtifactOut(
+            name=row.name,
+            kind=row.kind,
+            camera=row.camera,
+            size=row.size,
+            content_type=row.content_type,
+            url=f"/v1/jobs/{job.id}/artifacts/{quote(row.name)}",
+            presigned_url=storage.presign(row.key, settings.presign_seconds),
+        )
+        for row in rows
+    ]
+    return ArtifactList(job_id=job.id, items=items)
+
+
+@router.get(
+    "/{job_id}/artifacts/{name:path}",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"video/mp4": {}, "application/octet-stream": {}}}, 206: {"description": "a byte range"}},
+)
+def download_artifact(
+    job_id: str,
+    name: str,
+    owner: OwnerDep,
+    session: SessionDep,
+    storage: StorageDep,
+    range: str | None = Header(default=None),
+) -> StreamingResponse:
+    """Stream one artifact; honours `Range: bytes=a-b` (206) so videos seek in a browser."""
+    job = owned_job(session, job_id, owner)
+    row = session.scalars(select(Artifact).where(Artifact.job_id == job.id, Artifact.name == name)).first()
+    if row is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no artifact {name!r}")
+    try:
+        size = storage.stat(row.key).size
+        try:
+            span = parse_range(range, size)
+        except RangeNotSatisfiable:
+            raise HTTPException(
+                status.HTTP_416_RANGE_NOT_SATISFIABLE, f"range {range!r} outside 0..{size - 1}",
+                headers={"Content-Range": f"bytes */{size}"},
+            ) from None
+        start, end = span if span is not None else (0, size - 1)
+        body = storage.iter_range(row.key, start, end) if size else iter(())
+    except ObjectNotFound:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage") from None
+    headers = {
+        "Accept-Ranges": "bytes",
+        "Content-Length": str(end - start + 1 if size else 0),
+        "Content-Disposition": f"attachment; filename=\"{name.rsplit('/', 1)[-1]}\"",
+    }
+    if span is not None:
+        headers["Content-Range"] = f"bytes {start}-{end}/{size}"
+    return StreamingResponse(
+        body, status_code=206 if span is not None else 200, media_type=row.content_type, headers=headers
+    )

@@ -1,0 +1,203 @@
+"""`/v1/jobs`: create (idempotently), read, list, cancel."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from datetime import UTC, datetime
+from typing import Annotated
+
+from fastapi import APIRouter, Body, Header, HTTPException, Query, Response, status
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep
+from api.models import Job, JobState, utcnow
+from api.queue import QueueUnavailable
+from api.routers.scenes import owned_scene
+from api.schemas import (
+    JobLinks,
+    JobOut,
+    JobRequest,
+    JobStateName,
+    JobTimings,
+    JobTypeName,
+    Page,
+    ReconstructRequest,
+)
+from api.settings import Settings
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+# Which job types a job may continue: every continuation starts from a reconstruction's run folder.
+PARENT_TYPES = {"predict": ("reconstruct",), "interact": ("reconstruct",), "resimulate": ("reconstruct",)}
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+def create_job(
+    request: Annotated[JobRequest, Body()],
+    owner: OwnerDep,
+    session: SessionDep,
+    queue: QueueDep,
+    settings: SettingsDep,
+    response: Response,
+    idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
+) -> JobOut:
+    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job."""
+    body = request.model_dump(mode="json")
+    request_hash = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
+    if idempotency_key is not None:
+        existing = _replay(session, owner, idempotency_key, request_hash)
+        if existing is not None:
+            response.headers["Idempotent-Replayed"] = "true"
+            return job_out(existing)
+
+    _check_references(session, owner, request, settings)
+    job = Job(
+        owner=owner,
+        type=request.type,
+        scene_id=getattr(request, "scene_id", None),
+        parent_job_id=getattr(request, "parent_job_id", None),
+        params=body["params"],
+        idempotency_key=idempotency_key,
+        request_hash=request_hash,
+    )
+    session.add(job)
+    try:
+        session.commit()
+    except IntegrityError:  # a concurrent request with the same Idempotency-Key won the race
+        session.rollback()
+        existing = _replay(session, owner, idempotency_key or "", request_hash)
+        if existing is None:
+            raise
+        response.headers["Idempotent-Replayed"] = "true"
+        return job_out(existing)
+
+    try:
+        job.task_id = queue.enqueue(job.id, job.type)
+    except QueueUnavailable as exc:
+        job.state, job.error, job.finished_at = JobState.FAILED, str(exc), utcnow()
+        session.commit()
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    session.commit()
+    return job_out(job)
+
+
+@router.get("", response_model=Page[JobOut])
+def list_jobs(
+    owner: OwnerDep,
+    session: SessionDep,
+    state: JobStateName | None = None,
+    type: JobTypeName | None = None,
+    scene_id: str | None = None,
+    parent_job_id: str | None = None,
+    limit: Annotated[int, Query(ge=1, le=100)] = 20,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> Page[JobOut]:
+    """The caller's jobs, newest first, optionally filtered."""
+    query = select(Job).where(Job.owner == owner)
+    for column, value in ((Job.state, state), (Job.type, type), (Job.scene_id, scene_id), (Job.parent_job_id, parent_job_id)):
+        if value is not None:
+            query = query.where(column == value)
+    total = session.scalar(select(func.count()).select_from(query.subquery())) or 0
+    rows = session.scalars(query.order_by(Job.created_at.desc(), Job.id).limit(limit).offset(offset)).all()
+    next_offset = offset + limit if offset + limit < total else None
+    return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset, next_offset=next_offset)
+
+
+@router.get("/{job_id}", response_model=JobOut)
+def get_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
+    return job_out(owned_job(session, job_id, owner))
+
+
+@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
+    """A queued job is cancelled at once; a running one stops at its next frame boundary."""
+    job = owned_job(session, job_id, owner, for_update=True)
+    if JobState(job.state).finished:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} already {job.state}")
+    job.cancel_requested = True
+    if job.state == JobState.QUEUED:
+        job.state, job.stage, job.finished_at = JobState.CANCELLED, "cancelled", utcnow()
+    session.commit()
+    return job_out(job)
+
+
+def owned_job(session: Session, job_id: str, owner: str, for_update: bool = False) -> Job:
+    """The job if it exists and belongs to `owner`; 404 otherwise."""
+    query = select(Job).where(Job.id == job_id)
+    job = session.scalars(query.with_for_update() if for_update else query).first()
+    if job is None or job.owner != owner:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+    return job
+
+
+def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | None:
+    job = session.scalars(select(Job).where(Job.owner == owner, Job.idempotency_key == key)).first()
+    if job is not None and job.request_hash != request_hash:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"Idempotency-Key {key!r} was already used for a different request (job {job.id})",
+        )
+    return job
+
+
+def _check_references(session: Session, owner: str, request: JobRequest, settings: Settings) -> None:
+    """The scene or parent job exists, belongs to the caller, and fits the parameters."""
+    if isinstance(request, ReconstructRequest):
+        scene = owned_scene(session, request.scene_id, owner)
+        frames = request.params.frames
+        if frames is not None and frames[1] > scene.n_frames:
+            raise HTTPException(
+                status.HTTP_422_UNPROCESSABLE_CONTENT,
+                f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
+            )
+        return
+    parent = owned_job(session, request.parent_job_id, owner)
+    allowed = PARENT_TYPES[request.type]
+    if parent.type not in allowed:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"parent_job_id: a {request.type} job continues a {' or '.join(allowed)} job, not a {parent.type} job",
+        )
+    if parent.state != JobState.SUCCEEDED:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it must have succeeded first"
+        )
+    frames = getattr(request.params, "frames", None)
+    if frames is not None and frames > settings.max_predict_frames:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"params.frames: at most {settings.max_predict_frames} new frames per job",
+        )
+
+
+def job_out(job: Job) -> JobOut:
+    now = datetime.now(UTC)
+    started, finished = job.started_at, job.finished_at
+    queued_until = started or finished or now
+    timings = JobTimings(
+        created_at=job.created_at,
+        started_at=started,
+        finished_at=finished,
+        queued_seconds=(queued_until - job.created_at).total_seconds(),
+        run_seconds=((finished or now) - started).total_seconds() if started else None,
+        stages=job.stage_seconds or {},
+    )
+    base = f"/v1/jobs/{job.id}"
+    return JobOut(
+        id=job.id,
+        type=job.type,
+        state=job.state,
+        stage=job.stage,
+        progress=job.progress,
+        scene_id=job.scene_id,
+        parent_job_id=job.parent_job_id,
+        params=job.params,
+        error=job.error,
+        cancel_requested=job.cancel_requested,
+        attempts=job.attempts,
+        timings=timings,
+        links=JobLinks(self=base, artifacts=f"{base}/artifacts", cancel=f"{base}/cancel"),
+    )

@@ -1,0 +1,123 @@
+"""`/v1/scenes`: upload a capture (cameras file + videos) and read it back."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, HTTPException, Query, UploadFile, status
+from sqlalchemy import func, select
+
+from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
+from api.models import Scene, new_id
+from api.schemas import Page, SceneOut, SceneVideo
+from api.uploads import ValidatedScene, safe_filename, spool, store_scene, validate_scene
+
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+
+
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut)
+def create_scene(
+    owner: OwnerDep,
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+    cameras: Annotated[UploadFile, File(description="transforms.json, info.json or a zipped COLMAP model")],
+    video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
+    name: Annotated[str, Form(max_length=256)] = "",
+) -> SceneOut:
+    """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it."""
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
+        folder = Path(tmp)
+        cameras_name = safe_filename(cameras.filename, "cameras")
+        spool(cameras.file, folder / cameras_name, settings.max_video_bytes, "cameras")
+        sizes: dict[str, int] = {}
+        for part in video:
+            filename = safe_filename(part.filename, "video")
+            if filename in sizes or filename == cameras_name:
+                raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
+            sizes[filename] = spool(part.file, folder / filename, settings.max_video_bytes, "video")
+        validated = validate_scene(folder, cameras_name, sizes, settings)
+
+        scene_id = new_id()
+        keys = store_scene(storage, f"scenes/{scene_id}/input", validated)
+        try:
+            scene = _scene_row(scene_id, owner, name, validated, keys)
+            session.add(scene)
+            session.commit()
+        except BaseException:
+            session.rollback()
+            for key in keys.values():
+                storage.delete(key)
+            raise
+    return scene_out(scene)
+
+
+@router.get("", response_model=Page[SceneOut])
+def list_scenes(
+    owner: OwnerDep,
+    session: SessionDep,
+    limit: Annotated[int, Query(ge=1, le=100)] = 20,
+    offset: Annotated[int, Query(ge=0)] = 0,
+) -> Page[SceneOut]:
+    """The caller's scenes, newest first."""
+    total = session.scalar(select(func.count()).select_from(Scene).where(Scene.owner == owner)) or 0
+    rows = session.scalars(
+        select(Scene).where(Scene.owner == owner).order_by(Scene.created_at.desc(), Scene.id).limit(limit).offset(offset)
+    ).all()
+    next_offset = offset + limit if offset + limit < total else None
+    return Page[SceneOut](
+        items=[scene_out(s) for s in rows], total=total, limit=limit, offset=offset, next_offset=next_offset
+    )
+
+
+@router.get("/{scene_id}", response_model=SceneOut)
+def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep) -> SceneOut:
+    return scene_out(owned_scene(session, scene_id, owner))
+
+
+def owned_scene(session: SessionDep, scene_id: str, owner: str) -> Scene:
+    """The scene if it exists and belongs to `owner`; 404 otherwise (never 403: ids are not disclosed)."""
+    scene = session.get(Scene, scene_id)
+    if scene is None or scene.owner != owner:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id} not found")
+    return scene
+
+
+def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, keys: dict[str, str]) -> Scene:
+    videos = {
+        camera: {
+            "key": keys[v.filename],
+            "filename": v.filename,
+            "size": v.size,
+            "width": v.width,
+            "height": v.height,
+            "fps": v.fps,
+            "n_frames": v.n_frames,
+            "codec": v.codec,
+        }
+        for camera, v in validated.videos.items()
+    }
+    return Scene(
+        id=scene_id,
+        owner=owner,
+        name=name,
+        cameras_key=keys[validated.cameras_path.name],
+        cameras=validated.camera_names,
+        videos=videos,
+        n_frames=validated.n_frames,
+        fps=validated.fps,
+    )
+
+
+def scene_out(scene: Scene) -> SceneOut:
+    return SceneOut(
+        id=scene.id,
+        name=scene.name,
+        created_at=scene.created_at,
+        cameras=scene.cameras,
+        videos={camera: SceneVideo(**{k: v for k, v in info.items() if k != "key"}) for camera, info in scene.videos.items()},
+        n_frames=scene.n_frames,
+        fps=scene.fps,
+    )

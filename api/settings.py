@@ -1,0 +1,93 @@
+"""Service settings, read from `FLUIDNEXUS_*` environment variables (and `.env`).
+
+Everything has an embedded default rooted in `data_dir`: SQLite database, local storage
+folder and a kombu filesystem broker. Pointing `database_url`, `broker_url` or
+`storage_backend` elsewhere switches that one piece to PostgreSQL, Redis or MinIO/S3.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+GPU_QUEUE = "gpu"
+
+
+class Settings(BaseSettings):
+    """One object shared by the API, the worker and the `fluidnexus` service commands."""
+
+    model_config = SettingsConfigDict(env_prefix="FLUIDNEXUS_", env_file=".env", extra="ignore")
+
+    data_dir: Path = Path("data")
+    database_url: str | None = Field(default=None, description="SQLAlchemy URL; default sqlite in data_dir")
+    broker_url: str | None = Field(default=None, description="Celery broker; default kombu filesystem in data_dir")
+
+    storage_backend: Literal["local", "s3"] = "local"
+    storage_dir: Path | None = Field(default=None, description="local backend root; default data_dir/storage")
+    s3_endpoint: str = "127.0.0.1:9000"
+    s3_access_key: str = "minioadmin"
+    s3_secret_key: str = "minioadmin"
+    s3_bucket: str = "fluidnexus"
+    s3_secure: bool = False
+    s3_region: str | None = None
+    presign_seconds: int = Field(default=3600, ge=60, le=7 * 24 * 3600)
+
+    # Upload limits: checked before anything is stored.
+    max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="whole multipart request")
+    max_video_bytes: int = Field(default=1024**3, gt=0)
+    max_video_seconds: float = Field(default=120.0, gt=0)
+    max_video_pixels: int = Field(default=3840 * 2160, gt=0)
+    max_videos: int = Field(default=16, gt=0)
+    max_predict_frames: int = Field(default=600, gt=0)
+
+    # Worker.
+    work_dir: Path | None = Field(default=None, description="worker-local run cache; default data_dir/work")
+    device: str = Field(default="auto", description="'auto' (cuda when available), 'cpu' or 'cuda:N'")
+    worker_torch_threads: int = Field(default=0, ge=0, description="torch threads per worker child; 0 = all cores")
+    job_soft_time_limit: int = Field(default=6 * 3600, gt=0, description="seconds; the job fails cleanly")
+    job_hard_time_limit: int = Field(default=6 * 3600 + 300, gt=0, description="seconds; the child is killed")
+    job_lease_seconds: int = Field(
+        default=900, gt=0, description="a running job silent this long is taken over by another worker"
+    )
+    max_transient_retries: int = Field(default=3, ge=0)
+    runners: str | None = Field(
+        default=None,
+        description="'module:attribute' of a dict replacing the fluidcore job runners; test doubles only",
+    )
+
+    migrate_on_start: bool = True
+    web_dir: Path = Path(__file__).resolve().parents[1] / "web"
+
+    def resolved_data_dir(self) -> Path:
+        return self.data_dir.expanduser().resolve()
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{self.resolved_data_dir() / 'fluidnexus.sqlite3'}"
+
+    def resolved_broker_url(self) -> str:
+        return self.broker_url or "filesystem://"
+
+    def broker_folder(self) -> Path:
+        """Message folder of the embedded filesystem broker (used only when no broker_url is set)."""
+        return self.resolved_data_dir() / "broker"
+
+    def resolved_storage_dir(self) -> Path:
+        return (self.storage_dir or self.resolved_data_dir() / "storage").expanduser().resolve()
+
+    def resolved_work_dir(self) -> Path:
+        return (self.work_dir or self.resolved_data_dir() / "work").expanduser().resolve()
+
+    def is_embedded_broker(self) -> bool:
+        return self.resolved_broker_url().startswith("filesystem://")
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings (tests build their own `Settings` and pass them to `create_app`)."""
+    return Settings()

@@ -1,0 +1,283 @@
+"""Object storage: one interface, a local-folder backend (embedded default) and an S3 backend
+through the `minio` client (MinIO in production, any S3-compatible server in tests).
+
+Keys are '/'-separated relative paths such as `scenes/<id>/videos/cam0.mp4`. Range reads
+stream in chunks so a large MP4 never sits in memory.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from datetime import timedelta
+from pathlib import Path, PurePosixPath
+
+from api.settings import Settings
+
+CHUNK = 1024 * 1024
+
+
+class StorageError(Exception):
+    """A storage operation failed for a reason outside the request (server down, disk full)."""
+
+
+class ObjectNotFound(KeyError):
+    """No object under this key."""
+
+
+class InvalidKey(ValueError):
+    """A key that could escape the storage root or is otherwise malformed."""
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    key: str
+    size: int
+
+
+def check_key(key: str) -> str:
+    """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
+    parts = PurePosixPath(key).parts
+    if not key or key.startswith("/") or "\\" in key or any(p in ("", ".", "..") for p in parts):
+        raise InvalidKey(f"invalid storage key {key!r}")
+    return key
+
+
+class Storage(ABC):
+    """What the API and the worker need from object storage."""
+
+    @abstractmethod
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None: ...
+
+    @abstractmethod
+    def get_file(self, key: str, path: Path) -> None:
+        """Download `key` to `path` (written atomically)."""
+
+    @abstractmethod
+    def stat(self, key: str) -> ObjectInfo:
+        """Size of `key`; ObjectNotFound if absent."""
+
+    @abstractmethod
+    def iter_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
+        """Bytes start..end (inclusive, as in HTTP Range), streamed in chunks."""
+
+    @abstractmethod
+    def list(self, prefix: str) -> list[ObjectInfo]:
+        """Every object whose key starts with `prefix`, sorted by key."""
+
+    @abstractmethod
+    def delete(self, key: str) -> None:
+        """Remove `key`; absent keys are ignored."""
+
+    @abstractmethod
+    def presign(self, key: str, expires_s: int) -> str | None:
+        """A time-limited GET URL that bypasses the API, or None when the backend has none."""
+
+    @abstractmethod
+    def check(self) -> None:
+        """Raise StorageError unless the backend is reachable and writable (for /readyz)."""
+
+    def put_bytes(self, key: str, data: bytes, content_type: str = "application/octet-stream") -> None:
+        with tempfile.NamedTemporaryFile(delete=False) as tmp:
+            tmp.write(data)
+        try:
+            self.put_file(key, Path(tmp.name), content_type)
+        finally:
+            os.unlink(tmp.name)
+
+    def read_bytes(self, key: str) -> bytes:
+        return b"".join(self.iter_range(key))
+
+    def exists(self, key: str) -> bool:
+        try:
+            self.stat(key)
+        except ObjectNotFound:
+            return False
+        return True
+
+    def delete_prefix(self, prefix: str) -> None:
+        for info in self.list(prefix):
+            self.delete(info.key)
+
+
+class LocalStorage(Storage):
+    """Objects are files under `root`; writes go through a temporary file and a rename."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root).resolve()
+        self.root.mkdir(parents=True, exist_ok=True)
+
+    def _path(self, key: str) -> Path:
+        return self.root / check_key(key)
+
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
+        target = self._path(key)
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=".upload-")
+            os.close(fd)
+            shutil.copyfile(path, tmp)
+            os.replace(tmp, target)
+        except OSError as exc:
+            raise StorageError(f"cannot write {key}: {exc}") from exc
+
+    def get_file(self, key: str, path: Path) -> None:
+        source = self._path(key)
+        if not source.is_file():
+            raise ObjectNotFound(key)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".part")
+        shutil.copyfile(source, tmp)
+        os.replace(tmp, path)
+
+    def stat(self, key: str) -> ObjectInfo:
+        path = self._path(key)
+        if not path.is_file():
+            raise ObjectNotFound(key)
+        return ObjectInfo(key, path.stat().st_size)
+
+    def iter_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
+        path = self._path(key)
+        if not path.is_file():
+            raise ObjectNotFound(key)
+        return self._read(path, start, end)
+
+    @staticmethod
+    def _read(path: Path, start: int, end: int | None) -> Iterator[bytes]:
+        with path.open("rb") as handle:
+            handle.seek(start)
+            remaining = None if end is None else end - start + 1
+            while remaining is None or remaining > 0:
+                chunk = handle.read(CHUNK if remaining is None else min(CHUNK, remaining))
+                if not chunk:
+                    return
+                if remaining is not None:
+                    remaining -= len(chunk)
+                yield chunk
+
+    def list(self, prefix: str) -> list[ObjectInfo]:
+        found = []
+        folder = self.root / prefix.rsplit("/", 1)[0] if "/" in prefix else self.root
+        for path in folder.rglob("*"):
+            if path.is_file() and not path.name.startswith(".upload-"):
+                key = path.relative_to(self.root).as_posix()
+                if key.startswith(prefix):
+                    found.append(ObjectInfo(key, path.stat().st_size))
+        return sorted(found, key=lambda info: info.key)
+
+    def delete(self, key: str) -> None:
+        self._path(key).unlink(missing_ok=True)
+
+    def presign(self, key: str, expires_s: int) -> str | None:
+        return None
+
+    def check(self) -> None:
+        try:
+            with tempfile.NamedTemporaryFile(dir=self.root, prefix=".upload-"):
+                pass
+        except OSError as exc:
+            raise StorageError(f"storage folder {self.root} is not writable: {exc}") from exc
+
+
+class MinioStorage(Storage):
+    """Objects in one S3 bucket, through the `minio` client."""
+
+    def __init__(
+        self,
+        endpoint: str,
+        access_key: str,
+        secret_key: str,
+        bucket: str,
+        secure: bool = False,
+        region: str | None = None,
+    ) -> None:
+        from minio import Minio
+
+        self.bucket = bucket
+        self.client = Minio(endpoint, access_key=access_key, secret_key=secret_key, secure=secure, region=region)
+
+    def _call(self, what: str, fn, *args, **kwargs):  # type: ignore[no-untyped-def]
+        """Run a client call, mapping 'no such key' to ObjectNotFound and the rest to StorageError."""
+        from minio.error import MinioException, S3Error
+        from urllib3.exceptions import HTTPError
+
+        try:
+            return fn(*args, **kwargs)
+        except S3Error as exc:
+            if exc.code in ("NoSuchKey", "NoSuchObject"):
+                raise ObjectNotFound(args[1] if len(args) > 1 else what) from exc
+            raise StorageError(f"{what}: {exc.code}: {exc.message}") from exc
+        except (MinioException, HTTPError, OSError) as exc:
+            raise StorageError(f"{what}: {exc}") from exc
+
+    def ensure_bucket(self) -> None:
+        if not self._call("bucket_exists", self.client.bucket_exists, self.bucket):
+            self._call("make_bucket", self.client.make_bucket, self.bucket)
+
+    def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
+        self._call(f"put {key}", self.client.fput_object, self.bucket, check_key(key), str(path), content_type)
+
+    def get_file(self, key: str, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".part")
+        self._call(f"get {key}", self.client.fget_object, self.bucket, check_key(key), str(tmp))
+        os.replace(tmp, path)
+
+    def stat(self, key: str) -> ObjectInfo:
+        result = self._call(f"stat {key}", self.client.stat_object, self.bucket, check_key(key))
+        return ObjectInfo(key, int(result.size))
+
+    def iter_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
+        length = 0 if end is None else end - start + 1
+        response = self._call(
+            f"get {key}", self.client.get_object, self.bucket, check_key(key), offset=start, length=length
+        )
+        return self._stream(response)
+
+    @staticmethod
+    def _stream(response) -> Iterator[bytes]:  # type: ignore[no-untyped-def]
+        try:
+            yield from response.stream(CHUNK)
+        finally:
+            response.close()
+            response.release_conn()
+
+    def list(self, prefix: str) -> list[ObjectInfo]:
+        objects = self._call(
+            f"list {prefix}", lambda: list(self.client.list_objects(self.bucket, prefix=prefix, recursive=True))
+        )
+        return sorted((ObjectInfo(o.object_name, int(o.size)) for o in objects), key=lambda info: info.key)
+
+    def delete(self, key: str) -> None:
+        self._call(f"delete {key}", self.client.remove_object, self.bucket, check_key(key))
+
+    def presign(self, key: str, expires_s: int) -> str | None:
+        return self._call(
+            f"presign {key}",
+            self.client.presigned_get_object,
+            self.bucket,
+            check_key(key),
+            expires=timedelta(seconds=expires_s),
+        )
+
+    def check(self) -> None:
+        if not self._call("bucket_exists", self.client.bucket_exists, self.bucket):
+            raise StorageError(f"bucket {self.bucket!r} does not exist")
+
+
+def make_storage(settings: Settings) -> Storage:
+    """The backend the settings ask for."""
+    if settings.storage_backend == "s3":
+        return MinioStorage(
+            settings.s3_endpoint,
+            settings.s3_access_key,
+            settings.s3_secret_key,
+            settings.s3_bucket,
+            secure=settings.s3_secure,
+            region=settings.s3_region,
+        )
+    return LocalStorage(settings.resolved_storage_dir())

@@ -1,0 +1,177 @@
+"""Scene uploads: spool every part to a private folder, validate all of it, and only then store.
+
+Validation uses fluidcore's torch-free readers (`fluidcore.cameras.load`,
+`fluidcore.video.probe`), so what the API accepts is exactly what the worker can read.
+Nothing touches storage until the whole upload is known to be good, and a failed store
+removes what it had written, so a bad request never leaves or loses anything.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+from typing import TYPE_CHECKING, BinaryIO
+
+from api.settings import Settings
+from api.storage import Storage
+
+if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
+    from fluidcore.cameras import Camera
+    from fluidcore.video import VideoInfo
+
+_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
+VIDEO_CONTENT_TYPE = "video/mp4"
+
+
+class UploadRejected(ValueError):
+    """The upload cannot be accepted; `status_code` is 413 for size limits, else 422."""
+
+    def __init__(self, message: str, status_code: int = 422) -> None:
+        super().__init__(message)
+        self.status_code = status_code
+
+
+@dataclass(frozen=True)
+class SpooledVideo:
+    camera: str
+    filename: str
+    path: Path
+    size: int
+    width: int
+    height: int
+    fps: float
+    n_frames: int
+    codec: str
+
+
+@dataclass(frozen=True)
+class ValidatedScene:
+    cameras_path: Path
+    camera_names: list[str]
+    videos: dict[str, SpooledVideo]
+    n_frames: int
+    fps: float
+
+
+def safe_filename(name: str | None, field: str) -> str:
+    """The base name of an uploaded file, refused unless it is a plain, portable file name."""
+    base = PurePath((name or "").replace("\\", "/")).name
+    if not _SAFE_NAME.match(base):
+        raise UploadRejected(f"{field}: file name {name!r} must be letters, digits, '.', '_' or '-'")
+    return base
+
+
+def spool(source: BinaryIO, target: Path, limit: int, field: str) -> int:
+    """Copy an uploaded part to `target`, refusing (413) more than `limit` bytes."""
+    size = 0
+    with target.open("wb") as out:
+        while chunk := source.read(1024 * 1024):
+            size += len(chunk)
+            if size > limit:
+                raise UploadRejected(f"{field}: {target.name} is larger than the limit of {limit} bytes", 413)
+            out.write(chunk)
+    if size == 0:
+        raise UploadRejected(f"{field}: {target.name} is empty")
+    return size
+
+
+def match_camera(filename: str, cameras: dict[str, Camera]) -> str:
+    """The camera a video belongs to: its stem is a camera's name or the base name of its file_path."""
+    stem = PurePath(filename).stem
+    for name, camera in cameras.items():
+        aliases = {name}
+        if camera.file_path:
+            aliases |= {PurePath(camera.file_path).name, PurePath(camera.file_path).stem}
+        if stem in aliases or filename in aliases:
+            return name
+    known = ", ".join(sorted(cameras))
+    raise UploadRejected(f"video: {filename!r} matches no camera; known cameras: {known}")
+
+
+def validate_scene(
+    folder: Path, cameras_file: str, video_sizes: dict[str, int], settings: Settings
+) -> ValidatedScene:
+    """Check the spooled cameras file and videos in `folder`; raise UploadRejected naming the problem."""
+    from fluidcore.cameras import CameraError, load
+    from fluidcore.video import VideoError, probe
+
+    try:
+        cameras = load(folder / cameras_file)
+    except CameraError as exc:
+        raise UploadRejected(f"cameras: {exc}") from None
+    if not video_sizes:
+        raise UploadRejected("video: at least one video part is required")
+    if len(video_sizes) > settings.max_videos:
+        raise UploadRejected(f"video: at most {settings.max_videos} videos per scene")
+
+    videos: dict[str, SpooledVideo] = {}
+    for filename, size in video_sizes.items():
+        camera_name = match_camera(filename, cameras)
+        if camera_name in videos:
+            raise UploadRejected(
+                f"video: {filename!r} and {videos[camera_name].filename!r} are both for camera {camera_name!r}"
+            )
+        try:
+            info = probe(folder / filename)
+        except VideoError as exc:
+            raise UploadRejected(f"video: {filename}: {exc}") from None
+        _check_video(filename, info, cameras[camera_name], settings)
+        videos[camera_name] = SpooledVideo(
+            camera_name, filename, folder / filename, size, info.width, info.height, float(info.fps),
+            info.n_frames, info.codec,
+        )
+
+    rates = {v.fps for v in videos.values()}
+    if max(rates) - min(rates) > 1e-3 * max(rates):
+        listing = ", ".join(f"{v.filename}: {v.fps:g}" for v in videos.values())
+        raise UploadRejected(f"video: all videos must have the same frame rate ({listing})")
+    return ValidatedScene(
+        cameras_path=folder / cameras_file,
+        camera_names=sorted(cameras),
+        videos=videos,
+        n_frames=min(v.n_frames for v in videos.values()),
+        fps=max(rates),
+    )
+
+
+def _check_video(filename: str, info: VideoInfo, camera: Camera, settings: Settings) -> None:
+    """Limits from the settings, and exactly the camera's frame size (its intrinsics are in those pixels)."""
+    from fluidcore.cameras import CameraError, check_video_size
+
+    if info.n_frames < 1 or info.fps <= 0:
+        raise UploadRejected(f"video: {filename} has no frames")
+    seconds = info.n_frames / info.fps
+    if seconds > settings.max_video_seconds:
+        raise UploadRejected(
+            f"video: {filename} lasts {seconds:.1f} s, longer than the limit of {settings.max_video_seconds:g} s"
+        )
+    if info.width * info.height > settings.max_video_pixels:
+        raise UploadRejected(
+            f"video: {filename} is {info.width}x{info.height}, more than {settings.max_video_pixels} pixels"
+        )
+    try:
+        check_video_size(camera, info.width, info.height)
+    except CameraError as exc:
+        raise UploadRejected(f"video: {filename}: {exc}") from None
+
+
+def store_scene(storage: Storage, prefix: str, scene: ValidatedScene) -> dict[str, str]:
+    """Upload the validated files under `prefix`; on any failure remove what was written and re-raise.
+
+    Returns file name -> storage key. Videos and the cameras file share one folder because a
+    cameras file may name its videos by relative path (and read their size from them).
+    """
+    files = [(scene.cameras_path, "application/octet-stream")]
+    files += [(v.path, VIDEO_CONTENT_TYPE) for v in scene.videos.values()]
+    written: dict[str, str] = {}
+    try:
+        for path, content_type in files:
+            key = f"{prefix}/{path.name}"
+            storage.put_file(key, path, content_type)
+            written[path.name] = key
+    except BaseException:
+        for key in written.values():
+            storage.delete(key)
+        raise
+    return written

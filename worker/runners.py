@@ -1,0 +1,134 @@
+"""Job runners: the only place the worker calls fluidcore (the "Jobs" contract in
+docs/architecture.md). fluidcore and torch are imported inside the runner bodies, so
+the Celery app, the API and the tests of the service logic load without them.
+
+A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
+files to publish besides the run folder itself (MP4 per camera, orbit video).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+Progress = Callable[[float, str], None]
+ShouldCancel = Callable[[], bool]
+
+
+class JobCancelled(Exception):
+    """The runner stopped because should_cancel() said so (fluidcore's Cancelled, translated)."""
+
+
+@dataclass(frozen=True)
+class RunInputs:
+    job_id: str
+    job_type: str
+    params: dict[str, Any]
+    run_dir: Path  # the job's run folder: checkpointed to storage, resumed from on a retry
+    render_dir: Path  # where the videos go
+    device: str
+    progress: Progress
+    should_cancel: ShouldCancel
+    cameras_path: Path | None = None  # reconstruct
+    videos: Mapping[str, Path] | None = None  # reconstruct: camera name -> video
+    parent_run: Path | None = None  # predict / interact / resimulate
+
+
+Runner = Callable[[RunInputs], list[Path]]
+
+
+def _callbacks(inputs: RunInputs) -> dict[str, Any]:
+    return {"device": inputs.device, "progress": inputs.progress, "should_cancel": inputs.should_cancel}
+
+
+def _render(inputs: RunInputs) -> list[Path]:
+    from fluidcore.pipeline import render_artifacts
+
+    inputs.progress(0.0, "render")
+    return list(render_artifacts(inputs.run_dir, inputs.render_dir))
+
+
+def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
+    """Run a fluidcore job, then render it; fluidcore's Cancelled becomes JobCancelled."""
+
+    def runner(inputs: RunInputs) -> list[Path]:
+        from fluidcore.pipeline import Cancelled
+
+        try:
+            run(inputs)
+        except Cancelled as exc:
+            raise JobCancelled(str(exc)) from exc
+        return _render(inputs)
+
+    runner.__name__ = run.__name__
+    runner.__doc__ = run.__doc__
+    return runner
+
+
+@_translating_cancel
+def reconstruct(inputs: RunInputs) -> None:
+    from fluidcore.pipeline import run_reconstruct
+
+    frames = inputs.params.get("frames")
+    assert inputs.cameras_path is not None and inputs.videos is not None
+    run_reconstruct(
+        inputs.cameras_path,
+        dict(inputs.videos),
+        inputs.run_dir,
+        quality=inputs.params.get("quality", "preview"),
+        frames=tuple(frames) if frames is not None else None,
+        **_callbacks(inputs),
+    )
+
+
+@_translating_cancel
+def predict(inputs: RunInputs) -> None:
+    from fluidcore.predict import run_predict
+
+    run_predict(inputs.parent_run, inputs.run_dir, frames=inputs.params["frames"], **_callbacks(inputs))
+
+
+@_translating_cancel
+def interact(inputs: RunInputs) -> None:
+    from fluidcore.interaction import BallParams, WindParams
+    from fluidcore.predict import run_interact
+
+    wind, ball = inputs.params.get("wind"), inputs.params.get("ball")
+    run_interact(
+        inputs.parent_run,
+        inputs.run_dir,
+        frames=inputs.params["frames"],
+        wind=WindParams.model_validate(wind) if wind is not None else None,
+        ball=BallParams.model_validate(ball) if ball is not None else None,
+        **_callbacks(inputs),
+    )
+
+
+@_translating_cancel
+def resimulate(inputs: RunInputs) -> None:
+    from fluidcore.predict import run_resimulate
+
+    run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
+
+
+FLUIDCORE_RUNNERS: dict[str, Runner] = {
+    "reconstruct": reconstruct,
+    "predict": predict,
+    "interact": interact,
+    "resimulate": resimulate,
+}
+
+
+def load_runners(spec: str | None) -> Mapping[str, Runner]:
+    """fluidcore's runners, or the dict named by `spec` ('module:attribute'), the seam for test doubles."""
+    if spec is None:
+        return FLUIDCORE_RUNNERS
+    module_name, _, attribute = spec.partition(":")
+    runners = getattr(importlib.import_module(module_name), attribute)
+    missing = set(FLUIDCORE_RUNNERS) - set(runners)
+    if missing:
+        raise ValueError(f"runners {spec}: no runner for {sorted(missing)}")
+    return runners
