@@ -113,7 +113,8 @@ def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 def source_in_view(masks: np.ndarray, up2d: np.ndarray) -> tuple[float, float, float]:
     """(u, v, radius_px) of the source in one view from smoke masks (T, H, W) of the first frames:
-    the centre and half-width of the lowest band of smoke pixels along the image's up direction."""
+    a ball as wide as the lowest band of smoke pixels (along the image's up direction),
+    resting on the smoke's bottom edge."""
     union = masks.any(axis=0)
     rows, cols = np.nonzero(union)
     if len(rows) < 4:
@@ -124,9 +125,10 @@ def source_in_view(masks: np.ndarray, up2d: np.ndarray) -> tuple[float, float, f
     low = height <= np.quantile(height, SOURCE_BAND)
     lo_across, hi_across = np.quantile(across[low], [0.05, 0.95])
     center_across = 0.5 * (lo_across + hi_across)
-    center_height = float(np.quantile(height, 0.02))  # the bottom edge, robust to a stray pixel
-    center = center_height * up2d + center_across * np.array([-up2d[1], up2d[0]])
-    return float(center[0]), float(center[1]), max(0.5 * float(hi_across - lo_across), 1.0)
+    radius = max(0.5 * float(hi_across - lo_across), 1.0)
+    bottom = float(np.quantile(height, 0.02))  # the bottom edge, robust to a stray pixel
+    center = (bottom + radius) * up2d + center_across * np.array([-up2d[1], up2d[0]])  # a ball resting on it
+    return float(center[0]), float(center[1]), radius
 
 
 def pixel_ray(camera, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:

@@ -50,7 +50,8 @@ class Quality:
     appearance_iterations: int
     first_frame_factor: int  # frame 0 starts from a simulated blob: give it this many times more
     coarse_to_fine: tuple[float, ...]
-    particle_spacing: float  # physical particle spacing at rest density, in units of the kernel radius h
+    particles_per_frame: int  # physical particles the source seeds per step
+    velocity_radius: float  # visual Gaussians follow the velocity interpolated within this many h
     visual_per_physical: int  # visual Gaussians spawned per new physical particle
     next_step_incompressibility: bool
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off)
@@ -81,7 +82,8 @@ PRESETS: dict[str, Quality] = {
         appearance_iterations=10,
         first_frame_factor=4,
         coarse_to_fine=(0.5, 1.0),
-        particle_spacing=0.5,
+        particles_per_frame=30,
+        velocity_radius=2.0,
         visual_per_physical=2,
         next_step_incompressibility=False,
         symmetry_views=4,
@@ -94,7 +96,8 @@ PRESETS: dict[str, Quality] = {
         appearance_iterations=50,
         first_frame_factor=4,
         coarse_to_fine=(0.25, 0.5, 1.0),
-        particle_spacing=0.5,
+        particles_per_frame=80,
+        velocity_radius=2.0,
         visual_per_physical=4,
         next_step_incompressibility=True,
         symmetry_views=6,
@@ -107,7 +110,8 @@ PRESETS: dict[str, Quality] = {
         appearance_iterations=250,
         first_frame_factor=4,
         coarse_to_fine=(0.25, 0.5, 1.0),
-        particle_spacing=0.5,
+        particles_per_frame=177,  # the release's ScalarFlow seeding
+        velocity_radius=2.0,
         visual_per_physical=8,
         next_step_incompressibility=True,
         symmetry_views=6,

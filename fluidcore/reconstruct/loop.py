@@ -1,0 +1,386 @@
+"""The per-frame driver of Algorithm S1, with a checkpoint after every frame.
+
+`prepare` turns cameras and decoded input videos into a `Reconstruction` (targets at the
+working resolution, background, source, physics in this scene's units); `run` then goes
+frame by frame:
+
+    frame 0: the source seeds particles for 20 stabilisation steps; positions are fitted
+             (with `first_frame_factor` times more iterations), the visual Gaussians are born
+             on them and their appearance is fitted;
+    frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles), positions fitted
+             (fluidcore.reconstruct.physical), u_t = (p_t - p_{t-1}) / dt, visual Gaussians
+             advected and their appearance fitted (fluidcore.reconstruct.visual).
+
+Each frame's state is written to the run folder before the next begins. Randomness (view
+choice, spawn jitter, source seeding) is a function of (seed, frame) only, and every frame
+starts from the saved float32 state, so a resumed run computes exactly what an uninterrupted
+one does.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from fluidcore.cameras import Camera
+from fluidcore.physics import PRESETS as PHYSICS_PRESETS
+from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source
+from fluidcore.reconstruct import init
+from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
+from fluidcore.reconstruct.presets import Quality, render_size
+from fluidcore.reconstruct.views import ViewTarget, image_loss, symmetry_views
+from fluidcore.reconstruct.visual import Appearance, fit_appearance, spawn
+from fluidcore.render import Gaussians, render
+from fluidcore.runs import FrameState, Run, Scene
+
+STABILIZATION_STEPS = 20
+KERNEL_RADIUS_SIM = 2.0  # the release's kernel radius (0.02 world = 2 simulation units)
+INITIAL_OPACITY = 0.3
+FrameCallback = Callable[[int, dict[str, float]], None]
+
+
+class ReconstructionError(ValueError):
+    """Inputs a reconstruction cannot start from; the message names the field."""
+
+
+@dataclass
+class Reconstruction:
+    """Everything fixed before frame 0."""
+
+    cameras: dict[str, Camera]
+    views: list[ViewTarget]  # the input views first, then pseudo-views
+    input_views: list[str]
+    frame_range: tuple[int, int]
+    fps: float
+    channels: int
+    background_color: np.ndarray
+    background_images: dict[str, np.ndarray]
+    smoke_color: np.ndarray
+    config: PBFConfig
+    box: Box
+    source: Source
+    up: np.ndarray
+    quality: Quality
+    physics_preset: str
+    settings_extra: dict = field(default_factory=dict)
+
+    def scene(self) -> Scene:
+        return Scene(
+            box_lo=self.box.lo,
+            box_hi=self.box.hi,
+            up=tuple(map(float, self.up)),
+            physics=_jsonable(self.config.__dict__),
+            source=_jsonable(self.source.__dict__),
+        )
+
+    def settings(self) -> dict:
+        return {
+            "quality": self.quality.to_json(),
+            "physics_preset": self.physics_preset,
+            "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
+            **self.settings_extra,
+        }
+
+
+def _jsonable(d: Mapping) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def prepare(
+    cameras: Mapping[str, Camera],
+    videos: Mapping[str, np.ndarray],
+    *,
+    frame_range: tuple[int, int],
+    fps: float,
+    quality: Quality,
+    box: tuple[np.ndarray, np.ndarray],
+    up: Sequence[float] = (0.0, 1.0, 0.0),
+    source: tuple[Sequence[float], float] | None = None,
+    physics_preset: str = "scalarflow",
+    extra_views: Sequence[ViewTarget] = (),
+    device: str | torch.device = "cpu",
+) -> Reconstruction:
+    """Targets, background, source and physics for reconstructing `videos` (uint8 (T, H, W, 3)
+    per input camera, frames of `frame_range` only, at any size with the camera's aspect).
+
+    `source` = (centre, radius) in world units when the user knows it; otherwise it is
+    estimated from the first frames. `extra_views` is the slot for generated novel views.
+    """
+    if not videos:
+        raise ReconstructionError("videos: at least one input view is needed")
+    unknown = sorted(set(videos) - set(cameras))
+    if unknown:
+        raise ReconstructionError(f"videos: no camera named {unknown} in the cameras file (have {sorted(cameras)})")
+    if physics_preset not in PHYSICS_PRESETS:
+        raise ReconstructionError(f"physics_preset must be one of {sorted(PHYSICS_PRESETS)}, got {physics_preset!r}")
+    n_frames = frame_range[1] - frame_range[0]
+    lengths = {name: len(v) for name, v in videos.items()}
+    if any(n != n_frames for n in lengths.values()):
+        raise ReconstructionError(f"videos: expected {n_frames} frames per view for {frame_range}, got {lengths}")
+    from fluidcore.video import is_grayscale
+
+    channels = 1 if all(is_grayscale(v) for v in videos.values()) else 3
+    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+
+    targets, backgrounds, masks = [], {}, {}
+    for name, frames in videos.items():
+        camera = cameras[name]
+        width, height = render_size(camera.width, camera.height, quality.long_side)
+        data = init.to_float(frames, channels)
+        data = np.stack([init.resize_image(f, width, height) for f in data])
+        background = init.estimate_background(data)
+        if background.image is not None:
+            backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
+        masks[name] = np.stack([init.smoke_mask(f, background) for f in data[: init.SOURCE_FRAMES]])
+        bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
+        targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
+    background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
+    smoke_color = _smoke_color(targets, masks, background_color)
+
+    if source is None:
+        estimate = init.estimate_source(cameras, masks, box, up_v)
+        center, radius = estimate.center, estimate.radius
+    else:
+        center, radius = np.asarray(source[0], dtype=np.float64), float(source[1])
+    scale = init.length_scale(box, up_v)
+    base = PHYSICS_PRESETS[physics_preset]
+    config = replace(base, length_scale=scale, h=KERNEL_RADIUS_SIM / scale, gravity=tuple(-9.8 * up_v), dt=1.0 / fps)
+    rise = abs(config.alpha) * 9.8 / scale / max(config.drag, 1e-6)  # buoyancy-drag terminal speed
+    src = Source(
+        center=tuple(map(float, center)),
+        radius=max(radius, 0.5 * config.h),
+        rate=quality.particles_per_frame,
+        velocity=tuple(map(float, rise * up_v)),
+        seed=quality.seed,
+    )
+    pseudo = []
+    if quality.symmetry_views > 0:
+        pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, quality.symmetry_weight / quality.symmetry_views)
+    return Reconstruction(
+        cameras=dict(cameras),
+        views=[*targets, *pseudo, *extra_views],
+        input_views=list(videos),
+        frame_range=frame_range,
+        fps=fps,
+        channels=channels,
+        background_color=background_color.astype(np.float32),
+        background_images=backgrounds,
+        smoke_color=smoke_color,
+        config=config,
+        box=Box(tuple(map(float, box[0])), tuple(map(float, box[1]))),
+        source=src,
+        up=up_v,
+        quality=quality,
+        physics_preset=physics_preset,
+    )
+
+
+def _smoke_color(targets: Sequence[ViewTarget], masks: Mapping[str, np.ndarray], background: np.ndarray) -> np.ndarray:
+    """Initial Gaussian colour: the background pushed twice as far as the average smoke pixel,
+    so partly transparent Gaussians can reach the observed contrast."""
+    values = []
+    for view, mask in zip(targets, masks.values(), strict=True):
+        frames = view.frames[: len(mask)].cpu().numpy()
+        values.append(frames[mask])
+    smoke = np.concatenate(values) if values else np.empty((0, len(background)))
+    if len(smoke) == 0:
+        return background.astype(np.float32)
+    return np.clip(background + 2.0 * (smoke.mean(0) - background), 0.0, 1.0).astype(np.float32)
+
+
+@dataclass
+class _Carry:
+    """What frame t needs from frame t-1."""
+
+    state: ParticleState
+    means: torch.Tensor  # (G, 3) visual Gaussians
+    appearance: Appearance
+    fresh: bool  # no frame fitted yet (frame 0 of a new run)
+
+
+class Reconstructor:
+    """Runs a prepared reconstruction into a run folder, one checkpointed frame at a time."""
+
+    def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
+        self.rec = rec
+        self.device = torch.device(device)
+        self.simulator = Simulator(rec.config, rec.box, rec.source, device=self.device)
+
+    def open_run(self, out_dir) -> Run:
+        rec = self.rec
+        run = Run.create(
+            out_dir,
+            kind="reconstruct",
+            cameras=rec.cameras,
+            input_views=rec.input_views,
+            frame_range=rec.frame_range,
+            fps=rec.fps,
+            channels=rec.channels,
+            background_color=rec.background_color.tolist(),
+            scene=rec.scene(),
+            settings=rec.settings(),
+        )
+        if rec.background_images and not run.background_images():
+            run.write_background(rec.background_images)
+        return run
+
+    def run(self, out_dir, on_frame: FrameCallback | None = None, should_stop: Callable[[], bool] | None = None) -> Run:
+        """Fit every frame not yet in `out_dir`; `on_frame(t, losses)` after each checkpoint.
+        `should_stop()` is asked between frames; when it says so the run stops (resumable)."""
+        run = self.open_run(out_dir)
+        carry = self._resume(run)
+        for t in range(run.next_frame(), self.rec.frame_range[1]):
+            if should_stop is not None and should_stop():
+                break
+            start = time.perf_counter()
+            carry, losses = self.frame(t, carry)
+            run.write_frame(t, self._frame_state(carry), losses, time.perf_counter() - start)
+            if on_frame is not None:
+                on_frame(t, losses)
+        return run
+
+    # -- one frame ----------------------------------------------------------------------
+    def frame(self, t: int, carry: _Carry) -> tuple[_Carry, dict[str, float]]:
+        rec, q, config = self.rec, self.rec.quality, self.rec.config
+        index = t - rec.frame_range[0]
+        seed = q.seed * 1_000_003 + t
+        generator = torch.Generator().manual_seed(seed)
+        chooser = random.Random(seed)
+        prev = carry.state
+        if carry.fresh:
+            state = prev.clone()
+            born_mask = state.alive.clone()
+        else:
+            state = prev.clone()
+            self.simulator.step(state)
+            born_mask = state.alive & ~_pad(prev.alive, state.capacity)
+        slots = torch.nonzero(state.alive).flatten()
+        p_sim, v_sim = state.positions[slots], state.velocities[slots]
+        born = born_mask[slots]
+        p_prev = torch.where(born[:, None], p_sim - config.dt * v_sim, _pad(prev.positions, state.capacity)[slots])
+        owner, offsets, new_appearance = spawn(
+            torch.nonzero(born).flatten(),
+            q.visual_per_physical,
+            spread=0.25 * config.h,
+            scale=0.35 * config.h,
+            opacity=INITIAL_OPACITY,
+            color=torch.from_numpy(rec.smoke_color),
+            generator=generator,
+        )
+        owner = torch.nonzero(born).flatten()[owner] if len(owner) else owner
+        problem = PositionProblem(
+            p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), q.velocity_radius * config.h
+        )
+        appearance = carry.appearance.cat(new_appearance)
+        first = carry.fresh
+        iterations = q.position_iterations * (q.first_frame_factor if first else 1)
+        loss_fn = self._image_loss(index, iterations, chooser)
+        p, terms = fit_positions(
+            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility
+        )
+        means = visual_means(p, problem, config.dt).detach()
+        velocities = v_sim if first else (p - p_prev) / config.dt
+        app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
+        appearance, app_loss = fit_appearance(
+            means,
+            appearance,
+            carry.appearance,
+            self._image_loss(index, app_iterations, chooser),
+            app_iterations,
+            {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
+            q.weights,
+        )
+        keep = self._inside(means)
+        state.positions[slots] = p
+        state.velocities[slots] = velocities
+        losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance)}
+        kept = Appearance(appearance.log_scales[keep], appearance.quats[keep], appearance.opacity_logits[keep], appearance.colors[keep])
+        losses.update({"particles": float(state.n_alive), "gaussians": float(int(keep.sum()))})
+        return _Carry(state, means[keep], kept, fresh=False), losses
+
+    def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
+        """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""
+        views = self.rec.views
+        weights = [v.weight for v in views]
+        stages = self.rec.quality.coarse_to_fine
+        w = self.rec.quality.weights
+
+        def loss(gaussians: Gaussians, k: int) -> torch.Tensor:
+            view = chooser.choices(views, weights=weights)[0]
+            fraction = stages[min(k * len(stages) // max(iterations, 1), len(stages) - 1)]
+            size = (max(8, round(view.camera.width * fraction)), max(8, round(view.camera.height * fraction)))
+            camera, target, background = view.at(index, size)
+            image = render(gaussians, camera, background).image
+            return image_loss(image, target, w.l1, w.dssim)
+
+        return loss
+
+    def _input_psnr(self, index: int, means: torch.Tensor, appearance: Appearance) -> float:
+        """PSNR of the fitted frame on the (first) input view at working resolution: a progress
+        signal, not a score (scores come from views never fed in)."""
+        view = self.rec.views[0]
+        camera, target, background = view.at(index, (view.camera.width, view.camera.height))
+        with torch.no_grad():
+            image = render(appearance.gaussians(means), camera, background).image
+        mse = float((image - target).pow(2).mean())
+        return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+
+    def _inside(self, means: torch.Tensor) -> torch.Tensor:
+        lo, hi = means.new_tensor(self.rec.box.lo), means.new_tensor(self.rec.box.hi)
+        return ((means >= lo) & (means <= hi)).all(dim=1)
+
+    # -- checkpoints ---------------------------------------------------------------------
+    def _resume(self, run: Run) -> _Carry:
+        done = run.frames()
+        if not done:
+            state = self.simulator.new_state()
+            self.simulator.stabilize(state, STABILIZATION_STEPS)
+            empty = torch.empty(0, 3, device=self.device)
+            channels = self.rec.channels
+            appearance = Appearance(
+                torch.empty(0, 3, device=self.device),
+                torch.empty(0, 4, device=self.device),
+                torch.empty(0, device=self.device),
+                torch.empty(0, channels, device=self.device),
+            )
+            return _Carry(state, empty, appearance, fresh=True)
+        saved = run.read_frame(done[-1])
+        tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
+        state = ParticleState(
+            tensor(saved.positions), tensor(saved.velocities), tensor(saved.alive), saved.time, int(saved.extra["step"])
+        )
+        g = saved.gaussians
+        appearance = Appearance(tensor(g["log_scales"]), tensor(g["quats"]), tensor(g["opacity_logits"]), tensor(g["colors"]))
+        return _Carry(state, tensor(g["means"]), appearance, fresh=False)
+
+    def _frame_state(self, carry: _Carry) -> FrameState:
+        s, a = carry.state, carry.appearance
+        numpy = lambda x: x.detach().cpu().numpy()  # noqa: E731
+        return FrameState(
+            positions=numpy(s.positions),
+            velocities=numpy(s.velocities),
+            alive=numpy(s.alive),
+            time=s.time,
+            gaussians={
+                "means": numpy(carry.means),
+                "log_scales": numpy(a.log_scales),
+                "quats": numpy(a.quats),
+                "opacity_logits": numpy(a.opacity_logits),
+                "colors": numpy(a.colors),
+            },
+            extra={"step": np.asarray(s.step, dtype=np.int64)},
+        )
+
+
+def _pad(tensor: torch.Tensor, capacity: int) -> torch.Tensor:
+    """A state's per-slot tensor grown (with zeros / False) to the capacity a step may have added."""
+    extra = capacity - tensor.shape[0]
+    if extra <= 0:
+        return tensor
+    return torch.cat([tensor, tensor.new_zeros((extra, *tensor.shape[1:]))])

@@ -1,0 +1,95 @@
+"""Physical particles of one frame: positions fitted to the images under the simulator's prior.
+
+Algorithm S1, position step: starting from p_sim = Sim(p_{t-1}, u_{t-1}), Adam moves p_t to
+minimise
+
+    w_sim * mean(|p_t - p_sim|^2) / h^2          stay close to what physics predicts
+  + w_incomp * L_incomp(p_t)                       no over-dense clumps now
+  + w_next * L_incomp(Sim(p_t, u_t))               ... nor one step later (optional: costly)
+  + the image loss of the visual Gaussians, which ride on the implied velocity
+    u_t = (p_t - p_{t-1}) / dt: old Gaussians are advected by the kernel-interpolated u_t,
+    Gaussians born this frame sit at their parent particle plus a fixed offset.
+
+Squared distances are measured in kernel radii so the weight means the same in any scene unit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from fluidcore.physics import PBFConfig, incompressibility_loss, interpolate_velocity, sim_step
+from fluidcore.reconstruct.presets import LossWeights
+from fluidcore.reconstruct.visual import Appearance
+from fluidcore.render import Gaussians
+
+
+@dataclass
+class PositionProblem:
+    """One frame's position fit; rows of the particle tensors are the frame's live particles."""
+
+    p_prev: torch.Tensor  # (N, 3) positions at t-1 (particles born this frame: p_sim - dt * v_sim)
+    p_sim: torch.Tensor  # (N, 3) the simulator's prediction for t
+    v_sim: torch.Tensor  # (N, 3) the simulator's velocities for t
+    visual_prev: torch.Tensor  # (G_old, 3) visual Gaussians at t-1, advected
+    owner: torch.Tensor  # (G_new,) parent particle (row) of each Gaussian born this frame
+    offsets: torch.Tensor  # (G_new, 3) its fixed offset from the parent
+    velocity_radius: float  # kernel radius of the velocity interpolation (world units)
+
+
+def velocities(p: torch.Tensor, problem: PositionProblem, dt: float) -> torch.Tensor:
+    """u_t = (p_t - p_{t-1}) / dt."""
+    return (p - problem.p_prev) / dt
+
+
+def visual_means(p: torch.Tensor, problem: PositionProblem, dt: float) -> torch.Tensor:
+    """Where the visual Gaussians are at t, given physical positions p_t (differentiable in p).
+
+    The interpolation radius is a few kernel radii rather than h itself, so that Gaussians
+    between sparse physical particles (preview quality) still move with the flow."""
+    parts = []
+    if len(problem.visual_prev):
+        u = velocities(p, problem, dt)
+        drift = interpolate_velocity(problem.visual_prev, problem.p_prev, u, problem.velocity_radius)
+        parts.append(problem.visual_prev + dt * drift)
+    parts.append(p[problem.owner] + problem.offsets)
+    return torch.cat(parts)
+
+
+def fit_positions(
+    problem: PositionProblem,
+    appearance: Appearance,
+    image_loss: Callable[[Gaussians, int], torch.Tensor],
+    config: PBFConfig,
+    weights: LossWeights,
+    iterations: int,
+    learning_rate: float,
+    next_step: bool,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Adam on p_t (see the module docstring). Returns p_t and the last iteration's loss terms."""
+    p = problem.p_sim.detach().clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([p], lr=learning_rate * config.h)
+    frozen = appearance.detach()
+    terms: dict[str, torch.Tensor] = {}
+    for k in range(iterations):
+        optimiser.zero_grad(set_to_none=True)
+        terms = {
+            "image": image_loss(frozen.gaussians(visual_means(p, problem, config.dt)), k),
+            "sim": weights.sim * ((p - problem.p_sim) / config.h).pow(2).sum(-1).mean(),
+            "incomp": weights.incomp * incompressibility_loss(p, config),
+        }
+        if next_step and weights.incomp_next > 0:
+            p_next, _ = sim_step(p, velocities(p, problem, config.dt), config)
+            terms["incomp_next"] = weights.incomp_next * incompressibility_loss(p_next, config)
+        total = sum(terms.values())
+        if not torch.isfinite(total):
+            raise FloatingPointError(f"position fit: loss became {float(total)} at iteration {k} ({_floats(terms)})")
+        total.backward()
+        optimiser.step()
+    return p.detach(), _floats(terms)
+
+
+def _floats(terms: dict[str, torch.Tensor]) -> dict[str, float]:
+    return {k: float(v.detach()) for k, v in terms.items()}

@@ -1,0 +1,115 @@
+"""The images a reconstruction is fitted to: real input views and pseudo-views.
+
+A `ViewTarget` is a camera plus one target image per frame, a background and a loss weight.
+Real views come from the input videos. One view leaves depth open, so pseudo-views add
+constraints from other directions; the slot is generic (`kind`, `weight`, frames) so that the
+generative novel-view model of a later stage plugs in as more ViewTargets of kind "generated".
+
+Until then, `symmetry_views` gives the plume-symmetry prior: the input camera rotated about
+the vertical axis through the source, with the input frame itself as its target (at a lower
+weight). A plume rising from a round source is roughly axisymmetric, so this asks for a 3D
+density that looks the same from every azimuth, instead of a flat billboard that only
+explains the input view. It uses nothing but the input view and the estimated source.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from fluidcore.cameras import Camera
+
+
+@dataclass
+class ViewTarget:
+    """One camera to fit: `frames[k]` is the target of the k-th frame of the run's range."""
+
+    camera: Camera  # at the working (finest) resolution of `frames`
+    frames: torch.Tensor  # (T, H, W, C) float32 in [0, 1]
+    background: torch.Tensor  # (H, W, C) or (C,)
+    weight: float = 1.0
+    kind: str = "input"  # "input" | "symmetry" | "generated"
+
+    def at(self, index: int, size: tuple[int, int]) -> tuple[Camera, torch.Tensor, torch.Tensor]:
+        """Camera, target image and background for frame `index` at size (W, H)."""
+        width, height = size
+        image = resize(self.frames[index], width, height)
+        background = self.background if self.background.ndim == 1 else resize(self.background, width, height)
+        return self.camera.scaled(width, height), image, background
+
+
+def resize(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """(H, W, C) image to (height, width, C), antialiased (a coarse level is a blurred fine one)."""
+    if image.shape[0] == height and image.shape[1] == width:
+        return image
+    out = F.interpolate(image.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", antialias=True, align_corners=False)
+    return out[0].permute(1, 2, 0)
+
+
+def rotate_about_axis(camera: Camera, center: np.ndarray, up: np.ndarray, angle: float, name: str) -> Camera:
+    """The camera carried around the axis through `center` along `up` by `angle` radians."""
+    axis = up / np.linalg.norm(up)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+    inverse = np.eye(4)  # world -> world map x -> R^T (x - c) + c, i.e. the inverse motion
+    inverse[:3, :3] = rotation.T
+    inverse[:3, 3] = center - rotation.T @ center
+    return replace(camera, name=name, world_to_camera=camera.world_to_camera @ inverse, file_path=None)
+
+
+def symmetry_views(
+    inputs: Sequence[ViewTarget], center: np.ndarray, up: np.ndarray, count: int, weight: float
+) -> list[ViewTarget]:
+    """`count` pseudo-views per input view, evenly spread in azimuth (the input's own excluded),
+    each reusing the input's frames and background as its target."""
+    views = []
+    for view in inputs:
+        for i in range(1, count + 1):
+            angle = 2.0 * math.pi * i / (count + 1)
+            camera = rotate_about_axis(view.camera, center, up, angle, f"{view.camera.name}~sym{i}")
+            views.append(ViewTarget(camera, view.frames, view.background, weight=weight, kind="symmetry"))
+    return views
+
+
+def _gaussian_window(size: int = 11, sigma: float = 1.5, device: torch.device | None = None) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float32, device=device) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    return g
+
+
+def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Differentiable SSIM of two (H, W, C) images in [0, 1] (11x11 Gaussian window, sigma 1.5),
+    computed with separable convolutions and 'same' padding by reflection."""
+    channels = pred.shape[-1]
+    g = _gaussian_window(device=pred.device)
+    kx = g.view(1, 1, 1, -1).repeat(channels, 1, 1, 1)
+    ky = g.view(1, 1, -1, 1).repeat(channels, 1, 1, 1)
+    pad = len(g) // 2
+
+    def blur(image: torch.Tensor) -> torch.Tensor:
+        image = F.pad(image, (pad, pad, pad, pad), mode="reflect")
+        return F.conv2d(F.conv2d(image, kx, groups=channels), ky, groups=channels)
+
+    x = pred.permute(2, 0, 1)[None]
+    y = target.permute(2, 0, 1)[None]
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    value = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return value.mean()
+
+
+def image_loss(pred: torch.Tensor, target: torch.Tensor, l1_weight: float, dssim_weight: float) -> torch.Tensor:
+    """The release's photometric loss: l1_weight * L1 + dssim_weight * (1 - SSIM)."""
+    loss = l1_weight * (pred - target).abs().mean()
+    if dssim_weight > 0 and min(pred.shape[0], pred.shape[1]) > 11:
+        loss = loss + dssim_weight * (1.0 - ssim(pred, target))
+    return loss
