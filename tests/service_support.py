@@ -1,0 +1,141 @@
+"""Helpers shared by the service tests (API, worker, storage, end to end): real databases, a tiny
+scene upload, and test-double job runners.
+
+Databases are real: SQLite in a temporary folder, and PostgreSQL on 127.0.0.1 with a fresh
+database per test (so parallel xdist workers never share tables).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
+PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
+REDIS_URL = "redis://127.0.0.1:6379/{db}"
+
+
+def port_open(host: str, port: int) -> bool:
+    with socket.socket() as sock:
+        sock.settimeout(0.5)
+        return sock.connect_ex((host, port)) == 0
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def postgres_database() -> Iterator[str]:
+    """A new, empty PostgreSQL database for one test; dropped afterwards."""
+    if not port_open("127.0.0.1", 5432):
+        pytest.skip("PostgreSQL is not running on 127.0.0.1:5432 (.ci/run starts it)")
+    from sqlalchemy import create_engine, text
+
+    name = f"fnx_test_{uuid.uuid4().hex[:12]}"
+    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
+    with admin.connect() as connection:
+        connection.execute(text(f'CREATE DATABASE "{name}"'))
+    try:
+        yield PG_URL.format(name=name)
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+
+
+@contextmanager
+def database_url(kind: str, tmp_path: Path) -> Iterator[str]:
+    """`kind` is 'sqlite' or 'postgres'."""
+    if kind == "sqlite":
+        yield f"sqlite:///{tmp_path / 'service.sqlite3'}"
+    else:
+        with postgres_database() as url:
+            yield url
+
+
+# -- a tiny scene ---------------------------------------------------------------------------------
+
+def camera_entry(name: str, width: int, height: int, x: float) -> dict:
+    """A transforms.json frame: camera at (x, 0, 4) looking at the origin (OpenGL axes, no rotation
+    needed when it looks along -z)."""
+    return {
+        "camera": name,
+        "file_path": f"videos/{name}.mp4",
+        "fl_x": 1.2 * width,
+        "fl_y": 1.2 * width,
+        "cx": width / 2,
+        "cy": height / 2,
+        "w": width,
+        "h": height,
+        "transform_matrix": [[1, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]],
+    }
+
+
+def write_transforms(path: Path, names: list[str], width: int = 32, height: int = 24) -> Path:
+    frames = [camera_entry(name, width, height, 0.5 * i) for i, name in enumerate(names)]
+    path.write_text(json.dumps({"frames": frames}))
+    return path
+
+
+def write_video(path: Path, width: int = 32, height: int = 24, n_frames: int = 6, fps: float = 30.0) -> Path:
+    """A small grey clip with a moving bright blob, so frames differ."""
+    from fluidcore.video import write_mp4
+
+    yy, xx = np.mgrid[0:height, 0:width]
+    frames = []
+    for t in range(n_frames):
+        blob = np.exp(-((xx - width * (0.3 + 0.05 * t)) ** 2 + (yy - height / 2) ** 2) / 20.0)
+        frames.append(np.repeat((blob * 220)[..., None], 3, axis=-1).astype(np.uint8))
+    return write_mp4(path, np.stack(frames), fps=fps)
+
+
+def scene_files(folder: Path, names: tuple[str, ...] = ("cam0", "cam1"), **video: int) -> dict[str, Path]:
+    """transforms.json plus one video per camera, named by camera."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {"cameras": write_transforms(folder / "transforms.json", list(names))}
+    for name in names:
+        files[name] = write_video(folder / f"{name}.mp4", **video)
+    return files
+
+
+def upload_parts(files: dict[str, Path]) -> list[tuple[str, tuple[str, bytes, str]]]:
+    """Multipart parts for POST /v1/scenes from `scene_files`' result."""
+    parts = [("cameras", (files["cameras"].name, files["cameras"].read_bytes(), "application/json"))]
+    for name, path in files.items():
+        if name != "cameras":
+            parts.append(("video", (path.name, path.read_bytes(), "video/mp4")))
+    return parts
+
+
+# -- test doubles -----------------------------------------------------------------------------------
+
+class RecordingQueue:
+    """A JobQueue that records what the API sends (for tests of the API's own logic)."""
+
+    def __init__(self, fail: bool = False) -> None:
+        self.sent: list[tuple[str, str]] = []
+        self.fail = fail
+
+    def enqueue(self, job_id: str, job_type: str) -> str:
+        from api.queue import QueueUnavailable
+
+        if self.fail:
+            raise QueueUnavailable("broker down (test)")
+        self.sent.append((job_id, job_type))
+        return f"task-{len(self.sent)}"
+
+    def ping(self) -> None:
+        from api.queue import QueueUnavailable
+
+        if self.fail:
+            raise QueueUnavailable("broker down (test)")

@@ -1,0 +1,371 @@
+"""The HTTP API against real databases (SQLite and PostgreSQL) and local storage, with a recording
+job queue standing in for the broker (the worker has its own tests)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.auth import create_key
+from api.database import session_scope
+from api.models import Artifact, Job, JobState, Scene
+from api.settings import Settings
+from service_support import RecordingQueue, database_url, scene_files, upload_parts, write_video
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Service:
+    """A running app plus handles on what is behind it."""
+
+    def __init__(self, client: TestClient, queue: RecordingQueue) -> None:
+        self.client, self.queue = client, queue
+        self.app = client.app
+        self.sessions = self.app.state.sessionmaker
+        self.storage = self.app.state.storage
+
+    def key(self, owner: str) -> dict[str, str]:
+        with session_scope(self.sessions) as session:
+            return {"Authorization": f"Bearer {create_key(session, owner)}"}
+
+    def count(self, model: type) -> int:
+        with session_scope(self.sessions) as session:
+            return session.query(model).count()
+
+    def set_job(self, job_id: str, **fields: object) -> None:
+        with session_scope(self.sessions) as session:
+            job = session.get(Job, job_id)
+            for name, value in fields.items():
+                setattr(job, name, value)
+
+
+def make_service(tmp_path: Path, db: str, queue: RecordingQueue | None = None, **overrides: object) -> Iterator[Service]:
+    with database_url(db, tmp_path) as url:
+        settings = Settings(data_dir=tmp_path / "data", database_url=url, **overrides)
+        queue = queue or RecordingQueue()
+        with TestClient(create_app(settings, queue=queue)) as client:
+            yield Service(client, queue)
+            client.app.state.engine.dispose()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def service(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Service]:
+    yield from make_service(tmp_path, request.param)
+
+
+@pytest.fixture
+def sqlite_service(tmp_path: Path) -> Iterator[Service]:
+    yield from make_service(tmp_path, "sqlite")
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    return scene_files(tmp_path_factory.mktemp("scene"))
+
+
+def upload(service: Service, headers: dict[str, str], files: dict[str, Path]):  # type: ignore[no-untyped-def]
+    return service.client.post("/v1/scenes", files=upload_parts(files), data={"name": "test"}, headers=headers)
+
+
+def reconstruct(service: Service, headers: dict[str, str], scene_id: str, **params: object):  # type: ignore[no-untyped-def]
+    body = {"type": "reconstruct", "scene_id": scene_id, "params": params}
+    return service.client.post("/v1/jobs", json=body, headers=headers)
+
+
+# -- process and auth ---------------------------------------------------------------------------------
+
+def test_importing_and_building_the_app_does_not_import_torch(tmp_path: Path) -> None:
+    code = (
+        "import sys\n"
+        "from api.app import create_app\n"
+        "from api.settings import Settings\n"
+        f"create_app(Settings(data_dir={str(tmp_path)!r}))\n"
+        "import api.routers.scenes, api.uploads, worker.celery_app\n"
+        "print('torch' in sys.modules)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert result.stdout.strip() == "False"
+
+
+def test_health_ready_and_web_page(sqlite_service: Service) -> None:
+    client = sqlite_service.client
+    assert client.get("/healthz").json() == {"status": "ok", "checks": {}}
+    ready = client.get("/readyz")
+    assert ready.status_code == 200
+    assert ready.json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok"}
+    page = client.get("/")
+    assert page.status_code == 200 and "/docs" in page.text
+    assert client.get("/openapi.json").json()["info"]["title"] == "FluidNexus"
+
+
+def test_readyz_names_the_failing_dependency(tmp_path: Path) -> None:
+    for service in make_service(tmp_path, "sqlite", queue=RecordingQueue(fail=True)):
+        ready = service.client.get("/readyz")
+        assert ready.status_code == 503
+        body = ready.json()
+        assert body["status"] == "unavailable"
+        assert body["checks"]["broker"].startswith("error:") and body["checks"]["database"] == "ok"
+
+
+def test_requests_without_a_valid_key_are_refused(sqlite_service: Service) -> None:
+    client = sqlite_service.client
+    assert client.get("/v1/jobs").status_code == 401
+    assert client.get("/v1/jobs", headers={"Authorization": "Bearer fnx_0000000000000000_" + "x" * 43}).status_code == 401
+    good = sqlite_service.key("alice")["Authorization"]
+    forged = good[:-4] + ("AAAA" if not good.endswith("AAAA") else "BBBB")
+    assert client.get("/v1/jobs", headers={"Authorization": forged}).status_code == 401
+    response = client.get("/v1/jobs", headers={"Authorization": good})
+    assert response.status_code == 200 and response.json()["items"] == []
+
+
+# -- scenes ---------------------------------------------------------------------------------------------
+
+def test_upload_scene_then_read_and_list_it(service: Service, scene_dir: dict[str, Path]) -> None:
+    alice = service.key("alice")
+    created = upload(service, alice, scene_dir)
+    assert created.status_code == 201, created.text
+    scene = created.json()
+    assert scene["cameras"] == ["cam0", "cam1"]
+    assert set(scene["videos"]) == {"cam0", "cam1"}
+    assert scene["videos"]["cam1"]["width"] == 32 and scene["videos"]["cam1"]["n_frames"] == 6
+    assert scene["n_frames"] == 6 and scene["fps"] == pytest.approx(30.0)
+    stored = [info.key for info in service.storage.list(f"scenes/{scene['id']}/")]
+    assert sorted(Path(k).name for k in stored) == ["cam0.mp4", "cam1.mp4", "transforms.json"]
+    assert service.storage.read_bytes(f"scenes/{scene['id']}/input/cam0.mp4") == scene_dir["cam0"].read_bytes()
+
+    assert service.client.get(f"/v1/scenes/{scene['id']}", headers=alice).json() == scene
+    second = upload(service, alice, scene_dir).json()
+    page = service.client.get("/v1/scenes", params={"limit": 1}, headers=alice).json()
+    assert page["total"] == 2 and page["next_offset"] == 1 and len(page["items"]) == 1
+    rest = service.client.get("/v1/scenes", params={"limit": 1, "offset": 1}, headers=alice).json()
+    assert {page["items"][0]["id"], rest["items"][0]["id"]} == {scene["id"], second["id"]}
+    assert rest["next_offset"] is None
+
+
+def test_video_matched_by_file_path_base_name(sqlite_service: Service, tmp_path: Path) -> None:
+    files = scene_files(tmp_path, names=("cam0",))
+    data = files["cameras"].read_text().replace('"camera": "cam0", ', "").replace("videos/cam0.mp4", "videos/side.mp4")
+    files["cameras"].write_text(data)
+    files["cam0"] = files["cam0"].rename(tmp_path / "side.mp4")
+    response = upload(sqlite_service, sqlite_service.key("alice"), files)
+    assert response.status_code == 201, response.text
+    assert response.json()["cameras"] == ["side"]
+
+
+@pytest.mark.parametrize(
+    ("breakage", "status", "message"),
+    [
+        ("unknown_camera", 422, "known cameras: cam0, cam1"),
+        ("not_a_video", 422, "video: cam1.mp4"),
+        ("wrong_size", 422, "do not match the video"),
+        ("too_long", 422, "longer than the limit"),
+        ("bad_cameras", 422, "cameras:"),
+        ("duplicate_camera", 422, "both for camera 'cam0'"),
+        ("path_in_name", 422, "file name"),
+    ],
+)
+def test_bad_uploads_are_refused_and_store_nothing(
+    sqlite_service: Service, scene_dir: dict[str, Path], tmp_path: Path, breakage: str, status: int, message: str
+) -> None:
+    alice = sqlite_service.key("alice")
+    assert upload(sqlite_service, alice, scene_dir).status_code == 201  # something already stored
+    before = sqlite_service.storage.list("")
+    parts = upload_parts(scene_dir)
+    if breakage == "unknown_camera":
+        parts[1] = ("video", ("cam9.mp4", parts[1][1][1], "video/mp4"))
+    elif breakage == "not_a_video":
+        parts[2] = ("video", ("cam1.mp4", b"this is not a video" * 100, "video/mp4"))
+    elif breakage == "wrong_size":
+        parts[2] = ("video", ("cam1.mp4", write_video(tmp_path / "cam1.mp4", width=40, height=24).read_bytes(), "video/mp4"))
+    elif breakage == "too_long":
+        parts[2] = ("video", ("cam1.mp4", write_video(tmp_path / "cam1.mp4", n_frames=40, fps=10.0).read_bytes(), "video/mp4"))
+        sqlite_service.app.state.settings.max_video_seconds = 2.0
+    elif breakage == "bad_cameras":
+        parts[0] = ("cameras", ("transforms.json", b'{"frames": [{"camera": "cam0"}]}', "application/json"))
+    elif breakage == "duplicate_camera":
+        parts[2] = ("video", ("cam0.MP4", parts[1][1][1], "video/mp4"))
+    elif breakage == "path_in_name":
+        parts[1] = ("video", ("../..", parts[1][1][1], "video/mp4"))
+    response = sqlite_service.client.post("/v1/scenes", files=parts, headers=alice)
+    assert response.status_code == status, response.text
+    assert message in response.json()["detail"]
+    assert sqlite_service.storage.list("") == before
+    assert sqlite_service.count(Scene) == 1
+
+
+def test_upload_limits_answer_413(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
+    for service in make_service(tmp_path, "sqlite", max_video_bytes=1000):
+        response = upload(service, service.key("alice"), scene_dir)
+        assert response.status_code == 413 and "larger than the limit" in response.json()["detail"]
+    for service in make_service(tmp_path / "b", "sqlite", max_upload_bytes=2000):
+        response = upload(service, service.key("alice"), scene_dir)
+        assert response.status_code == 413
+        assert service.storage.list("") == [] and service.count(Scene) == 0
+
+
+# -- jobs -----------------------------------------------------------------------------------------------
+
+@pytest.fixture
+def scene_id(service: Service, scene_dir: dict[str, Path]) -> str:
+    return upload(service, service.key("alice"), scene_dir).json()["id"]
+
+
+def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
+    alice = service.key("alice")
+    created = reconstruct(service, alice, scene_id, quality="standard", frames=[1, 5])
+    assert created.status_code == 202, created.text
+    job = created.json()
+    assert job["state"] == "queued" and job["progress"] == 0.0
+    assert job["params"] == {"quality": "standard", "frames": [1, 5]}
+    assert service.queue.sent == [(job["id"], "reconstruct")]
+    fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
+    assert fetched["id"] == job["id"] and fetched["timings"]["started_at"] is None
+    assert fetched["links"]["artifacts"] == f"/v1/jobs/{job['id']}/artifacts"
+
+    other = reconstruct(service, alice, scene_id).json()
+    service.set_job(other["id"], state=JobState.SUCCEEDED)
+    listed = service.client.get("/v1/jobs", params={"state": "succeeded"}, headers=alice).json()
+    assert [j["id"] for j in listed["items"]] == [other["id"]]
+    by_scene = service.client.get("/v1/jobs", params={"scene_id": scene_id, "type": "reconstruct"}, headers=alice).json()
+    assert by_scene["total"] == 2
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [({"quality": "ultra"}, "quality"), ({"frames": [4, 2]}, "frames"), ({"frames": [0, 99]}, "frames"), ({"speed": 1}, "speed")],
+)
+def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params: dict, field: str) -> None:
+    response = reconstruct(service, service.key("alice"), scene_id, **params)
+    assert response.status_code == 422
+    assert field in response.text
+    assert service.queue.sent == []
+
+
+def test_idempotency_key_returns_the_same_job(service: Service, scene_id: str) -> None:
+    alice = {**service.key("alice"), "Idempotency-Key": "upload-42"}
+    first = reconstruct(service, alice, scene_id, quality="preview")
+    again = reconstruct(service, alice, scene_id, quality="preview")
+    assert first.status_code == again.status_code == 202
+    assert again.json()["id"] == first.json()["id"] and again.headers["Idempotent-Replayed"] == "true"
+    assert len(service.queue.sent) == 1 and service.count(Job) == 1
+    different = reconstruct(service, alice, scene_id, quality="paper")
+    assert different.status_code == 422 and "Idempotency-Key" in different.json()["detail"]
+
+
+def test_continuations_need_a_succeeded_reconstruction(service: Service, scene_id: str) -> None:
+    alice = service.key("alice")
+    parent = reconstruct(service, alice, scene_id).json()["id"]
+    interact = {"type": "interact", "parent_job_id": parent,
+                "params": {"frames": 10, "wind": {"direction": [1, 0, 0], "strength": 2.0}}}
+    early = service.client.post("/v1/jobs", json=interact, headers=alice)
+    assert early.status_code == 409 and "queued" in early.json()["detail"]
+
+    service.set_job(parent, state=JobState.SUCCEEDED)
+    created = service.client.post("/v1/jobs", json=interact, headers=alice)
+    assert created.status_code == 202, created.text
+    assert created.json()["params"]["wind"]["direction"] == [1.0, 0.0, 0.0]
+    assert created.json()["parent_job_id"] == parent
+
+    chained = {"type": "predict", "parent_job_id": created.json()["id"], "params": {"frames": 5}}
+    service.set_job(created.json()["id"], state=JobState.SUCCEEDED)
+    wrong_parent = service.client.post("/v1/jobs", json=chained, headers=alice)
+    assert wrong_parent.status_code == 422 and "continues a reconstruct job" in wrong_parent.json()["detail"]
+
+    for bad in ({"frames": 10}, {"frames": 10, "wind": {"direction": [0, 0, 0], "strength": 1}},
+                {"frames": 100000, "ball": {"center": [0, 0, 0], "radius": 0.1}}):
+        response = service.client.post("/v1/jobs", json={**interact, "params": bad}, headers=alice)
+        assert response.status_code == 422, bad
+    scene_for_predict = {"type": "predict", "scene_id": scene_id, "params": {"frames": 5}}
+    assert service.client.post("/v1/jobs", json=scene_for_predict, headers=alice).status_code == 422
+
+
+def test_cancel(service: Service, scene_id: str) -> None:
+    alice = service.key("alice")
+    queued = reconstruct(service, alice, scene_id).json()["id"]
+    cancelled = service.client.post(f"/v1/jobs/{queued}/cancel", headers=alice)
+    assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
+    assert service.client.post(f"/v1/jobs/{queued}/cancel", headers=alice).status_code == 409
+
+    running = reconstruct(service, alice, scene_id).json()["id"]
+    service.set_job(running, state=JobState.RUNNING)
+    response = service.client.post(f"/v1/jobs/{running}/cancel", headers=alice).json()
+    assert response["state"] == "running" and response["cancel_requested"] is True
+
+
+def test_broker_down_fails_the_job_with_503(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
+    for service in make_service(tmp_path, "sqlite", queue=RecordingQueue(fail=True)):
+        alice = service.key("alice")
+        scene = upload(service, alice, scene_dir).json()["id"]
+        response = reconstruct(service, alice, scene)
+        assert response.status_code == 503 and "broker" in response.json()["detail"]
+        jobs = service.client.get("/v1/jobs", headers=alice).json()["items"]
+        assert [j["state"] for j in jobs] == ["failed"]
+
+
+# -- artifacts and isolation ----------------------------------------------------------------------------
+
+def add_artifact(service: Service, job_id: str, name: str, data: bytes, kind: str = "video") -> None:
+    key = f"jobs/{job_id}/{name}"
+    service.storage.put_bytes(key, data)
+    with session_scope(service.sessions) as session:
+        session.add(Artifact(job_id=job_id, name=name, kind=kind, camera="cam0" if kind == "video" else None,
+                             key=key, size=len(data), content_type="video/mp4"))
+
+
+def test_artifacts_list_and_download_with_ranges(service: Service, scene_id: str) -> None:
+    alice = service.key("alice")
+    job = reconstruct(service, alice, scene_id).json()["id"]
+    data = bytes(range(256)) * 40
+    add_artifact(service, job, "videos/cam0.mp4", data)
+    listing = service.client.get(f"/v1/jobs/{job}/artifacts", headers=alice).json()
+    assert listing["job_id"] == job
+    [item] = listing["items"]
+    assert item["kind"] == "video" and item["camera"] == "cam0" and item["size"] == len(data)
+    assert item["presigned_url"] is None  # local storage has none
+
+    whole = service.client.get(item["url"], headers=alice)
+    assert whole.status_code == 200 and whole.content == data and whole.headers["accept-ranges"] == "bytes"
+    part = service.client.get(item["url"], headers={**alice, "Range": "bytes=100-299"})
+    assert part.status_code == 206 and part.content == data[100:300]
+    assert part.headers["content-range"] == f"bytes 100-299/{len(data)}"
+    tail = service.client.get(item["url"], headers={**alice, "Range": "bytes=-10"})
+    assert tail.status_code == 206 and tail.content == data[-10:]
+    open_end = service.client.get(item["url"], headers={**alice, "Range": f"bytes={len(data) - 5}-"})
+    assert open_end.content == data[-5:]
+    beyond = service.client.get(item["url"], headers={**alice, "Range": f"bytes={len(data)}-"})
+    assert beyond.status_code == 416 and beyond.headers["content-range"] == f"bytes */{len(data)}"
+    assert service.client.get(f"/v1/jobs/{job}/artifacts/videos/nope.mp4", headers=alice).status_code == 404
+
+
+def test_other_owners_get_404_for_everything(service: Service, scene_id: str) -> None:
+    alice, bob = service.key("alice"), service.key("bob")
+    job = reconstruct(service, alice, scene_id).json()["id"]
+    add_artifact(service, job, "run/manifest.json", b"{}", kind="manifest")
+    for path in (f"/v1/scenes/{scene_id}", f"/v1/jobs/{job}", f"/v1/jobs/{job}/artifacts",
+                 f"/v1/jobs/{job}/artifacts/run/manifest.json"):
+        assert service.client.get(path, headers=alice).status_code == 200, path
+        assert service.client.get(path, headers=bob).status_code == 404, path
+    assert service.client.post(f"/v1/jobs/{job}/cancel", headers=bob).status_code == 404
+    assert reconstruct(service, bob, scene_id).status_code == 404
+    assert service.client.get("/v1/scenes", headers=bob).json()["total"] == 0
+    assert service.client.get("/v1/jobs", headers=bob).json()["total"] == 0
+
+
+def test_migrations_match_the_models_on_postgres(tmp_path: Path) -> None:
+    """`alembic check`: the models have no change that a migration does not carry."""
+    from alembic import command
+    from alembic.config import Config
+
+    from api.database import migrate
+
+    with database_url("postgres", tmp_path) as url:
+        migrate(url)
+        config = Config(str(ROOT / "alembic.ini"))
+        config.set_main_option("sqlalchemy.url", url)
+        command.check(config)
