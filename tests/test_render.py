@@ -93,6 +93,19 @@ def test_an_opaque_pixel_ignores_what_lies_behind(backend: str) -> None:
 
 
 @pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_capped_alpha_passes_no_gradient_to_opacity_or_shape(backend: str) -> None:
+    """At its centre pixel this Gaussian's alpha is capped at 0.999, so it is flat there."""
+    g = _gaussians([[0.0, 0.0, 2.0]], 1e-3, 0.999999, [[1.0]])
+    for tensor in (g.means, g.log_scales, g.opacity_logits, g.colors):
+        tensor.requires_grad_(True)
+    out = render(g, _camera(), background=0.5, backend=backend)
+    assert out.alpha[24, 32].item() == pytest.approx(0.999, abs=1e-6)
+    out.image[24, 32, 0].backward()
+    assert g.opacity_logits.grad.item() == 0 and torch.all(g.means.grad == 0) and torch.all(g.log_scales.grad == 0)
+    assert g.colors.grad.item() == pytest.approx(0.999, abs=1e-6)
+
+
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 def test_grey_path_equals_rgb_with_equal_channels(backend: str) -> None:
     grey = _random_cloud(300, 1, seed=3)
     rgb = Gaussians(grey.means, grey.log_scales, grey.quats, grey.opacity_logits, grey.colors.expand(-1, 3).clone())
