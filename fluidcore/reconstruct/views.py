@@ -23,6 +23,7 @@ import torch
 import torch.nn.functional as F
 
 from fluidcore.cameras import Camera
+from fluidcore.metrics import ssim_tensor
 
 
 @dataclass
@@ -76,40 +77,9 @@ def symmetry_views(
     return views
 
 
-def _gaussian_window(size: int = 11, sigma: float = 1.5, device: torch.device | None = None) -> torch.Tensor:
-    x = torch.arange(size, dtype=torch.float32, device=device) - (size - 1) / 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    g = g / g.sum()
-    return g
-
-
-def ssim(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Differentiable SSIM of two (H, W, C) images in [0, 1] (11x11 Gaussian window, sigma 1.5),
-    computed with separable convolutions and 'same' padding by reflection."""
-    channels = pred.shape[-1]
-    g = _gaussian_window(device=pred.device)
-    kx = g.view(1, 1, 1, -1).repeat(channels, 1, 1, 1)
-    ky = g.view(1, 1, -1, 1).repeat(channels, 1, 1, 1)
-    pad = len(g) // 2
-
-    def blur(image: torch.Tensor) -> torch.Tensor:
-        image = F.pad(image, (pad, pad, pad, pad), mode="reflect")
-        return F.conv2d(F.conv2d(image, kx, groups=channels), ky, groups=channels)
-
-    x = pred.permute(2, 0, 1)[None]
-    y = target.permute(2, 0, 1)[None]
-    mx, my = blur(x), blur(y)
-    sxx = blur(x * x) - mx * mx
-    syy = blur(y * y) - my * my
-    sxy = blur(x * y) - mx * my
-    c1, c2 = 0.01**2, 0.03**2
-    value = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return value.mean()
-
-
 def image_loss(pred: torch.Tensor, target: torch.Tensor, l1_weight: float, dssim_weight: float) -> torch.Tensor:
     """The release's photometric loss: l1_weight * L1 + dssim_weight * (1 - SSIM)."""
     loss = l1_weight * (pred - target).abs().mean()
     if dssim_weight > 0 and min(pred.shape[0], pred.shape[1]) > 11:
-        loss = loss + dssim_weight * (1.0 - ssim(pred, target))
+        loss = loss + dssim_weight * (1.0 - ssim_tensor(pred, target))
     return loss

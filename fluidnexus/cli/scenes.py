@@ -1,9 +1,160 @@
-"""Commands registered by this module (filled in by its owner)."""
+"""`fluidnexus synth | reconstruct | render | export`: from videos to particles and back to videos.
+
+`reconstruct` reads only the videos named with --video (a file_path in the cameras file never
+pulls in another view), shows a progress bar on stderr and resumes an unfinished run in --out.
+`render` and `export` work on any run folder (reconstruct, predict, interact, resimulate).
+"""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import typer
+
+from fluidnexus.cli.errors import UserError, user_errors
+
+RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
-    """Add this module's commands to the top-level app and the bench group."""
+    """Add synth, reconstruct, render and export to the top-level app."""
+    app.command("synth")(synth)
+    app.command("reconstruct")(reconstruct)
+    app.command("render")(render)
+    app.command("export")(export)
+
+
+def _set_threads(threads: int | None) -> None:
+    import torch
+
+    if threads is not None:
+        torch.set_num_threads(threads)
+
+
+def _parse_videos(items: list[str]) -> dict[str, Path]:
+    videos: dict[str, Path] = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise UserError(f"--video must look like VIEW=path.mp4, got {item!r}")
+        if name in videos:
+            raise UserError(f"--video: view {name!r} given twice")
+        if not Path(path).is_file():
+            raise UserError(f"--video {name}: no such file {path}")
+        videos[name] = Path(path)
+    return videos
+
+
+def synth(
+    out: Path = typer.Option(..., "--out", help="Folder for the scene (transforms.json, videos/, truth/)."),
+    frames: int = typer.Option(30, "--frames", min=1, help="Frames to simulate."),
+    width: int = typer.Option(96, "--width", min=16),
+    height: int = typer.Option(128, "--height", min=16),
+    views: int = typer.Option(5, "--views", min=1, help="Cameras on a half circle around the plume."),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Simulate and render a small synthetic plume with known ground truth (try the pipeline without data)."""
+    from fluidcore import synth as synth_module
+
+    with user_errors(ValueError):
+        spec = synth_module.SynthSpec(frames=frames, width=width, height=height, views=views, seed=seed)
+        path = synth_module.write(synth_module.generate(spec), out)
+    typer.echo(str(path))
+
+
+def reconstruct(
+    cameras: Path = typer.Option(..., "--cameras", exists=True, help="transforms.json, info.json or a COLMAP model."),
+    video: list[str] = typer.Option(..., "--video", help="VIEW=path.mp4; repeat for several input views."),
+    frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
+    quality: str = typer.Option("preview", "--quality", help="preview | standard | paper"),
+    out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
+    device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
+    threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
+) -> None:
+    """Reconstruct physical particles and visual Gaussians from one video or a few (Algorithm S1)."""
+    from fluidcore import pipeline
+
+    with user_errors(ValueError):
+        _set_threads(threads)
+        path = pipeline.run_reconstruct(
+            cameras, _parse_videos(video), out, quality=quality, frames=pipeline.parse_frames(frames),
+            device=device, progress_bar=True,
+        )
+    typer.echo(str(path))
+
+
+def render(
+    run: Path = RUN_ARG,
+    camera: str | None = typer.Option(None, "--camera", help="Camera name (see the run's manifest), or 'orbit'."),
+    cameras: Path | None = typer.Option(None, "--cameras", exists=True, help="Take CAMERA from this file instead."),
+    frames: str | None = typer.Option(None, "--frames", help="START:END of the run's frames; default: all."),
+    out: Path | None = typer.Option(None, "--out", help="MP4 to write."),
+    png_dir: Path | None = typer.Option(None, "--png-dir", help="Also (or instead) write one PNG per frame here."),
+    device: str = typer.Option("cpu", "--device"),
+) -> None:
+    """Render a run's frames from one of its cameras, a camera of another file, or an orbit around the scene."""
+    import numpy as np
+
+    from fluidcore import cameras as camera_io
+    from fluidcore import pipeline
+    from fluidcore.runs import Run
+    from fluidcore.video import write_mp4
+
+    with user_errors(ValueError):
+        if out is None and png_dir is None:
+            raise UserError("give --out video.mp4 and/or --png-dir DIR")
+        if camera is None:
+            raise UserError("--camera NAME is required (or --camera orbit)")
+        the_run = Run.open(run)
+        selected = _select_frames(the_run.frames(), pipeline.parse_frames(frames))
+        if camera == "orbit" and cameras is None:
+            video = np.concatenate(
+                [pipeline.render_frames(the_run, cam, [t], device) for cam, t in zip(pipeline.orbit_cameras(the_run, len(selected)), selected)]
+            )
+        else:
+            available = camera_io.load(cameras) if cameras is not None else the_run.cameras()
+            if camera not in available:
+                raise UserError(f"--camera: no camera {camera!r}; have {', '.join(available)} (or 'orbit')")
+            video = pipeline.render_frames(the_run, available[camera], selected, device)
+        if out is not None:
+            write_mp4(out, video, fps=the_run.fps)
+            typer.echo(str(out))
+        if png_dir is not None:
+            _write_pngs(png_dir, video, selected)
+            typer.echo(str(png_dir))
+
+
+def _select_frames(available: list[int], wanted: tuple[int, int] | None) -> list[int]:
+    if not available:
+        raise UserError("the run has no finished frames yet")
+    if wanted is None:
+        return available
+    selected = [t for t in available if wanted[0] <= t < wanted[1]]
+    if not selected:
+        raise UserError(f"--frames {wanted[0]}:{wanted[1]} holds none of the run's frames ({available[0]}..{available[-1]})")
+    return selected
+
+
+def _write_pngs(folder: Path, video, frames: list[int]) -> None:  # noqa: ANN001 - uint8 array
+    import av
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for image, t in zip(video, frames, strict=True):
+        av.VideoFrame.from_ndarray(image, format="rgb24").to_image().save(folder / f"frame_{t:06d}.png")
+
+
+def export(
+    run: Path = RUN_ARG,
+    frame: int = typer.Option(..., "--frame", help="Frame number (as in the run's manifest)."),
+    out: Path = typer.Option(..., "--out", help="NPZ to write: positions, velocities, gaussian_*."),
+) -> None:
+    """Write one frame's particles: physical positions and velocities (world units) and the visual Gaussians."""
+    import numpy as np
+
+    from fluidcore.runs import Run
+
+    with user_errors(ValueError):
+        state = Run.open(run).read_frame(frame)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(out, **state.export())
+    typer.echo(str(out))
