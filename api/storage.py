@@ -14,7 +14,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass
 from datetime import timedelta
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 from api.settings import Settings
 
@@ -41,8 +41,7 @@ class ObjectInfo:
 
 def check_key(key: str) -> str:
     """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
-    parts = PurePosixPath(key).parts
-    if not key or key.startswith("/") or "\\" in key or any(p in ("", ".", "..") for p in parts):
+    if not key or "\\" in key or any(part in ("", ".", "..") for part in key.split("/")):
         raise InvalidKey(f"invalid storage key {key!r}")
     return key
 
