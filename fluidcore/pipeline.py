@@ -16,8 +16,12 @@ import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # torch-free at import: the worker imports this module lazily anyway
+    from fluidcore.reconstruct import Quality
 
 Progress = Callable[[float, str], None]
 ShouldCancel = Callable[[], bool]
@@ -66,7 +70,7 @@ def run_reconstruct(
     videos: Mapping[str, str | os.PathLike[str]],
     out_dir: str | os.PathLike[str],
     *,
-    quality: str = "preview",
+    quality: str | Quality = "preview",
     frames: tuple[int, int] | None = None,
     device: str = "cpu",
     progress: Progress | None = None,
@@ -76,14 +80,15 @@ def run_reconstruct(
 ) -> Path:
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
-    Returns the run folder. `progress_bar` draws a tqdm bar on stderr (the CLI's).
+    `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
+    uses). Returns the run folder. `progress_bar` draws a tqdm bar on stderr (the CLI's).
     """
     from fluidcore import cameras as camera_io
     from fluidcore import video
-    from fluidcore.reconstruct import Reconstructor, get, prepare
+    from fluidcore.reconstruct import Quality, Reconstructor, get, prepare
     from fluidcore.reconstruct.presets import render_size
 
-    preset = get(quality)
+    preset = quality if isinstance(quality, Quality) else get(quality)
     cameras_path = Path(cameras_path)
     cameras = camera_io.load(cameras_path)
     if not videos:
@@ -179,11 +184,12 @@ def render_frames(run, camera, frames: Sequence[int] | None = None, device: str 
         appearance = Appearance(tensor(g["log_scales"]), tensor(g["quats"]), tensor(g["opacity_logits"]), tensor(g["colors"]))
         with torch.no_grad():
             image = render(appearance.gaussians(tensor(g["means"])), camera, background).image
-        out.append(_to_uint8_rgb(image.cpu().numpy()))
+        out.append(to_uint8_rgb(image.cpu().numpy()))
     return np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
 
 
-def _to_uint8_rgb(image: np.ndarray) -> np.ndarray:
+def to_uint8_rgb(image: np.ndarray) -> np.ndarray:
+    """(..., C) float in [0, 1], C = 1 or 3 -> (..., 3) uint8."""
     image = np.repeat(image, 3, axis=-1) if image.shape[-1] == 1 else image
     return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 

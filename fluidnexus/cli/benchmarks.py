@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ()
+BENCHMARKS: tuple[str, ...] = ("reconstruct",)
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:

@@ -1,0 +1,166 @@
+"""Reconstruct a scene from its input view(s) and score every other camera that has ground truth.
+
+    python bench/reconstruct.py --scene ../shared/realdata/scalarflow --input-view view_02 \
+        --frames 0:60 --quality preview --gt view_00=gt/nvs_view_00.mp4 ... [--json]
+
+Input videos: `--input-view NAME[=path]`; the path defaults to the camera's `file_path`, then to
+its `--gt` file (the paper's multi-view setting feeds the other views' videos in). Only the
+input views' videos reach the reconstruction; the held-out views' frames are read afterwards,
+for scoring only. Scores are PSNR and SSIM (scikit-image's 7x7 uniform window, as the shared
+anchors) per view over the frame range, at the camera's full resolution, next to the "blank"
+baseline (the run's background colour everywhere). Paths in --gt are relative to --scene.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import typer
+
+if __package__ in (None, ""):  # `python bench/reconstruct.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from fluidnexus.cli.errors import UserError, echo_json, user_errors
+
+CAMERA_FILES = ("transforms.json", "info.json")
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def _pairs(items: list[str], option: str, base: Path) -> dict[str, Path | None]:
+    out: dict[str, Path | None] = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not name:
+            raise UserError(f"{option} must look like VIEW or VIEW=path, got {item!r}")
+        out[name] = (base / path) if sep else None
+    return out
+
+
+def _overrides(items: list[str]) -> dict[str, object]:
+    values: dict[str, object] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep:
+            raise UserError(f"--set must look like FIELD=VALUE, got {item!r}")
+        values[key] = json.loads(text)
+    return values
+
+
+def command(
+    scene: Path = typer.Option(..., "--scene", exists=True, file_okay=False, help="Scene folder with transforms.json."),
+    input_view: list[str] = typer.Option(..., "--input-view", help="NAME[=path]; repeat for several input views."),
+    frames: str = typer.Option("0:10", "--frames", help="START:END (end exclusive)."),
+    quality: str = typer.Option("preview", "--quality", help="preview | standard | paper"),
+    gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
+    set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
+    out: Path | None = typer.Option(None, "--out", help="Keep the run folder here (default: a temporary folder)."),
+    threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+) -> None:
+    """Reconstruct from the input view(s), then PSNR/SSIM on every other camera with ground truth."""
+    import torch
+
+    from fluidcore import cameras as camera_io
+    from fluidcore import pipeline
+    from fluidcore.reconstruct import get
+
+    with user_errors(ValueError):
+        if threads is not None:
+            torch.set_num_threads(threads)
+        cameras_path = next((scene / f for f in CAMERA_FILES if (scene / f).is_file()), None)
+        if cameras_path is None:
+            raise UserError(f"--scene: {scene} holds no {' or '.join(CAMERA_FILES)}")
+        cameras = camera_io.load(cameras_path)
+        truths = {k: v for k, v in _pairs(gt, "--gt", scene).items()}
+        for name, camera in cameras.items():
+            if name not in truths and camera.file_path:
+                truths[name] = scene / camera.file_path
+        inputs = {}
+        for name, path in _pairs(input_view, "--input-view", scene).items():
+            path = path or (scene / cameras[name].file_path if name in cameras and cameras[name].file_path else truths.get(name))
+            if path is None:
+                raise UserError(f"--input-view {name}: no video (give {name}=path, or --gt {name}=path)")
+            inputs[name] = path
+        scored = {name: path for name, path in truths.items() if name not in inputs and path is not None}
+        if not scored:
+            raise UserError("no camera besides the input views has ground truth (give --gt VIEW=path)")
+        frame_range = pipeline.parse_frames(frames)
+        preset = get(quality).with_overrides(**_overrides(set_))
+        run_dir = out or Path(tempfile.mkdtemp(prefix="bench-reconstruct-"))
+        _log(f"reconstructing {sorted(inputs)} frames {frames} at quality {preset.name} with {torch.get_num_threads()} threads")
+        started = time.perf_counter()
+        pipeline.run_reconstruct(cameras_path, inputs, run_dir, quality=preset, frames=frame_range, progress_bar=not json_out)
+        seconds = time.perf_counter() - started
+        result = _score(run_dir, cameras, scored, inputs, frame_range)
+        result.update(
+            {
+                "scene": str(scene),
+                "input_views": sorted(inputs),
+                "frames": list(frame_range),
+                "quality": preset.to_json(),
+                "threads": torch.get_num_threads(),
+                "load_average": list(os.getloadavg()),
+                "seconds_total": seconds,
+                "seconds_per_frame": seconds / (frame_range[1] - frame_range[0]),
+                "run_dir": str(run_dir),
+            }
+        )
+    if json_out:
+        echo_json(result)
+    else:
+        _print_table(result)
+
+
+def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[str, Path], frame_range: tuple[int, int]) -> dict:
+    """PSNR / SSIM of the run against each scored view, the blank baseline, and the input fit."""
+    import numpy as np
+    import torch
+
+    from fluidcore import metrics, pipeline, video
+    from fluidcore.runs import Run
+
+    run = Run.open(run_dir)
+    views = {}
+    for name, path in sorted({**scored, **inputs}.items()):
+        camera = cameras[name]
+        truth = video.read_frames(path, frame_range[0], frame_range[1], size=(camera.width, camera.height))
+        pred = pipeline.render_frames(run, camera, run.frames())
+        blank = np.broadcast_to(pipeline.to_uint8_rgb(np.asarray(run.background_color, np.float32)[None, None]), truth.shape)
+        as_float = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float() / 255.0  # noqa: E731
+        t, p, b = as_float(truth), as_float(pred), as_float(blank)
+        views[name] = {
+            "role": "input" if name in inputs else "held-out",
+            "psnr": metrics.psnr(p, t),
+            "ssim": metrics.ssim(p, t, window="uniform"),
+            "blank_psnr": metrics.psnr(b, t),
+            "blank_ssim": metrics.ssim(b, t, window="uniform"),
+        }
+        _log(f"scored {name}: {views[name]['psnr']:.2f} dB")
+    held = [v for v in views.values() if v["role"] == "held-out"]
+    mean = {k: float(np.mean([v[k] for v in held])) for k in ("psnr", "ssim", "blank_psnr", "blank_ssim")}
+    log = [run.frame_log(t)["seconds"] for t in run.frames()]
+    return {"views": views, "mean_held_out": mean, "fit_seconds_per_frame": float(np.mean(log))}
+
+
+def _print_table(result: dict) -> None:
+    print(f"{'view':<10} {'role':<9} {'PSNR':>7} {'SSIM':>7} {'blank PSNR':>11} {'blank SSIM':>11}")
+    for name, v in result["views"].items():
+        print(f"{name:<10} {v['role']:<9} {v['psnr']:7.2f} {v['ssim']:7.4f} {v['blank_psnr']:11.2f} {v['blank_ssim']:11.4f}")
+    m = result["mean_held_out"]
+    print(f"{'mean':<10} {'held-out':<9} {m['psnr']:7.2f} {m['ssim']:7.4f} {m['blank_psnr']:11.2f} {m['blank_ssim']:11.4f}")
+    print(
+        f"{result['seconds_per_frame']:.2f} s/frame ({result['fit_seconds_per_frame']:.2f} s fitting), "
+        f"{result['seconds_total']:.1f} s total, {result['threads']} threads, load {result['load_average'][0]:.2f}"
+    )
+
+
+if __name__ == "__main__":
+    typer.run(command)
