@@ -139,3 +139,57 @@ class RecordingQueue:
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")
+
+
+class SimulatedCrash(BaseException):
+    """Stands for a worker killed mid-job: not an Exception, so nothing in the executor handles it."""
+
+
+def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-def]
+    """A test-double runner with the contract of fluidcore's: one state file per frame in the run
+    folder plus a manifest, resume from the frames already there, should_cancel between frames,
+    progress per frame; then one MP4 per camera and an orbit video.
+
+    It appends each frame it computes to `<job folder>/computed.txt` (outside the checkpointed
+    run folder), so tests can tell a resumed run from a restarted one. `params["crash_after"]`
+    raises SimulatedCrash after that many frames; FAKE_FRAME_SECONDS slows each frame down.
+    """
+    import os
+    import time
+
+    from worker.runners import JobCancelled
+
+    params = inputs.params
+    if n_frames is None:
+        frames = params.get("frames")
+        n_frames = int(frames) if isinstance(frames, int) else (frames[1] - frames[0] if frames else 4)
+    states = inputs.run_dir / "states"
+    states.mkdir(parents=True, exist_ok=True)
+    computed = inputs.run_dir.parent / "computed.txt"
+    crash_after = params.get("crash_after")
+    done = 0
+    for t in range(n_frames):
+        state = states / f"frame_{t:06d}.npz"
+        if state.exists():
+            continue
+        if inputs.should_cancel():
+            raise JobCancelled(f"cancelled before frame {t}")
+        time.sleep(float(os.environ.get("FAKE_FRAME_SECONDS", "0")))
+        np.savez(state, positions=np.full((3, 3), t, dtype=np.float32))
+        manifest = {"kind": inputs.job_type, "frames": [{"t": i} for i in range(t + 1)],
+                    "parent": str(inputs.parent_run) if inputs.parent_run else None}
+        (inputs.run_dir / "manifest.json").write_text(json.dumps(manifest))
+        with computed.open("a") as log:
+            log.write(f"{t}\n")
+        inputs.progress((t + 1) / n_frames, "fit")
+        done += 1
+        if crash_after is not None and done >= crash_after:
+            raise SimulatedCrash
+    from fluidcore.video import write_mp4
+
+    cameras = sorted(inputs.videos) if inputs.videos else ["cam0"]
+    clip = np.zeros((n_frames, 16, 16, 3), dtype=np.uint8)
+    return [write_mp4(inputs.render_dir / f"{name}.mp4", clip) for name in [*cameras, "orbit"]]
+
+
+FAKE_RUNNERS = {job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}

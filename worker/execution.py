@@ -241,9 +241,9 @@ class ProgressReporter:
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
 
-    def __init__(self, sessions: sessionmaker[Session], job_id: str) -> None:
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, stage: str = "preparing") -> None:
         self.sessions, self.job_id = sessions, job_id
-        self._stage: str | None = None
+        self._stage: str | None = stage
         self._stage_started = time.monotonic()
         self._last_write = 0.0
         with session_scope(sessions) as session:

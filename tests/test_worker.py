@@ -1,0 +1,206 @@
+"""The job executor (what every Celery task runs) against real databases and storage, with
+test-double runners that follow fluidcore's contract (per-frame states, resume, cancel)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+
+from api.database import make_engine, make_sessionmaker, migrate, session_scope
+from api.models import Artifact, Job, JobState, Scene, utcnow
+from api.settings import Settings
+from api.storage import LocalStorage, Storage, StorageError
+from worker.execution import JobBusy, JobExecutor, run_prefix
+from worker.runners import RunInputs
+from service_support import FAKE_RUNNERS, SimulatedCrash, database_url, fake_job, scene_files
+
+
+class World:
+    """A database, a storage and a way to make executors that each have their own local cache."""
+
+    def __init__(self, tmp_path: Path, url: str, storage: Storage) -> None:
+        migrate(url)
+        self.tmp_path, self.storage = tmp_path, storage
+        self.engine = make_engine(url)
+        self.sessions = make_sessionmaker(self.engine)
+        self.settings = Settings(data_dir=tmp_path / "data", database_url=url, job_lease_seconds=60)
+
+    def executor(self, name: str = "w1", runners: dict | None = None) -> JobExecutor:
+        settings = self.settings.model_copy(update={"work_dir": self.tmp_path / f"cache-{name}"})
+        return JobExecutor(settings, self.sessions, self.storage, runners or FAKE_RUNNERS, worker_name=name)
+
+    def scene(self) -> str:
+        files = scene_files(self.tmp_path / "scene")
+        keys = {}
+        for path in files.values():
+            keys[path.name] = f"scenes/s1/input/{path.name}"
+            self.storage.put_file(keys[path.name], path)
+        with session_scope(self.sessions) as session:
+            session.add(Scene(id="s1", owner="alice", cameras_key=keys["transforms.json"], cameras=["cam0", "cam1"],
+                              videos={c: {"key": keys[f"{c}.mp4"]} for c in ("cam0", "cam1")}, n_frames=6, fps=30.0))
+        return "s1"
+
+    def job(self, job_type: str = "reconstruct", **fields: object) -> str:
+        with session_scope(self.sessions) as session:
+            job = Job(owner="alice", type=job_type, params=fields.pop("params", {}), **fields)
+            session.add(job)
+        return job.id
+
+    def get(self, job_id: str) -> Job:
+        with session_scope(self.sessions) as session:
+            return session.get(Job, job_id)
+
+    def artifacts(self, job_id: str) -> dict[str, Artifact]:
+        with session_scope(self.sessions) as session:
+            return {a.name: a for a in session.query(Artifact).filter_by(job_id=job_id)}
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def world(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[World]:
+    with database_url(request.param, tmp_path) as url:
+        world = World(tmp_path, url, LocalStorage(tmp_path / "storage"))
+        yield world
+        world.engine.dispose()
+
+
+def test_reconstruct_runs_to_success_and_publishes_artifacts(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 3]})
+    assert world.executor().run(job_id) == "succeeded"
+    job = world.get(job_id)
+    assert job.state == JobState.SUCCEEDED and job.progress == 1.0 and job.error is None
+    assert job.attempts == 1 and job.worker == "w1" and job.started_at <= job.finished_at
+    assert list(job.stage_seconds) == ["preparing", "fit", "publish"] and all(s >= 0 for s in job.stage_seconds.values())
+
+    artifacts = world.artifacts(job_id)
+    assert {n: (a.kind, a.camera) for n, a in artifacts.items()} == {
+        "videos/cam0.mp4": ("video", "cam0"), "videos/cam1.mp4": ("video", "cam1"), "videos/orbit.mp4": ("orbit", None),
+        "run/manifest.json": ("manifest", None), "run/states/frame_000000.npz": ("state", None),
+        "run/states/frame_000001.npz": ("state", None), "run/states/frame_000002.npz": ("state", None),
+    }
+    for artifact in artifacts.values():
+        assert world.storage.stat(artifact.key).size == artifact.size > 0
+    assert world.executor().run(job_id) is None  # a duplicate delivery of a finished job does nothing
+
+
+def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
+    parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+    world.executor("a").run(parent)
+    seen: list[RunInputs] = []
+
+    def interact(inputs: RunInputs) -> list[Path]:
+        seen.append(inputs)
+        return fake_job(inputs)
+
+    child = world.job("interact", parent_job_id=parent, params={"frames": 2, "wind": {"direction": [1, 0, 0]}})
+    assert world.executor("b", {**FAKE_RUNNERS, "interact": interact}).run(child) == "succeeded"
+    parent_run = seen[0].parent_run
+    assert parent_run is not None and json.loads((parent_run / "manifest.json").read_text())["kind"] == "reconstruct"
+    assert seen[0].params["wind"] == {"direction": [1, 0, 0]} and seen[0].cameras_path is None
+
+
+def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 5], "crash_after": 2})
+    first = world.executor("first")
+    with pytest.raises(SimulatedCrash):
+        first.run(job_id)
+    assert world.get(job_id).state == JobState.RUNNING
+    checkpointed = [i.key.rsplit("/", 1)[1] for i in world.storage.list(f"{run_prefix(job_id)}/states/")]
+    assert checkpointed == ["frame_000000.npz", "frame_000001.npz"]
+
+    second = world.executor("second")
+    with pytest.raises(JobBusy):  # the first worker's lease is still live
+        second.run(job_id)
+    with session_scope(world.sessions) as session:
+        job = session.get(Job, job_id)
+        job.heartbeat_at = utcnow() - timedelta(seconds=61)
+        job.params = {"frames": [0, 5]}
+    assert second.run(job_id) == "succeeded"
+    computed = (world.tmp_path / "cache-second" / "jobs" / job_id / "computed.txt").read_text().split()
+    assert computed == ["2", "3", "4"]
+    job = world.get(job_id)
+    assert job.attempts == 2 and job.worker == "second"
+
+
+def test_cancel_stops_between_frames(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 6]})
+    executor = world.executor()
+
+    def cancel_after_two(inputs: RunInputs) -> list[Path]:
+        def progress(fraction: float, stage: str) -> None:
+            inputs.progress(fraction, stage)
+            if fraction >= 2 / 6:
+                with session_scope(world.sessions) as session:
+                    session.get(Job, job_id).cancel_requested = True
+
+        return fake_job(RunInputs(**{**inputs.__dict__, "progress": progress}))
+
+    executor.runners = {**FAKE_RUNNERS, "reconstruct": cancel_after_two}
+    assert executor.run(job_id) == "cancelled"
+    job = world.get(job_id)
+    assert job.state == JobState.CANCELLED and job.finished_at is not None
+    assert 0 < job.progress < 0.5
+    assert len(world.storage.list(f"{run_prefix(job_id)}/states/")) == 2
+    assert world.artifacts(job_id) == {}
+
+
+def test_a_job_cancelled_while_queued_never_runs(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), state=JobState.QUEUED, cancel_requested=True)
+    assert world.executor().run(job_id) is None
+    assert world.get(job_id).state == JobState.CANCELLED
+    assert world.storage.list(f"{run_prefix(job_id)}/") == []
+
+
+@pytest.mark.parametrize(
+    ("error", "message"),
+    [(ValueError("ball center [9, 9, 9] is outside the scene box"), "ball center [9, 9, 9] is outside the scene box"),
+     (RuntimeError("CUDA out of memory"), "RuntimeError: CUDA out of memory")],
+)
+def test_runner_errors_fail_the_job_with_the_message(world: World, error: Exception, message: str) -> None:
+    def failing(inputs: RunInputs) -> list[Path]:
+        inputs.progress(0.5, "fit")
+        raise error
+
+    job_id = world.job(scene_id=world.scene())
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
+    job = world.get(job_id)
+    assert job.state == JobState.FAILED and job.error == message and job.finished_at is not None
+
+
+def test_transient_storage_fault_gives_the_job_back_for_a_retry(world: World) -> None:
+    def storage_down(inputs: RunInputs) -> list[Path]:
+        raise StorageError("put jobs/x: connection refused")
+
+    job_id = world.job(scene_id=world.scene())
+    with pytest.raises(StorageError):
+        world.executor(runners={**FAKE_RUNNERS, "reconstruct": storage_down}).run(job_id)
+    job = world.get(job_id)
+    assert job.state == JobState.QUEUED and job.heartbeat_at is None and job.stage == "waiting to retry"
+    assert world.executor("retry").run(job_id) == "succeeded"  # no lease to wait for
+
+
+def test_s3_storage_round_trip(tmp_path: Path) -> None:
+    """The same executor against the S3 backend (moto's server), SQLite database."""
+    from moto.server import ThreadedMotoServer
+
+    from api.storage import MinioStorage
+    from service_support import free_port
+
+    port = free_port()
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    try:
+        storage = MinioStorage(f"127.0.0.1:{port}", "k", "s", "fluidnexus", region="us-east-1")
+        storage.ensure_bucket()
+        with database_url("sqlite", tmp_path) as url:
+            world = World(tmp_path, url, storage)
+            job_id = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+            assert world.executor().run(job_id) == "succeeded"
+            video = world.artifacts(job_id)["videos/cam0.mp4"]
+            assert storage.stat(video.key).size == video.size
+            world.engine.dispose()
+    finally:
+        server.stop()
