@@ -25,6 +25,7 @@ from pathlib import Path
 
 import av
 import numpy as np
+from av.video.reformatter import Interpolation
 
 CRF = 18  # visually lossless for smoke; the shared benchmark files use the same
 GREY_TOLERANCE = 3  # max |R-G|, |G-B| of a grey pixel after 4:2:0 chroma rounding
@@ -144,13 +145,18 @@ def _check_range(start: int, stop: int | None, step: int) -> None:
 
 
 def _to_rgb(frame: av.VideoFrame, size: tuple[int, int] | None) -> np.ndarray:
+    """RGB24 exactly as the ffmpeg command line converts (accurate rounding, full chroma
+    interpolation), so metrics match numbers computed with ffmpeg-decoded frames."""
+    filter_ = Interpolation.BICUBIC
     options: dict[str, object] = {"format": "rgb24"}
     colorspace = _COLORSPACES.get(int(frame.colorspace))
     if colorspace:
         options["src_colorspace"] = colorspace
     if size is not None and tuple(size) != (frame.width, frame.height):
-        shrinking = size[0] * size[1] < frame.width * frame.height
-        options.update(width=int(size[0]), height=int(size[1]), interpolation="AREA" if shrinking else "BICUBIC")
+        if size[0] * size[1] < frame.width * frame.height:
+            filter_ = Interpolation.AREA  # shrinking: average, do not alias
+        options.update(width=int(size[0]), height=int(size[1]))
+    options["interpolation"] = filter_ | Interpolation.ACCURATE_RND | Interpolation.FULL_CHR_H_INT
     return frame.to_ndarray(**options)
 
 
