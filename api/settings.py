@@ -25,6 +25,7 @@ class Settings(BaseSettings):
     data_dir: Path = Path("data")
     database_url: str | None = Field(default=None, description="SQLAlchemy URL; default sqlite in data_dir")
     broker_url: str | None = Field(default=None, description="Celery broker; default kombu filesystem in data_dir")
+    broker_key_prefix: str = Field(default="", description="Redis key namespace, so deployments can share a Redis")
 
     storage_backend: Literal["local", "s3"] = "local"
     storage_dir: Path | None = Field(default=None, description="local backend root; default data_dir/storage")

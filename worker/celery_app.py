@@ -24,6 +24,8 @@ TASK_PREFIX = "fluidnexus."
 def make_celery(settings: Settings) -> Celery:
     app = Celery("fluidnexus", broker=settings.resolved_broker_url())
     transport_options: dict[str, object] = {"visibility_timeout": settings.job_hard_time_limit + 600}
+    if settings.broker_key_prefix:
+        transport_options["global_keyprefix"] = settings.broker_key_prefix
     if settings.is_embedded_broker():
         folder = settings.broker_folder()
         (folder / "processed").mkdir(parents=True, exist_ok=True)
