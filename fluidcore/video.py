@@ -1,8 +1,10 @@
 """Video files in and out: probe, decode (MP4/MOV/WebM/... through PyAV) and encode browser-ready MP4.
 
 Decoding returns uint8 RGB arrays (T, H, W, 3), the in-memory video convention of
-docs/architecture.md. Colour conversion follows the stream's colorspace tag (BT.709 HD video
-is not decoded as BT.601), untagged streams are BT.601 as ffmpeg assumes.
+docs/architecture.md, upright as a player shows them (a phone's display rotation is applied,
+as ffmpeg does when frames are extracted for calibration). Colour conversion follows the
+stream's colorspace tag (BT.709 HD video is not decoded as BT.601); untagged streams are BT.601
+as ffmpeg assumes.
 
 Encoding writes H.264 (libx264) in yuv420p, which every browser plays, with `+faststart` so
 playback starts before the download ends, tagged BT.601 to match the conversion used. yuv420p
@@ -68,22 +70,41 @@ def _reason(error: Exception) -> str:
 
 
 def probe(path: str | Path) -> VideoInfo:
-    """Size, frame rate, frame count and codec of the first video stream; VideoError when the
-    file is not a video or is truncated."""
+    """Displayed size (rotation applied), frame rate, frame count and codec of the first video
+    stream. Decodes the first frame, so a file that is not a playable video fails here, at
+    upload time; a file with fewer packets than its header declares is reported truncated."""
+    path = Path(path)
     with _open(path) as container:
         stream = container.streams.video[0]
-        context = stream.codec_context
+        first = _first_frame(container, stream, path)
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         fps = float(rate) if rate else 0.0
-        declared, n_frames = stream.frames, _count_packets(container, stream, Path(path))
-        if declared and n_frames < declared:
-            raise VideoError(f"{Path(path).name}: truncated video: header says {declared} frames, only {n_frames} present")
-        if not (context.width > 0 and context.height > 0 and n_frames > 0 and math.isfinite(fps) and fps > 0):
-            raise VideoError(
-                f"{Path(path).name}: unusable video stream ({context.width}x{context.height}, "
-                f"{n_frames} frames, {fps} fps)"
-            )
-        return VideoInfo(context.width, context.height, fps, n_frames, context.name, context.pix_fmt or "")
+        codec, pix_fmt, declared = stream.codec_context.name, stream.codec_context.pix_fmt or "", stream.frames
+    with _open(path) as container:
+        n_frames = _count_packets(container, container.streams.video[0], path)
+    if declared and n_frames < declared:
+        raise VideoError(f"{path.name}: truncated video: header says {declared} frames, only {n_frames} present")
+    if not (n_frames > 0 and math.isfinite(fps) and fps > 0):
+        raise VideoError(f"{path.name}: unusable video stream ({n_frames} frames, {fps} fps)")
+    width, height = first.width, first.height
+    if _quarter_turns(first) % 2:
+        width, height = height, width
+    return VideoInfo(width, height, fps, n_frames, codec, pix_fmt)
+
+
+def _first_frame(container: av.container.InputContainer, stream: av.VideoStream, path: Path) -> av.VideoFrame:
+    try:
+        for frame in container.decode(stream):
+            return frame
+    except av.FFmpegError as error:
+        raise VideoError(f"{path.name}: corrupt or truncated video ({_reason(error)})") from None
+    raise VideoError(f"{path.name}: the video stream holds no decodable frame")
+
+
+def _quarter_turns(frame: av.VideoFrame) -> int:
+    """Counter-clockwise quarter turns the player applies (phone videos store portrait as
+    landscape plus a display rotation); flips in the display matrix are not handled."""
+    return round(frame.rotation / 90) % 4
 
 
 def _count_packets(container: av.container.InputContainer, stream: av.VideoStream, path: Path) -> int:
@@ -145,19 +166,24 @@ def _check_range(start: int, stop: int | None, step: int) -> None:
 
 
 def _to_rgb(frame: av.VideoFrame, size: tuple[int, int] | None) -> np.ndarray:
-    """RGB24 exactly as the ffmpeg command line converts (accurate rounding, full chroma
-    interpolation), so metrics match numbers computed with ffmpeg-decoded frames."""
+    """RGB24 as displayed (display rotation applied), converted exactly as the ffmpeg command
+    line does (accurate rounding, full chroma interpolation), so metrics match numbers computed
+    with ffmpeg-decoded frames. `size` is the displayed (width, height)."""
+    turns = _quarter_turns(frame)
     filter_ = Interpolation.BICUBIC
     options: dict[str, object] = {"format": "rgb24"}
     colorspace = _COLORSPACES.get(int(frame.colorspace))
     if colorspace:
         options["src_colorspace"] = colorspace
-    if size is not None and tuple(size) != (frame.width, frame.height):
-        if size[0] * size[1] < frame.width * frame.height:
-            filter_ = Interpolation.AREA  # shrinking: average, do not alias
-        options.update(width=int(size[0]), height=int(size[1]))
+    if size is not None:
+        stored = (size[1], size[0]) if turns % 2 else (size[0], size[1])
+        if stored != (frame.width, frame.height):
+            if stored[0] * stored[1] < frame.width * frame.height:
+                filter_ = Interpolation.AREA  # shrinking: average, do not alias
+            options.update(width=int(stored[0]), height=int(stored[1]))
     options["interpolation"] = filter_ | Interpolation.ACCURATE_RND | Interpolation.FULL_CHR_H_INT
-    return frame.to_ndarray(**options)
+    image = frame.to_ndarray(**options)
+    return np.ascontiguousarray(np.rot90(image, turns)) if turns else image
 
 
 def is_grayscale(frames: np.ndarray) -> bool:

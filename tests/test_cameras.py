@@ -212,6 +212,13 @@ def test_format_is_detected_from_content(tmp_path: Path) -> None:
         cameras.load(tmp_path / "broken.json")
 
 
+def test_dataset_folder_loads_its_transforms(tmp_path: Path) -> None:
+    with pytest.raises(CameraError, match="no COLMAP model .* and no transforms.json or info.json"):
+        cameras.load(tmp_path)
+    _write(tmp_path / "transforms.json", _transforms(_ring(3)))
+    assert sorted(cameras.load(tmp_path)) == ["cam0", "cam1", "cam2"]
+
+
 def _mutate(data: dict, path: str, value) -> dict:
     """Set data[a][b]... for a dotted path (integers index lists); value None deletes."""
     keys = [int(k) if k.isdigit() else k for k in path.split(".")]
@@ -238,6 +245,7 @@ def _mutate(data: dict, path: str, value) -> dict:
         ("k1", 0.01, "k1 = 0.01: lens distortion is not supported"),
         ("camera_model", "OPENCV_FISHEYE", "camera_model 'OPENCV_FISHEYE' is not supported"),
         ("frames", [], "no cameras"),
+        ("frames.0.camera", 7, "camera must be a non-empty string, got 7"),
     ],
 )
 def test_nerfstudio_errors_name_the_field(tmp_path: Path, path: str, value, message: str) -> None:

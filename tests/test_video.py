@@ -165,3 +165,23 @@ def test_shared_input_video(realdata: Path) -> None:
     frames = read_frames(path, start=0, stop=30, step=10, size=(324, 580))
     assert frames.shape == (3, 580, 324, 3)
     assert is_grayscale(frames)  # ScalarFlow panels are processed grey smoke
+
+
+def test_display_rotation_is_applied(tmp_path: Path) -> None:
+    """A phone stores portrait video as landscape plus a rotation; we return what players show."""
+    image = np.zeros((32, 64, 3), dtype=np.uint8)
+    image[:8, :16] = 255  # a white block in the stored top-left corner
+    path = tmp_path / "portrait.mp4"
+    with av.open(str(path), mode="w") as container:
+        stream = container.add_stream("libx264", rate=Fraction(25))
+        stream.width, stream.height, stream.pix_fmt = 64, 32, "yuv420p"
+        stream.set_display_rotation(90)  # counter-clockwise, as players apply it
+        for _ in range(2):
+            container.mux(stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")))
+        container.mux(stream.encode(None))
+    info = probe(path)
+    assert (info.width, info.height) == (32, 64)
+    frames = read_frames(path)
+    assert frames.shape == (2, 64, 32, 3)
+    assert frames[0, 60, 2].mean() > 200 and frames[0, 2, 2].mean() < 50  # top-left went to bottom-left
+    assert read_frames(path, size=(16, 32)).shape == (2, 32, 16, 3)

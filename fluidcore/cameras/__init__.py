@@ -3,7 +3,8 @@ files users bring, and scene boxes.
 
 `load(path)` recognises the format from the content, never from the file name, because uploads
 arrive under arbitrary names:
-  - a folder, or a file starting with the zip signature: a COLMAP sparse model (fluidcore.cameras.colmap);
+  - a file starting with the zip signature, or a folder holding cameras/images .bin/.txt: a COLMAP
+    sparse model (fluidcore.cameras.colmap); any other folder: its transforms.json or info.json;
   - a JSON object with `frames` or PINF's `train_videos`: nerfstudio transforms.json or PINF/HyFluid
     info.json (fluidcore.cameras.json_formats).
 
@@ -16,11 +17,12 @@ from pathlib import Path
 
 from fluidcore.cameras.boxes import Box, box_center, box_corners, frusta_box, scene_box
 from fluidcore.cameras.camera import Camera, CameraError, check_rigid, look_at, orbit
-from fluidcore.cameras.colmap import load_colmap_dir, load_colmap_zip
+from fluidcore.cameras.colmap import find_model_dir, load_colmap_dir, load_colmap_zip
 from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json
 
 ZIP_MAGIC = b"PK\x03\x04"
 JSON_START = (b"{", b"\xef\xbb\xbf{")  # optionally after a UTF-8 byte-order mark
+DATASET_FILES = ("transforms.json", "info.json")
 
 
 def load(path: str | Path) -> dict[str, Camera]:
@@ -28,7 +30,7 @@ def load(path: str | Path) -> dict[str, Camera]:
     (folder or .zip). Raises CameraError naming the file and field on any invalid input."""
     path = Path(path)
     if path.is_dir():
-        return load_colmap_dir(path)
+        return _load_folder(path)
     if not path.is_file():
         raise CameraError(f"{path}: no such file or folder")
     with path.open("rb") as handle:
@@ -43,6 +45,19 @@ def load(path: str | Path) -> dict[str, Camera]:
     raise CameraError(
         f"{path.name}: unrecognised camera file; expected transforms.json / info.json (JSON), "
         "a COLMAP sparse model folder, or a .zip of one"
+    )
+
+
+def _load_folder(folder: Path) -> dict[str, Camera]:
+    """A COLMAP model in the folder, else the folder's transforms.json or info.json (a dataset
+    folder as nerfstudio and PINF lay them out)."""
+    if find_model_dir(folder) is not None:
+        return load_colmap_dir(folder)
+    for name in DATASET_FILES:
+        if (folder / name).is_file():
+            return load(folder / name)
+    raise CameraError(
+        f"{folder.name}: no COLMAP model (cameras/images .bin or .txt) and no {' or '.join(DATASET_FILES)} in the folder"
     )
 
 

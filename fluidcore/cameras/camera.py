@@ -62,6 +62,11 @@ def _check_positive(value: float, field_name: str) -> None:
         raise CameraError(f"{field_name} must be a positive finite number, got {value}")
 
 
+def _check_size(value: int, field_name: str) -> None:
+    if isinstance(value, bool) or int(value) != value or value <= 0:
+        raise CameraError(f"{field_name} must be a positive integer, got {value}")
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A calibrated pinhole camera: intrinsics in pixels and a world-to-camera pose (OpenCV axes).
@@ -90,9 +95,7 @@ class Camera:
             if not math.isfinite(float(getattr(self, name))):
                 raise CameraError(f"{name} must be finite, got {getattr(self, name)}")
         for name in ("width", "height"):
-            value = getattr(self, name)
-            if int(value) != value or value <= 0:
-                raise CameraError(f"{name} must be a positive integer, got {value}")
+            _check_size(getattr(self, name), name)
         pose = check_rigid(self.world_to_camera, "world_to_camera").copy()
         pose.setflags(write=False)
         for name in ("fx", "fy", "cx", "cy"):
@@ -131,8 +134,8 @@ class Camera:
 
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera for frames resized to width x height (exact in continuous pixels)."""
-        _check_positive(width, "width")
-        _check_positive(height, "height")
+        _check_size(width, "width")
+        _check_size(height, "height")
         sx, sy = width / self.width, height / self.height
         return replace(
             self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height

@@ -83,9 +83,11 @@ def _entry_camera(path: Path, data: dict[str, Any], where: str, entry: dict[str,
     video = entry.get("file_path", entry.get("file_name"))
     if video is not None and not isinstance(video, str):
         raise CameraError(f"{path.name}: {where}.file_path must be a string or null, got {video!r}")
-    name = entry.get("camera") or (Path(video).stem if video else None)
-    if not isinstance(name, str) or not name:
+    name = entry.get("camera", Path(video).stem if video else None)
+    if name is None:
         raise CameraError(f"{path.name}: {where}: missing field camera (and no file_path to name it by)")
+    if not isinstance(name, str) or not name:
+        raise CameraError(f"{path.name}: {where}: camera must be a non-empty string, got {name!r}")
     context = f"{path.name}: {where} ({name})"
     try:
         fx, fy, cx, cy, width, height = _intrinsics(path, data, entry, video)
