@@ -158,44 +158,98 @@ void pbf_density(const float* pos, int64_t n, float h, const int64_t* offsets, c
 // Jacobi PBF density solve, one-sided constraint C_i = max(0, rho_i / rho0 - 1), in place on pos.
 // Runs `max_iterations` iterations, or fewer when tolerance > 0 and the mean residual drops below
 // it. On return `density` holds the density of the returned positions; returns iterations used.
+//
+// Pass A (density, lambda) stores, per pair, the Poly6 weight and the factor m with
+// grad W_ij / rho0 = m (x_i - x_j); pass B (corrections) reuses them, so the square roots and
+// divisions are done once per pair and iteration, in loops the compiler can vectorise.
+// Coincident pairs (m undefined) are flagged per row and handled by a scalar fix-up.
 int pbf_solve(float* pos, int64_t n, const int64_t* offsets, const int32_t* indices, float h, float rho0,
               float relaxation, float scorr_k, int scorr_n, float scorr_dq, float max_correction, int max_iterations,
               float tolerance, float* density, int threads) {
-    const float inv_h = 1.0f / h, inv_rho0 = 1.0f / rho0;
-    const float epsilon = relaxation * inv_h * inv_h;
+    const float inv_h = 1.0f / h, inv_rho0 = 1.0f / rho0, inv_h2 = inv_h * inv_h;
+    const float epsilon = relaxation * inv_h2;
     const float inv_w_dq = 1.0f / poly6(scorr_dq * scorr_dq);
     const float scorr_scale = scorr_k * h * h;
-    std::vector<float> lambda(n), next(3 * n);
+    const float grad_scale = -kSpikyGrad * inv_h * inv_h * inv_rho0;  // m = grad_scale (1 - q)^2 / q
+    const float c2 = kCoincident * kCoincident;
+    const int64_t n_pairs = offsets[n];
+    std::vector<float> lambda(n), next(3 * n), weight(n_pairs), factor(n_pairs);
+    std::vector<char> coincident_row(n);
     int iteration = 0;
     for (;; ++iteration) {
         double residual_sum = 0.0;
-#pragma omp parallel for schedule(static) num_threads(threads) reduction(+ : residual_sum)
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads) reduction(+ : residual_sum)
         for (int64_t i = 0; i < n; ++i) {
-            float rho = kPoly6, gi[3] = {0.0f, 0.0f, 0.0f}, sum_g2 = 0.0f;
+            const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+            float rho = kPoly6, gx = 0.0f, gy = 0.0f, gz = 0.0f, sum_g2 = 0.0f;
+            int coincident = 0;
+#pragma omp simd reduction(+ : rho, gx, gy, gz, sum_g2, coincident)
             for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                float g[3], q2;
-                spiky_gradient(pos, i, indices[k], inv_h, inv_rho0, g, &q2);
-                rho += poly6(q2);
-                gi[0] += g[0], gi[1] += g[1], gi[2] += g[2];
-                sum_g2 += g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+                const int64_t j = indices[k];
+                const float dx = xi - pos[3 * j], dy = yi - pos[3 * j + 1], dz = zi - pos[3 * j + 2];
+                const float q2 = (dx * dx + dy * dy + dz * dz) * inv_h2;
+                const float t = std::max(1.0f - q2, 0.0f);
+                const float w = kPoly6 * t * t * t;
+                const float q = std::sqrt(q2);
+                const float u = std::max(1.0f - q, 0.0f);
+                const bool apart = q2 >= c2;
+                const float m = apart ? grad_scale * u * u / q : 0.0f;
+                weight[k] = w;
+                factor[k] = m;
+                rho += w;
+                gx += m * dx, gy += m * dy, gz += m * dz;
+                sum_g2 += m * m * (dx * dx + dy * dy + dz * dz);
+                coincident += apart ? 0 : 1;
+            }
+            coincident_row[i] = coincident > 0;
+            if (coincident) {  // rare: exactly overlapping particles get fixed directions
+                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                    if (factor[k] != 0.0f) continue;
+                    float g[3], q2;
+                    spiky_gradient(pos, i, indices[k], inv_h, inv_rho0, g, &q2);
+                    if (q2 >= c2) continue;
+                    gx += g[0], gy += g[1], gz += g[2];
+                    sum_g2 += g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+                }
             }
             const float c = std::max(rho * inv_rho0 - 1.0f, 0.0f);
             density[i] = rho;
-            lambda[i] = -c / (gi[0] * gi[0] + gi[1] * gi[1] + gi[2] * gi[2] + sum_g2 + epsilon);
+            lambda[i] = -c / (gx * gx + gy * gy + gz * gz + sum_g2 + epsilon);
             residual_sum += c;
         }
         const bool converged = tolerance > 0.0f && n > 0 && residual_sum / double(n) < tolerance;
         if (iteration == max_iterations || converged) break;
-#pragma omp parallel for schedule(static) num_threads(threads)
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
         for (int64_t i = 0; i < n; ++i) {
-            float dp[3] = {0.0f, 0.0f, 0.0f};
-            for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                const int64_t j = indices[k];
-                float g[3], q2;
-                spiky_gradient(pos, i, j, inv_h, inv_rho0, g, &q2);
-                float s = lambda[i] + lambda[j];
-                if (scorr_scale > 0.0f) s -= scorr_scale * ipow(poly6(q2) * inv_w_dq, scorr_n);
-                dp[0] += s * g[0], dp[1] += s * g[1], dp[2] += s * g[2];
+            const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+            const float li = lambda[i];
+            float dx_sum = 0.0f, dy_sum = 0.0f, dz_sum = 0.0f;
+            if (scorr_scale > 0.0f) {
+#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
+                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                    const int64_t j = indices[k];
+                    const float s = (li + lambda[j] - scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n)) * factor[k];
+                    dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
+                }
+            } else {
+#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
+                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                    const int64_t j = indices[k];
+                    const float s = (li + lambda[j]) * factor[k];
+                    dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
+                }
+            }
+            float dp[3] = {dx_sum, dy_sum, dz_sum};
+            if (coincident_row[i]) {
+                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                    const int64_t j = indices[k];
+                    float g[3], q2;
+                    spiky_gradient(pos, i, j, inv_h, inv_rho0, g, &q2);
+                    if (q2 >= c2) continue;
+                    float s = li + lambda[j];
+                    if (scorr_scale > 0.0f) s -= scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n);
+                    dp[0] += s * g[0], dp[1] += s * g[1], dp[2] += s * g[2];
+                }
             }
             const float norm = std::sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]);
             const float shrink = norm > max_correction ? max_correction / norm : 1.0f;
