@@ -7,8 +7,8 @@ counted from the first new (predicted) frame.
 Validation happens in two stages because the scene is not known when a request arrives:
 the models themselves reject what is wrong in any scene (NaN, a zero direction, a negative
 radius, a strength no smoke survives), and `check_scene` rejects what is wrong in the run's
-scene (a ball outside the scene box, a wind that would blow a particle across the whole box
-in a single frame, an intervention that starts after the last predicted frame).
+scene (a ball outside the scene box, a wind too strong for the simulator to resolve, an
+intervention that starts after the last predicted frame).
 """
 
 from __future__ import annotations
@@ -113,24 +113,25 @@ class InteractionParams(BaseModel):
         hi: Vec3,
         base_height: float,
         dt: float,
+        speed_limit: float,
         frames: int,
         up: Vec3 = (0.0, 1.0, 0.0),
     ) -> None:
         """Reject parameters that are valid in general but meaningless in this run's scene.
 
-        A wind is absurd when, at its peak inside the box, it alone would carry a particle at
-        rest across the box's smallest side within one frame (a * dt^2 > side): the smoke would
-        simply vanish from the scene, which no user asking "what if" wants.
+        A wind is absurd when, at its peak inside the box, it alone would take a particle at
+        rest past the simulator's speed limit within one step (a * dt > speed_limit, one kernel
+        radius per step): from there on the speed clamp, not the wind, decides the motion.
         """
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)
-            side = min(h - l for l, h in zip(lo, hi))
-            if peak * dt * dt > side:
+            if peak * dt > speed_limit:
                 raise InteractionError(
                     f"wind.strength {self.wind.strength} with wind.growth {self.wind.growth} reaches "
-                    f"{peak:.3g} units/s^2 in the scene box, which blows smoke across the whole box "
-                    f"({side:.3g} units) in one frame; lower the strength or the growth"
+                    f"{peak:.3g} units/s^2 in the scene box; this scene resolves at most "
+                    f"{speed_limit / dt:.3g} units/s^2 (speed limit {speed_limit:.3g} units/s reached in one "
+                    f"{dt:.3g} s step); lower the strength or the growth"
                 )
         if self.ball is not None:
             _check_start(self.ball.start_frame, frames, "ball")

@@ -1,9 +1,85 @@
-"""Commands registered by this module (filled in by its owner)."""
+"""`fluidnexus predict | resimulate | interact`: continue a reconstruction with the simulator.
+
+Each command writes a new run folder (the shared run format, with the parent recorded), so
+`fluidnexus render RUN2` renders its new frames like any other run. Counterfactual parameters
+are validated before any work starts; a bad value prints `error: ...` and exits with code 2.
+"""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import typer
+
+from fluidnexus.cli.errors import user_errors
+
+RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or a prediction).")
+OUT_OPT = typer.Option(..., "--out", help="Folder for the new run; an unfinished run there is resumed.")
+DEVICE_OPT = typer.Option("cpu", "--device", help="torch device: cpu, cuda, cuda:1, ...")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
-    """Add this module's commands to the top-level app and the bench group."""
+    """Add predict, resimulate and interact to the top-level app."""
+    app.command("predict")(predict)
+    app.command("resimulate")(resimulate)
+    app.command("interact")(interact)
+
+
+def predict(
+    run: Path = RUN_ARG,
+    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to predict after the last one."),
+    out: Path = OUT_OPT,
+    device: str = DEVICE_OPT,
+) -> None:
+    """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2)."""
+    from fluidcore import predict as predict_module
+
+    with user_errors(ValueError):
+        path = predict_module.run_predict(run, out, frames=frames, device=device, progress=_progress)
+    typer.echo(str(path))
+
+
+def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT) -> None:
+    """Re-run the simulator from the reconstructed first frame over the observed window."""
+    from fluidcore import predict as predict_module
+
+    with user_errors(ValueError):
+        path = predict_module.run_resimulate(run, out, device=device, progress=_progress)
+    typer.echo(str(path))
+
+
+def interact(
+    run: Path = RUN_ARG,
+    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to simulate after the last one."),
+    out: Path = OUT_OPT,
+    wind: str | None = typer.Option(
+        None,
+        "--wind",
+        help='Wind as JSON: {"direction": [x, y, z], "strength": s, "growth": g, "start_frame": f, "end_frame": null}',
+    ),
+    ball: str | None = typer.Option(
+        None,
+        "--ball",
+        help='Ball as JSON: {"center": [x, y, z], "radius": r, "start_frame": f, "velocity": [vx, vy, vz]}',
+    ),
+    device: str = DEVICE_OPT,
+) -> None:
+    """Ask what if: a wind, a ball in the plume's way, or both, after the last reconstructed frame."""
+    from fluidcore.interaction import parse_interaction
+
+    with user_errors(ValueError):
+        params = parse_interaction(wind, ball)
+        if params.wind is None and params.ball is None:
+            raise ValueError("interact needs --wind, --ball or both (use `fluidnexus predict` for neither)")
+        from fluidcore import predict as predict_module
+
+        path = predict_module.run_interact(
+            run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_progress
+        )
+    typer.echo(str(path))
+
+
+def _progress(fraction: float, stage: str) -> None:
+    """Progress on stderr, so stdout carries only the new run's path."""
+    print(f"\r{stage}: {100 * fraction:5.1f}%", end="" if fraction < 1 else "\n", file=sys.stderr, flush=True)

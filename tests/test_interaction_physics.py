@@ -1,0 +1,114 @@
+"""Counterfactuals with physical meaning: a wind pushes the plume along itself, harder when
+stronger; a ball is never entered and the smoke goes around it; both act only in their window."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from fluidcore.interaction import InteractionError
+from fluidcore.predict import run_interact, run_predict
+from fluidcore.runs import Run
+from predict_scenes import horizontal_distance, live, plume_run
+
+FRAMES = 15
+BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}  # above the source (y 0.075), in the plume's way
+
+
+@pytest.fixture(scope="module")
+def parent(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return plume_run(tmp_path_factory.mktemp("plume") / "parent", frames=2, warmup=30)
+
+
+@pytest.fixture(scope="module")
+def calm(parent: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
+    return Run.open(run_predict(parent, tmp_path_factory.mktemp("calm") / "run", frames=FRAMES))
+
+
+def last_positions(run: Run) -> torch.Tensor:
+    return live(run.read_frame(run.frames()[-1]))
+
+
+def test_wind_pushes_the_centre_of_mass_along_itself_monotonically_in_strength(parent: Path, calm: Run, tmp_path: Path) -> None:
+    direction = torch.tensor([1.0, 0.0, 1.0]) / 2**0.5
+    shifts = [float(last_positions(calm).mean(0) @ direction)]
+    for strength in (0.05, 0.1, 0.2):
+        wind = {"direction": direction.tolist(), "strength": strength}
+        run = Run.open(run_interact(parent, tmp_path / f"wind{strength}", frames=FRAMES, wind=wind))
+        positions = last_positions(run)
+        shifts.append(float(positions.mean(0) @ direction))
+        sideways = positions.mean(0) - float(positions.mean(0) @ direction) * direction
+        assert abs(float(sideways[0] - sideways[2])) < 0.2 * (shifts[-1] - shifts[0])  # along the wind, not across
+    assert all(b > a for a, b in zip(shifts, shifts[1:])), shifts
+
+
+def test_wind_acts_only_inside_its_frame_window(parent: Path, calm: Run, tmp_path: Path) -> None:
+    wind = {"direction": [1.0, 0.0, 0.0], "strength": 0.2, "start_frame": 4, "end_frame": 8}
+    run = Run.open(run_interact(parent, tmp_path / "gust", frames=10, wind=wind))
+    frames = run.frames()
+    for k in range(4):  # before the gust: exactly the calm prediction
+        assert torch.equal(live(run.read_frame(frames[k])), live(calm.read_frame(frames[k])))
+    assert not torch.equal(live(run.read_frame(frames[4])), live(calm.read_frame(frames[4])))
+    # Particles carry the momentum after the gust, but the push itself stopped: the plume's
+    # mean x velocity no longer grows once the wind is over (drag only takes speed away).
+    speed = [float(torch.from_numpy(run.read_frame(t).velocities[run.read_frame(t).alive])[:, 0].mean()) for t in frames]
+    assert speed[7] > speed[3] + 1e-3
+    assert speed[9] <= speed[7] + 1e-4
+
+
+def test_no_particle_is_ever_inside_the_ball_and_the_plume_goes_around_it(parent: Path, calm: Run, tmp_path: Path) -> None:
+    run = Run.open(run_interact(parent, tmp_path / "ball", frames=FRAMES, ball=BALL))
+    center = torch.tensor(BALL["center"])
+    for t in run.frames():
+        saved = run.read_frame(t)
+        assert torch.linalg.vector_norm(live(saved) - center, dim=1).min() >= BALL["radius"] * (1 - 1e-5)
+        means = torch.from_numpy(saved.gaussians["means"])
+        assert torch.linalg.vector_norm(means - center, dim=1).min() >= BALL["radius"] * (1 - 1e-5)
+    # The smoke level with and above the ball has been pushed sideways, away from its axis.
+    with_ball, without = last_positions(run), last_positions(calm)
+    level = lambda x: x[x[:, 1] > BALL["center"][1]]  # noqa: E731
+    spread_ball = horizontal_distance(level(with_ball), BALL["center"]).mean()
+    spread_calm = horizontal_distance(level(without), BALL["center"]).mean()
+    assert spread_ball > 1.1 * spread_calm
+
+
+def test_a_moving_ball_arriving_later_changes_nothing_before_it_arrives(parent: Path, calm: Run, tmp_path: Path) -> None:
+    ball = {**BALL, "center": [-0.15, 0.2, 0.0], "velocity": [0.3, 0.0, 0.0], "start_frame": 5}
+    run = Run.open(run_interact(parent, tmp_path / "thrown", frames=10, ball=ball))
+    frames = run.frames()
+    for k in range(5):
+        assert torch.equal(live(run.read_frame(frames[k])), live(calm.read_frame(frames[k])))
+    for k in range(5, 10):  # from its start frame the ball is at center + velocity * elapsed time
+        center = torch.tensor(ball["center"]) + torch.tensor(ball["velocity"]) * (k - 5) / 30.0
+        distance = torch.linalg.vector_norm(live(run.read_frame(frames[k])) - center, dim=1)
+        assert distance.min() >= BALL["radius"] * (1 - 1e-5)
+
+
+def test_wind_and_ball_at_once(parent: Path, calm: Run, tmp_path: Path) -> None:
+    wind = {"direction": [1.0, 0.0, 0.0], "strength": 0.1}
+    run = Run.open(run_interact(parent, tmp_path / "both", frames=FRAMES, wind=wind, ball=BALL))
+    positions = last_positions(run)
+    assert float(positions[:, 0].mean()) > float(last_positions(calm)[:, 0].mean())
+    assert torch.linalg.vector_norm(positions - torch.tensor(BALL["center"]), dim=1).min() >= BALL["radius"] * (1 - 1e-5)
+    assert run.manifest["settings"]["wind"]["strength"] == 0.1 and run.manifest["settings"]["ball"]["radius"] == 0.05
+
+
+@pytest.mark.parametrize(
+    ("wind", "ball", "message"),
+    [
+        (None, {"center": [0.0, 5.0, 0.0], "radius": 0.05}, "ball.center .* outside the scene box"),
+        ({"direction": [1, 0, 0], "strength": 500.0}, None, "wind.strength"),
+        ({"direction": [1, 0, 0], "strength": float("nan")}, None, "wind.strength"),
+        (None, {"center": [0.0, 0.2, 0.0], "radius": -1.0}, "ball.radius"),
+        ({"direction": [1, 0, 0], "strength": 0.1, "start_frame": 99}, None, "wind.start_frame"),
+        (None, None, "needs a wind, a ball or both"),
+    ],
+)
+def test_invalid_interactions_are_refused_before_anything_is_written(
+    parent: Path, tmp_path: Path, wind: dict | None, ball: dict | None, message: str
+) -> None:
+    with pytest.raises(InteractionError, match=message):
+        run_interact(parent, tmp_path / "out", frames=FRAMES, wind=wind, ball=ball)
+    assert not (tmp_path / "out").exists()
