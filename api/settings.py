@@ -34,7 +34,10 @@ class Settings(BaseSettings):
     s3_secret_key: str = "minioadmin"
     s3_bucket: str = "fluidnexus"
     s3_secure: bool = False
-    s3_region: str | None = None
+    s3_region: str | None = Field(default=None, description="set it to presign without asking the server")
+    s3_public_endpoint: str | None = Field(
+        default=None, description="host:port that browsers reach for presigned URLs (default s3_endpoint)"
+    )
     presign_seconds: int = Field(default=3600, ge=60, le=7 * 24 * 3600)
 
     # Upload limits: checked before anything is stored.

@@ -193,11 +193,19 @@ class MinioStorage(Storage):
         bucket: str,
         secure: bool = False,
         region: str | None = None,
+        public_endpoint: str | None = None,
     ) -> None:
+        """`public_endpoint`: the host:port clients outside the deployment reach (e.g. MinIO's published
+        port while the service talks to `minio:9000`); presigned URLs are signed for it."""
         from minio import Minio
 
         self.bucket = bucket
         self.client = Minio(endpoint, access_key=access_key, secret_key=secret_key, secure=secure, region=region)
+        self.public_client = (
+            Minio(public_endpoint, access_key=access_key, secret_key=secret_key, secure=secure, region=region)
+            if public_endpoint and public_endpoint != endpoint
+            else self.client
+        )
 
     def _call(self, what: str, fn, *args, **kwargs):  # type: ignore[no-untyped-def]
         """Run a client call, mapping 'no such key' to ObjectNotFound and the rest to StorageError."""
@@ -257,7 +265,7 @@ class MinioStorage(Storage):
     def presign(self, key: str, expires_s: int) -> str | None:
         return self._call(
             f"presign {key}",
-            self.client.presigned_get_object,
+            self.public_client.presigned_get_object,
             self.bucket,
             check_key(key),
             expires=timedelta(seconds=expires_s),
@@ -278,5 +286,6 @@ def make_storage(settings: Settings) -> Storage:
             settings.s3_bucket,
             secure=settings.s3_secure,
             region=settings.s3_region,
+            public_endpoint=settings.s3_public_endpoint,
         )
     return LocalStorage(settings.resolved_storage_dir())

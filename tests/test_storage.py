@@ -103,3 +103,15 @@ def test_s3_failures_are_storage_errors(s3_endpoint: str) -> None:
     unreachable = MinioStorage(f"127.0.0.1:{free_port()}", "a", "b", "bucket", region="us-east-1")
     with pytest.raises(StorageError):
         unreachable.check()
+
+
+def test_presigned_urls_use_the_public_endpoint(s3_endpoint: str) -> None:
+    """Inside a deployment the service reaches `minio:9000`; users' browsers reach the published port."""
+    port = s3_endpoint.rsplit(":", 1)[1]
+    backend = MinioStorage(s3_endpoint, "testing", "testing", "public-test", region="us-east-1",
+                           public_endpoint=f"localhost:{port}")
+    backend.ensure_bucket()
+    backend.put_bytes("a.bin", DATA[:100])
+    url = backend.presign("a.bin", 600)
+    assert url is not None and url.startswith(f"http://localhost:{port}/public-test/a.bin?")
+    assert httpx.get(url).content == DATA[:100]

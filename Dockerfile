@@ -1,0 +1,49 @@
+# Two images from one file:
+#   target `api`    - the FastAPI service (never imports torch; CPU wheels keep it small)
+#   target `worker` - Celery GPU worker: CUDA toolkit for gsplat's kernels, CUDA torch,
+#                     g++ for fluidcore's fused CPU kernels
+# Build: docker compose build   (or docker build --target worker -t fluidnexus-worker .)
+
+ARG PYTHON_IMAGE=python:3.11-slim-bookworm
+ARG CUDA_IMAGE=nvidia/cuda:12.8.1-cudnn-devel-ubuntu22.04
+
+FROM ${PYTHON_IMAGE} AS api
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
+WORKDIR /app
+COPY pyproject.toml constraints.txt README.md ./
+COPY fluidcore fluidcore
+COPY fluidnexus fluidnexus
+COPY api api
+COPY worker worker
+COPY bench bench
+RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
+ && pip install -c constraints.txt .
+COPY migrations migrations
+COPY alembic.ini ./
+COPY web web
+ENV FLUIDNEXUS_WEB_DIR=/app/web FLUIDNEXUS_DATA_DIR=/data
+EXPOSE 8000
+# Runs `alembic upgrade head`, then serves; workers run in their own containers.
+CMD ["fluidnexus", "serve", "--host", "0.0.0.0", "--port", "8000", "--no-worker"]
+
+FROM ${CUDA_IMAGE} AS worker
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cu128
+ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1 DEBIAN_FRONTEND=noninteractive
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends python3.11 python3.11-venv python3-pip g++ \
+ && rm -rf /var/lib/apt/lists/* \
+ && python3.11 -m venv /opt/venv
+ENV PATH=/opt/venv/bin:$PATH
+WORKDIR /app
+COPY pyproject.toml constraints.txt README.md ./
+COPY fluidcore fluidcore
+COPY fluidnexus fluidnexus
+COPY api api
+COPY worker worker
+COPY bench bench
+RUN pip install torch==2.13.0 --index-url ${TORCH_INDEX} \
+ && pip install -c constraints.txt . \
+ && python -m fluidcore.kernels build
+ENV FLUIDNEXUS_DATA_DIR=/data
+# One worker process per GPU, one job at a time (set CUDA_VISIBLE_DEVICES per container).
+CMD ["celery", "-A", "worker.tasks", "worker", "--queues", "gpu", "--concurrency", "1", "--loglevel", "INFO"]
