@@ -43,7 +43,7 @@ from fluidcore.physics.coupling import push_out
 from fluidcore.pipeline import Cancelled, Progress, ShouldCancel
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
 from fluidcore.reconstruct.visual import Appearance
-from fluidcore.runs import FrameState, Run, RunError, Scene
+from fluidcore.runs import FrameState, Run, RunError
 
 TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newborn Gaussians copy
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)

@@ -1,0 +1,223 @@
+"""Prediction and re-simulation runs: what they write, what they cost, and that they are
+reproducible, resumable, continuable and finite over long horizons."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from predict_scenes import SPEC, live, plume_run
+from typer.testing import CliRunner
+
+from fluidcore import pipeline, predict
+from fluidcore.physics import Simulator
+from fluidcore.pipeline import Cancelled
+from fluidcore.runs import Run, RunError
+
+FRAMES = 6
+
+
+@pytest.fixture(scope="module")
+def parent(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return plume_run(tmp_path_factory.mktemp("plume") / "parent", frames=3, warmup=25)
+
+
+def states(run: Run) -> list[dict[str, np.ndarray]]:
+    """Every frame's arrays, for exact comparison of two runs."""
+    out = []
+    for t in run.frames():
+        saved = run.read_frame(t)
+        out.append({"positions": saved.positions, "alive": saved.alive, **saved.gaussians})
+    return out
+
+
+def assert_same_states(a: Run, b: Run) -> None:
+    assert a.frames() == b.frames()
+    for x, y in zip(states(a), states(b), strict=True):
+        assert x.keys() == y.keys()
+        for key in x:
+            np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+
+
+def test_prediction_continues_after_the_last_frame_and_records_its_parent(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    assert run.kind == "predict" and run.manifest["complete"]
+    assert run.frames() == list(range(3, 3 + FRAMES))
+    assert Path(run.manifest["parent"]) == parent.resolve() and run.parent is not None
+    assert run.manifest["refinement"] == predict.NO_REFINER
+    first = run.read_frame(3)
+    last_parent = Run.open(parent).read_frame(2)
+    assert first.time == pytest.approx(last_parent.time + 1 / 30)
+    # The smoke keeps rising and the source keeps seeding.
+    assert live(first)[:, 1].mean() > live(last_parent)[:, 1].mean()
+    assert first.alive.sum() > last_parent.alive.sum()
+
+
+def test_rendering_a_prediction_gives_its_new_frames(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    camera = run.cameras()["view_01"]
+    video = pipeline.render_frames(run, camera)
+    assert video.shape == (FRAMES, camera.height, camera.width, 3)
+    assert video.min() < 200  # smoke is visible on the white background
+
+
+def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import fluidcore.render as render_module
+
+    calls = {"step": 0, "render": 0}
+    step, original_render = Simulator.step, render_module.render
+
+    def counting_step(self: Simulator, state):  # noqa: ANN001, ANN202
+        calls["step"] += 1
+        return step(self, state)
+
+    def counting_render(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls["render"] += 1
+        return original_render(*args, **kwargs)
+
+    monkeypatch.setattr(Simulator, "step", counting_step)
+    monkeypatch.setattr(render_module, "render", counting_render)
+    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    assert calls == {"step": FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
+    for camera in run.cameras().values():
+        pipeline.render_frames(run, camera)
+    assert calls == {"step": FRAMES, "render": FRAMES * len(run.cameras())}
+
+
+def test_prediction_without_forces_is_deterministic(parent: Path, tmp_path: Path) -> None:
+    a = Run.open(predict.run_predict(parent, tmp_path / "a", frames=FRAMES))
+    b = Run.open(predict.run_predict(parent, tmp_path / "b", frames=FRAMES))
+    assert_same_states(a, b)
+
+
+def test_a_cancelled_prediction_resumes_to_the_same_result(parent: Path, tmp_path: Path) -> None:
+    asked = []
+    reported: list[float] = []
+
+    def cancel_after_three() -> bool:
+        asked.append(True)
+        return len(asked) > 3
+
+    with pytest.raises(Cancelled, match="resumes from frame 6"):
+        predict.run_predict(parent, tmp_path / "resumed", frames=FRAMES, should_cancel=cancel_after_three)
+    assert Run.open(tmp_path / "resumed").frames() == [3, 4, 5]
+    predict.run_predict(parent, tmp_path / "resumed", frames=FRAMES, progress=lambda f, stage: reported.append(f))
+    assert reported == pytest.approx([(k + 1) / FRAMES for k in range(3, FRAMES)])
+    whole = Run.open(predict.run_predict(parent, tmp_path / "whole", frames=FRAMES))
+    assert_same_states(Run.open(tmp_path / "resumed"), whole)
+
+
+def test_another_run_in_the_same_folder_is_refused(parent: Path, tmp_path: Path) -> None:
+    predict.run_predict(parent, tmp_path / "out", frames=2)
+    with pytest.raises(RunError, match="different run"):
+        predict.run_interact(parent, tmp_path / "out", frames=2, wind={"direction": [1, 0, 0], "strength": 0.1})
+
+
+@pytest.mark.parametrize("frames", [0, -3, 2.5, True])
+def test_a_bad_horizon_is_refused(parent: Path, tmp_path: Path, frames: object) -> None:
+    with pytest.raises(predict.PredictError, match="frames"):
+        predict.run_predict(parent, tmp_path / "out", frames=frames)  # type: ignore[arg-type]
+
+
+def test_a_prediction_can_be_continued_by_another(parent: Path, tmp_path: Path) -> None:
+    first = predict.run_predict(parent, tmp_path / "first", frames=3)
+    second = Run.open(predict.run_predict(first, tmp_path / "second", frames=3))
+    whole = Run.open(predict.run_predict(parent, tmp_path / "whole", frames=6))
+    assert second.frames() == whole.frames()[3:]
+    for t in second.frames():
+        np.testing.assert_array_equal(live(second.read_frame(t)), live(whole.read_frame(t)))
+
+
+def test_newborn_smoke_looks_like_the_reconstructed_smoke_at_the_source(parent: Path, tmp_path: Path) -> None:
+    """Births copy the fitted appearance near the source, not some default look."""
+    recoloured = tmp_path / "recoloured"
+    source = Run.open(parent)
+    Run.create(
+        recoloured, kind="reconstruct", cameras=source.cameras(), input_views=["view_00"], frame_range=(0, 1),
+        fps=30.0, channels=1, background_color=[1.0], scene=source.scene, settings=source.manifest["settings"],
+    ).write_frame(0, _recoloured(source.read_frame(2), source.scene.source["center"]), {}, 0.0)
+    run = Run.open(predict.run_predict(recoloured, tmp_path / "pred", frames=1))
+    colors = run.read_frame(1).gaussians["colors"]
+    born = run.scene.source["rate"] * run.manifest["settings"]["visual"]["per_physical"]
+    assert (colors[-born:] == np.float32(0.9)).all()  # births are appended last
+    assert np.mean(colors[:-born] == np.float32(0.25)) > 0.9
+
+
+def _recoloured(saved, center):  # noqa: ANN001, ANN202
+    """The frame with every Gaussian grey 0.25 except those nearest the source, grey 0.9."""
+    means = saved.gaussians["means"]
+    near = np.argsort(np.linalg.norm(means - np.asarray(center), axis=1))[: predict.TEMPLATE_SIZE]
+    colors = np.full_like(saved.gaussians["colors"], 0.25)
+    colors[near] = 0.9
+    return replace(saved, gaussians={**saved.gaussians, "colors": colors})
+
+
+def test_resimulating_a_pure_physics_run_reproduces_it(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(predict.run_resimulate(parent, tmp_path / "resim"))
+    original = Run.open(parent)
+    assert run.kind == "resimulate" and run.frames() == original.frames()
+    first = run.read_frame(0)
+    np.testing.assert_array_equal(first.gaussians["means"], original.read_frame(0).gaussians["means"])
+    for t in run.frames():
+        ours, theirs = run.read_frame(t), original.read_frame(t)
+        np.testing.assert_array_equal(ours.alive, theirs.alive)
+        np.testing.assert_allclose(ours.positions[ours.alive], theirs.positions[theirs.alive], atol=1e-6)
+
+
+def test_a_300_frame_horizon_stays_finite_and_bounded(tmp_path: Path) -> None:
+    parent = plume_run(tmp_path / "parent", frames=1, warmup=10, spec=replace(SPEC, particles_per_step=4))
+    run = Run.open(predict.run_predict(parent, tmp_path / "long", frames=300))
+    counts = []
+    for t in run.frames()[::25] + run.frames()[-1:]:
+        saved = run.read_frame(t)  # loading checks every array is finite
+        counts.append(int(saved.alive.sum()))
+        lo, hi = np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi)
+        assert ((saved.gaussians["means"] >= lo) & (saved.gaussians["means"] <= hi)).all()
+    # Smoke leaves through the top as fast as the source feeds it: the count levels off.
+    assert counts[-1] < 4 * 320 and abs(counts[-1] - counts[-3]) < 0.2 * counts[-1]
+
+
+def test_cli_predict_interact_resimulate(parent: Path, tmp_path: Path) -> None:
+    from fluidnexus.cli import app
+
+    runner = CliRunner()
+    out = runner.invoke(app, ["predict", str(parent), "--frames", "2", "--out", str(tmp_path / "p")])
+    assert out.exit_code == 0, out.output
+    assert Run.open(tmp_path / "p").frames() == [3, 4]
+    wind = json.dumps({"direction": [1, 0, 0], "strength": 0.1})
+    ball = json.dumps({"center": [0, 0.2, 0], "radius": 0.05})
+    out = runner.invoke(app, ["interact", str(parent), "--wind", wind, "--ball", ball, "--frames", "2", "--out", str(tmp_path / "i")])
+    assert out.exit_code == 0, out.output
+    assert Run.open(tmp_path / "i").manifest["settings"]["ball"]["radius"] == 0.05
+    out = runner.invoke(app, ["resimulate", str(parent), "--out", str(tmp_path / "r")])
+    assert out.exit_code == 0, out.output
+    assert Run.open(tmp_path / "r").frames() == [0, 1, 2]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--wind", "{not json"], "error: wind is not valid JSON"),
+        (["--ball", '{"center": [0, 0.2, 0], "radius": -1}'], "error: ball.radius"),
+        (["--ball", '{"center": [0, 9, 0], "radius": 0.1}'], "error: ball.center"),
+        ([], "error: interact needs"),
+    ],
+)
+def test_cli_interact_reports_bad_parameters(parent: Path, tmp_path: Path, args: list[str], message: str) -> None:
+    from fluidnexus.cli import app
+
+    out = CliRunner().invoke(app, ["interact", str(parent), *args, "--frames", "2", "--out", str(tmp_path / "i")])
+    assert out.exit_code == 2
+    assert message in out.output and "Traceback" not in out.output
+    assert not (tmp_path / "i").exists()
+
+
+def test_cli_predict_on_a_folder_that_is_not_a_run(tmp_path: Path) -> None:
+    from fluidnexus.cli import app
+
+    out = CliRunner().invoke(app, ["predict", str(tmp_path), "--frames", "2", "--out", str(tmp_path / "p")])
+    assert out.exit_code == 2 and "not a run folder" in out.output
+
