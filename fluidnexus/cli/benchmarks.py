@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct",)
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
