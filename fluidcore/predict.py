@@ -43,7 +43,7 @@ from fluidcore.physics.coupling import push_out
 from fluidcore.pipeline import Cancelled, Progress, ShouldCancel
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
 from fluidcore.reconstruct.visual import Appearance
-from fluidcore.runs import FrameState, Run, RunError
+from fluidcore.runs import FrameState, Run, RunError, Scene
 
 TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newborn Gaussians copy
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
@@ -274,13 +274,8 @@ def _write(
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
     its frame `start_frame` (written unchanged first when it lies inside the range)."""
     scene = parent.scene
-    config, box, source = scene.simulator_parts()
     n_frames = frame_range[1] - frame_range[0]
-    base_height = float(np.dot(source.center, scene.up))
-    params.check_scene(
-        lo=box.lo, hi=box.hi, base_height=base_height, dt=config.dt, speed_limit=config.speed_limit,
-        frames=n_frames, up=scene.up,
-    )
+    _check_in_scene(params, scene, n_frames)
     visual_settings = _visual_settings(parent)
     run = Run.create(
         out_dir,
@@ -302,18 +297,7 @@ def _write(
     )
     run.update(refinement=refinement_status())
     start = _load_state(parent.read_frame(start_frame), device)
-    time0 = start[0].time  # new frame 0 (video frame start_frame + 1) is the step starting here
-    force = None if params.wind is None else wind_field(params.wind, time0, config.dt, base_height, scene.up)
-    ball = None if params.ball is None else ball_sphere(params.ball, time0, config.dt)
-    simulator = Simulator(config, box, source, force=force, device=device)
-    rollout = Rollout(
-        simulator,
-        source_template(start[1], source.center),
-        velocity_radius=visual_settings["velocity_radius"] * config.h,
-        per_physical=visual_settings["per_physical"],
-        seed=visual_settings["seed"],
-        ball=ball,
-    )
+    rollout = _rollout(scene, start, params, visual_settings, device)
     state, visual = start if run.next_frame() == frame_range[0] else _load_state(run.read_frame(run.frames()[-1]), device)
     report = progress or (lambda fraction, stage: None)
     for t in range(run.next_frame(), frame_range[1]):
@@ -327,6 +311,38 @@ def _write(
         run.write_frame(t, _frame_state(state, visual), stats, time.perf_counter() - began)
         report((t + 1 - frame_range[0]) / n_frames, kind)
     return Path(out_dir)
+
+
+def _check_in_scene(params: InteractionParams, scene: Scene, frames: int) -> None:
+    """Refuse interventions this scene cannot honour, before anything is written."""
+    config, box, source = scene.simulator_parts()
+    params.check_scene(
+        lo=box.lo, hi=box.hi, base_height=float(np.dot(source.center, scene.up)), dt=config.dt,
+        speed_limit=config.speed_limit, frames=frames, up=scene.up,
+    )
+
+
+def _rollout(
+    scene: Scene, start: tuple[ParticleState, Visual], params: InteractionParams, visual: Mapping[str, Any], device: str
+) -> Rollout:
+    """The simulator of the parent's scene with the interventions, ready to continue `start`.
+
+    New frame 0 is the step that begins at the start state's time; the interventions' frame
+    numbers are counted from there.
+    """
+    config, box, source = scene.simulator_parts()
+    time0 = start[0].time
+    base_height = float(np.dot(source.center, scene.up))
+    force = None if params.wind is None else wind_field(params.wind, time0, config.dt, base_height, scene.up)
+    ball = None if params.ball is None else ball_sphere(params.ball, time0, config.dt)
+    return Rollout(
+        Simulator(config, box, source, force=force, device=device),
+        source_template(start[1], source.center),
+        velocity_radius=visual["velocity_radius"] * config.h,
+        per_physical=visual["per_physical"],
+        seed=visual["seed"],
+        ball=ball,
+    )
 
 
 def refinement_status() -> str:
