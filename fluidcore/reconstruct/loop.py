@@ -30,7 +30,7 @@ import torch
 
 from fluidcore.cameras import Camera
 from fluidcore.physics import PRESETS as PHYSICS_PRESETS
-from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source
+from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import Quality, render_size
@@ -285,7 +285,7 @@ class Reconstructor:
             problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility
         )
         means = visual_means(p, problem, config.dt).detach()
-        velocities = v_sim if first else (p - p_prev) / config.dt
+        velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
         appearance, app_loss = fit_appearance(
             means,
@@ -317,7 +317,7 @@ class Reconstructor:
             size = (max(8, round(view.camera.width * fraction)), max(8, round(view.camera.height * fraction)))
             camera, target, background = view.at(index, size)
             image = render(gaussians, camera, background).image
-            return image_loss(image, target, w.l1, w.dssim)
+            return image_loss(image, target, background, w.l1, w.dssim)
 
         return loss
 
@@ -376,6 +376,16 @@ class Reconstructor:
             },
             extra={"step": np.asarray(s.step, dtype=np.int64)},
         )
+
+
+def smooth_velocities(positions: torch.Tensor, raw: torch.Tensor, radius: float) -> torch.Tensor:
+    """u_t as the kernel average of the finite differences (p_t - p_{t-1}) / dt around each particle.
+
+    A finite difference divides the position fit's per-frame noise by dt, and that noise
+    would be fed back through Sim(p_t, u_t) into the next frame; averaging over the particles
+    within `radius` keeps the flow and drops the particle-scale jitter no image can resolve.
+    """
+    return interpolate_velocity(positions, positions, raw, radius)
 
 
 def _pad(tensor: torch.Tensor, capacity: int) -> torch.Tensor:

@@ -20,10 +20,34 @@ from dataclasses import dataclass
 
 import torch
 
-from fluidcore.physics import PBFConfig, incompressibility_loss, interpolate_velocity, sim_step
+from fluidcore.physics import PBFConfig, incompressibility_loss, sim_step
+from fluidcore.physics.neighbours import neighbour_pairs
+from fluidcore.physics.sph import poly6
 from fluidcore.reconstruct.presets import LossWeights
 from fluidcore.reconstruct.visual import Appearance
 from fluidcore.render import Gaussians
+
+
+class FixedInterpolation:
+    """`fluidcore.physics.interpolate_velocity` for query points and particles that stay put.
+
+    During a frame's position fit the visual Gaussians at t-1 (queries) and the particles at
+    t-1 (kernel centres) are fixed; only the velocities change. The normalised Poly6 weights
+    are therefore computed once per frame and each iteration is a single scatter (same
+    Shepard average, zero velocity where no particle is within the radius).
+    """
+
+    def __init__(self, query: torch.Tensor, positions: torch.Tensor, radius: float) -> None:
+        self.n = query.shape[0]
+        self.qi, self.pj = neighbour_pairs(query, positions, radius)
+        r = query[self.qi] - positions[self.pj]
+        w = poly6((r * r).sum(1) / (radius * radius))
+        total = torch.zeros(self.n, dtype=query.dtype, device=query.device).index_add(0, self.qi, w)
+        self.w = (w / total.clamp_min(1e-12)[self.qi])[:, None]
+
+    def __call__(self, velocities: torch.Tensor) -> torch.Tensor:
+        out = velocities.new_zeros((self.n, 3))
+        return out.index_add(0, self.qi, self.w * velocities[self.pj])
 
 
 @dataclass
@@ -38,6 +62,9 @@ class PositionProblem:
     offsets: torch.Tensor  # (G_new, 3) its fixed offset from the parent
     velocity_radius: float  # kernel radius of the velocity interpolation (world units)
 
+    def __post_init__(self) -> None:
+        self.interpolate = FixedInterpolation(self.visual_prev, self.p_prev, self.velocity_radius)
+
 
 def velocities(p: torch.Tensor, problem: PositionProblem, dt: float) -> torch.Tensor:
     """u_t = (p_t - p_{t-1}) / dt."""
@@ -51,9 +78,7 @@ def visual_means(p: torch.Tensor, problem: PositionProblem, dt: float) -> torch.
     between sparse physical particles (preview quality) still move with the flow."""
     parts = []
     if len(problem.visual_prev):
-        u = velocities(p, problem, dt)
-        drift = interpolate_velocity(problem.visual_prev, problem.p_prev, u, problem.velocity_radius)
-        parts.append(problem.visual_prev + dt * drift)
+        parts.append(problem.visual_prev + dt * problem.interpolate(velocities(p, problem, dt)))
     parts.append(p[problem.owner] + problem.offsets)
     return torch.cat(parts)
 
