@@ -73,6 +73,15 @@ def test_ssim_tensor_is_differentiable() -> None:
     assert pred.grad is not None and pred.grad.abs().sum() > 0
 
 
+def test_loss_path_tolerates_overshoot_but_the_metric_does_not() -> None:
+    """A renderer under optimisation may overshoot [0, 1]; the loss must not stop it, the score must."""
+    pred, target = (torch.from_numpy(a) for a in _pair((20, 20, 1)))
+    overshoot = pred * 1.3
+    assert torch.isfinite(ssim_tensor(overshoot, target))
+    with pytest.raises(MetricError, match=r"\[0, 1\]"):
+        ssim(overshoot, target)
+
+
 @pytest.mark.parametrize(
     ("pred", "target", "message"),
     [
