@@ -10,18 +10,18 @@ ARG CUDA_IMAGE=nvidia/cuda:12.8.1-cudnn-devel-ubuntu22.04
 FROM ${PYTHON_IMAGE} AS api
 ENV PYTHONDONTWRITEBYTECODE=1 PYTHONUNBUFFERED=1 PIP_NO_CACHE_DIR=1
 WORKDIR /app
-COPY pyproject.toml constraints.txt README.md ./
+COPY pyproject.toml constraints.txt README.md alembic.ini ./
 COPY fluidcore fluidcore
 COPY fluidnexus fluidnexus
 COPY api api
 COPY worker worker
 COPY bench bench
-RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
- && pip install -c constraints.txt .
 COPY migrations migrations
-COPY alembic.ini ./
 COPY web web
-ENV FLUIDNEXUS_WEB_DIR=/app/web FLUIDNEXUS_DATA_DIR=/data
+# Editable install: the service finds alembic.ini, migrations/ and web/ next to its packages.
+RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu \
+ && pip install -c constraints.txt -e .
+ENV FLUIDNEXUS_DATA_DIR=/data
 EXPOSE 8000
 # Runs `alembic upgrade head`, then serves; workers run in their own containers.
 CMD ["fluidnexus", "serve", "--host", "0.0.0.0", "--port", "8000", "--no-worker"]
@@ -35,14 +35,15 @@ RUN apt-get update \
  && python3.11 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /app
-COPY pyproject.toml constraints.txt README.md ./
+COPY pyproject.toml constraints.txt README.md alembic.ini ./
 COPY fluidcore fluidcore
 COPY fluidnexus fluidnexus
 COPY api api
 COPY worker worker
 COPY bench bench
+COPY migrations migrations
 RUN pip install torch==2.13.0 --index-url ${TORCH_INDEX} \
- && pip install -c constraints.txt . \
+ && pip install -c constraints.txt -e . \
  && python -m fluidcore.kernels build
 ENV FLUIDNEXUS_DATA_DIR=/data
 # One worker process per GPU, one job at a time (set CUDA_VISIBLE_DEVICES per container).
