@@ -137,6 +137,8 @@ def test_orbit_circles_the_target_starting_at_the_reference_view() -> None:
         ({"world_to_camera": np.diag([1.0, 1.0, -1.0, 1.0])}, "reflection"),
         ({"world_to_camera": np.eye(3)}, "world_to_camera"),
         ({"name": ""}, "name"),
+        ({"fx": "wide"}, "fx must be a number"),
+        ({"width": None}, "width must be a number"),
     ],
 )
 def test_camera_rejects_invalid_fields(change: dict, field: str) -> None:

@@ -57,14 +57,27 @@ def check_rigid(matrix: np.ndarray, field_name: str) -> np.ndarray:
     return m
 
 
-def _check_positive(value: float, field_name: str) -> None:
-    if not math.isfinite(value) or value <= 0:
+def _as_float(value: object, field_name: str) -> float:
+    if isinstance(value, bool):
+        raise CameraError(f"{field_name} must be a number, got {value!r}")
+    try:
+        return float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise CameraError(f"{field_name} must be a number, got {value!r}") from None
+
+
+def _check_positive(value: object, field_name: str) -> float:
+    number = _as_float(value, field_name)
+    if not math.isfinite(number) or number <= 0:
         raise CameraError(f"{field_name} must be a positive finite number, got {value}")
+    return number
 
 
-def _check_size(value: int, field_name: str) -> None:
-    if isinstance(value, bool) or int(value) != value or value <= 0:
+def _check_size(value: object, field_name: str) -> int:
+    number = _as_float(value, field_name)
+    if not math.isfinite(number) or number != int(number) or number <= 0:
         raise CameraError(f"{field_name} must be a positive integer, got {value}")
+    return int(number)
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,20 +102,18 @@ class Camera:
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
             raise CameraError(f"camera name must be a non-empty string, got {self.name!r}")
-        for name in ("fx", "fy"):
-            _check_positive(float(getattr(self, name)), name)
+        values: dict[str, object] = {name: _check_positive(getattr(self, name), name) for name in ("fx", "fy")}
         for name in ("cx", "cy"):
-            if not math.isfinite(float(getattr(self, name))):
+            values[name] = _as_float(getattr(self, name), name)
+            if not math.isfinite(values[name]):
                 raise CameraError(f"{name} must be finite, got {getattr(self, name)}")
         for name in ("width", "height"):
-            _check_size(getattr(self, name), name)
+            values[name] = _check_size(getattr(self, name), name)
         pose = check_rigid(self.world_to_camera, "world_to_camera").copy()
         pose.setflags(write=False)
-        for name in ("fx", "fy", "cx", "cy"):
-            object.__setattr__(self, name, float(getattr(self, name)))
-        object.__setattr__(self, "width", int(self.width))
-        object.__setattr__(self, "height", int(self.height))
-        object.__setattr__(self, "world_to_camera", pose)
+        values["world_to_camera"] = pose
+        for name, value in values.items():  # normalised types: plain floats and ints
+            object.__setattr__(self, name, value)
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, Camera):
@@ -134,8 +145,7 @@ class Camera:
 
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera for frames resized to width x height (exact in continuous pixels)."""
-        _check_size(width, "width")
-        _check_size(height, "height")
+        width, height = _check_size(width, "width"), _check_size(height, "height")
         sx, sy = width / self.width, height / self.height
         return replace(
             self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy, width=width, height=height
@@ -235,9 +245,7 @@ def orbit(
     `start_angle` (radians) defaults to the azimuth of `like`'s centre, so the orbit starts at
     the view the user knows (the input view) instead of an arbitrary one. Names are orbit_000...
     """
-    _check_positive(radius, "radius")
-    if int(n) != n or n < 1:
-        raise CameraError(f"n must be a positive integer, got {n}")
+    radius, n = _check_positive(radius, "radius"), _check_size(n, "n")
     c = np.asarray(center, dtype=np.float64)
     up_v = _unit(np.asarray(up, dtype=np.float64), "up")
     # An orthonormal basis (a, b) of the plane perpendicular to up.
