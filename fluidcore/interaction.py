@@ -137,6 +137,21 @@ class InteractionParams(BaseModel):
             _check_start(self.ball.start_frame, frames, "ball")
             self.ball.check_in_box(lo, hi)
 
+    def check_run_scene(self, scene: Mapping[str, Any], frames: int) -> None:
+        """`check_scene` against a run manifest's "scene" entry (fluidcore.runs), read as plain
+        JSON so the API can refuse a job before queueing it, without importing torch."""
+        try:
+            physics, source = scene["physics"], scene["source"]
+            lo, hi, up = tuple(scene["box"]["lo"]), tuple(scene["box"]["hi"]), tuple(scene["up"])
+            dt, h = float(physics["dt"]), float(physics["h"])
+            center = source["center"]
+        except (KeyError, TypeError) as exc:
+            raise InteractionError(f"run scene: malformed ({exc!r} missing)") from None
+        # PBFConfig.speed_limit: max_speed when set, else one kernel radius per step.
+        speed_limit = float(physics.get("max_speed") or h / dt)
+        base_height = sum(u * c for u, c in zip(up, center))
+        self.check_scene(lo=lo, hi=hi, base_height=base_height, dt=dt, speed_limit=speed_limit, frames=frames, up=up)
+
 
 def parse_interaction(wind: str | Mapping[str, Any] | None, ball: str | Mapping[str, Any] | None) -> InteractionParams:
     """Build validated parameters from JSON text or dicts, with one readable message on failure.

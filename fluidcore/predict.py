@@ -275,7 +275,7 @@ def _write(
     its frame `start_frame` (written unchanged first when it lies inside the range)."""
     scene = parent.scene
     n_frames = frame_range[1] - frame_range[0]
-    _check_in_scene(params, scene, n_frames)
+    params.check_run_scene(scene.to_json(), n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
     run = Run.create(
         out_dir,
@@ -311,15 +311,6 @@ def _write(
         run.write_frame(t, _frame_state(state, visual), stats, time.perf_counter() - began)
         report((t + 1 - frame_range[0]) / n_frames, kind)
     return Path(out_dir)
-
-
-def _check_in_scene(params: InteractionParams, scene: Scene, frames: int) -> None:
-    """Refuse interventions this scene cannot honour, before anything is written."""
-    config, box, source = scene.simulator_parts()
-    params.check_scene(
-        lo=box.lo, hi=box.hi, base_height=float(np.dot(source.center, scene.up)), dt=config.dt,
-        speed_limit=config.speed_limit, frames=frames, up=scene.up,
-    )
 
 
 def _rollout(

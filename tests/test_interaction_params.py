@@ -105,3 +105,19 @@ def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
 def test_parameters_import_without_torch() -> None:
     code = "import sys, fluidcore.interaction; sys.exit('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
+    scene = {
+        "box": {"lo": [-1.0, 0.0, -1.0], "hi": [1.0, 2.0, 1.0]},
+        "up": [0.0, 1.0, 0.0],
+        "physics": {"dt": 1 / 30, "h": 1.0, "max_speed": None},  # h / dt = 30 units/s: winds up to 900 units/s^2
+        "source": {"center": [0.0, 0.5, 0.0]},
+    }
+    InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=850.0)).check_run_scene(scene, frames=10)
+    with pytest.raises(InteractionError, match="wind.strength"):
+        InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=950.0)).check_run_scene(scene, frames=10)
+    with pytest.raises(InteractionError, match="ball.center"):
+        InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_run_scene(scene, frames=10)
+    with pytest.raises(InteractionError, match="run scene: malformed"):
+        InteractionParams().check_run_scene({"box": {}}, frames=10)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from fluidcore.interaction import InteractionError
+from fluidcore.interaction import InteractionError, parse_interaction
 from fluidcore.predict import run_interact, run_predict
 from fluidcore.runs import Run
 from predict_scenes import horizontal_distance, live, plume_run
@@ -112,3 +112,17 @@ def test_invalid_interactions_are_refused_before_anything_is_written(
     with pytest.raises(InteractionError, match=message):
         run_interact(parent, tmp_path / "out", frames=FRAMES, wind=wind, ball=ball)
     assert not (tmp_path / "out").exists()
+
+
+def test_the_absurd_wind_limit_is_the_simulators_speed_limit(parent: Path) -> None:
+    """The torch-free manifest check and the simulator agree on what this scene resolves."""
+    run = Run.open(parent)
+    config = run.scene.simulator_parts()[0]
+    limit = config.speed_limit / config.dt
+    for strength, ok in ((0.99 * limit, True), (1.01 * limit, False)):
+        params = parse_interaction({"direction": [1, 0, 0], "strength": strength}, None)
+        if ok:
+            params.check_run_scene(run.manifest["scene"], FRAMES)
+        else:
+            with pytest.raises(InteractionError, match="wind.strength"):
+                params.check_run_scene(run.manifest["scene"], FRAMES)
