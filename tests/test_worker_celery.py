@@ -147,3 +147,16 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
         assert len(computed) <= 9  # at most the frame in flight when the worker died was computed twice
         assert deployment.job(job_id).attempts == 2
         deployment.engine.dispose()
+
+
+def test_celery_queue_reports_an_unreachable_broker(tmp_path: Path) -> None:
+    """What /readyz and POST /v1/jobs see when Redis is down: QueueUnavailable, not a hang."""
+    from api.queue import QueueUnavailable
+    from service_support import free_port
+
+    down = CeleryQueue(Settings(data_dir=tmp_path, broker_url=f"redis://127.0.0.1:{free_port()}/0"))
+    with pytest.raises(QueueUnavailable, match="broker"):
+        down.ping()
+    with pytest.raises(QueueUnavailable, match="did not accept"):
+        down.enqueue("some-job", "reconstruct")
+    CeleryQueue(Settings(data_dir=tmp_path)).ping()  # the embedded filesystem broker is always there
