@@ -12,6 +12,7 @@ the unit cube; we return its axis-aligned bounds in world coordinates.
 
 Scenes without a box get `frusta_box`: the bounds of the region every camera sees (the
 intersection of the view frusta), which is where reconstruction can be constrained at all.
+With a single camera that region is an unbounded cone: such scenes need a declared box.
 """
 
 from __future__ import annotations
@@ -76,31 +77,33 @@ def frusta_box(cameras: Sequence[Camera] | dict[str, Camera]) -> Box:
     """Axis-aligned bounds of the region inside every camera's view frustum.
 
     Each frustum is 5 half-spaces (the four image-edge planes through the centre, and "in front
-    of the camera"); their intersection is a convex polytope whose vertices we enumerate (every
-    triple of planes, kept when it satisfies all constraints). A guard box far outside the
-    cameras detects an unbounded overlap (one camera, or cameras looking the same way), which
-    raises CameraError, as does an empty overlap.
+    of the camera"); the bounds of their intersection are 6 small linear programs (min and max
+    of x, y, z), which scale to hundreds of cameras. An unbounded overlap (one camera, or
+    cameras looking the same way) and an empty one raise CameraError.
     """
+    from scipy.optimize import linprog  # lazy: heavy import, needed only here
+
     cams = list(cameras.values()) if isinstance(cameras, dict) else list(cameras)
     if not cams:
         raise CameraError("frusta_box needs at least one camera")
     normals, offsets = zip(*(_frustum_planes(c) for c in cams))
-    centers = np.array([c.center() for c in cams])
-    reach = 1e3 * max(1.0, float(np.ptp(centers, axis=0).max()), *(float(np.linalg.norm(c)) for c in centers))
-    guard_normals = np.vstack((np.eye(3), -np.eye(3)))
-    guard_offsets = np.full(6, -reach) + np.concatenate((centers.mean(0), -centers.mean(0)))
-    a = np.vstack((*normals, guard_normals))  # inside: a @ x >= b
-    b = np.concatenate((*offsets, guard_offsets))
-    vertices = _polytope_vertices(a, b)
-    if len(vertices) == 0:
-        raise CameraError("the cameras' view frusta do not overlap; no common region to reconstruct")
-    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
-    if np.any(np.abs(vertices - centers.mean(0)) > 0.5 * reach):
-        raise CameraError(
-            "the cameras' view frusta overlap in an unbounded region (a single camera, or cameras "
-            "looking the same way); give the scene a box (voxel_scale/voxel_matrix)"
-        )
-    return lo, hi
+    a, b = np.vstack(normals), np.concatenate(offsets)  # inside: a @ x >= b
+    bounds = np.empty((2, 3))
+    for axis, sign in itertools.product(range(3), (1.0, -1.0)):
+        objective = np.zeros(3)
+        objective[axis] = sign
+        result = linprog(objective, A_ub=-a, b_ub=-b, bounds=[(None, None)] * 3, method="highs")
+        if result.status == 2:
+            raise CameraError("the cameras' view frusta do not overlap; no common region to reconstruct")
+        if result.status == 3:
+            raise CameraError(
+                "the cameras' view frusta overlap in an unbounded region (a single camera, or cameras "
+                "looking the same way); give the scene a box (voxel_scale/voxel_matrix)"
+            )
+        if result.status != 0:
+            raise CameraError(f"could not bound the cameras' common view ({result.message})")
+        bounds[0 if sign > 0 else 1, axis] = result.x[axis]
+    return bounds[0], bounds[1]
 
 
 def _frustum_planes(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -120,17 +123,6 @@ def _frustum_planes(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     normals = local @ rotation  # n_world = R^T n_cam, as rows
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     return normals, normals @ camera.center()
-
-
-def _polytope_vertices(a: np.ndarray, b: np.ndarray, tolerance: float = 1e-9) -> np.ndarray:
-    """Vertices of {x : a @ x >= b} by brute force over plane triples (fine for tens of planes)."""
-    triples = np.array(list(itertools.combinations(range(len(a)), 3)))
-    systems = a[triples]  # (T, 3, 3)
-    solvable = np.abs(np.linalg.det(systems)) > 1e-12
-    points = np.linalg.solve(systems[solvable], b[triples[solvable]][..., None])[..., 0]
-    scale = tolerance * max(1.0, float(np.abs(b).max()))
-    inside = np.all(points @ a.T >= b - scale, axis=1)
-    return points[inside]
 
 
 def box_center(box: Box) -> np.ndarray:
