@@ -12,6 +12,7 @@ import shutil
 import tempfile
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
@@ -207,46 +208,34 @@ class MinioStorage(Storage):
             else self.client
         )
 
-    def _call(self, what: str, fn, *args, **kwargs):  # type: ignore[no-untyped-def]
-        """Run a client call, mapping 'no such key' to ObjectNotFound and the rest to StorageError."""
-        from minio.error import MinioException, S3Error
-        from urllib3.exceptions import HTTPError
-
-        try:
-            return fn(*args, **kwargs)
-        except S3Error as exc:
-            if exc.code in ("NoSuchKey", "NoSuchObject"):
-                raise ObjectNotFound(args[1] if len(args) > 1 else what) from exc
-            raise StorageError(f"{what}: {exc.code}: {exc.message}") from exc
-        except (MinioException, HTTPError, OSError) as exc:
-            raise StorageError(f"{what}: {exc}") from exc
-
     def ensure_bucket(self) -> None:
-        if not self._call("bucket_exists", self.client.bucket_exists, self.bucket):
-            self._call("make_bucket", self.client.make_bucket, self.bucket)
+        with _s3_errors("make_bucket"):
+            if not self.client.bucket_exists(self.bucket):
+                self.client.make_bucket(self.bucket)
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
-        self._call(f"put {key}", self.client.fput_object, self.bucket, check_key(key), str(path), content_type)
+        with _s3_errors(f"put {key}", check_key(key)):
+            self.client.fput_object(self.bucket, key, str(path), content_type)
 
     def get_file(self, key: str, path: Path) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".part")
-        self._call(f"get {key}", self.client.fget_object, self.bucket, check_key(key), str(tmp))
+        with _s3_errors(f"get {key}", check_key(key)):
+            self.client.fget_object(self.bucket, key, str(tmp))
         os.replace(tmp, path)
 
     def stat(self, key: str) -> ObjectInfo:
-        result = self._call(f"stat {key}", self.client.stat_object, self.bucket, check_key(key))
-        return ObjectInfo(key, int(result.size))
+        with _s3_errors(f"stat {key}", check_key(key)):
+            return ObjectInfo(key, int(self.client.stat_object(self.bucket, key).size))
 
     def iter_range(self, key: str, start: int = 0, end: int | None = None) -> Iterator[bytes]:
-        length = 0 if end is None else end - start + 1
-        response = self._call(
-            f"get {key}", self.client.get_object, self.bucket, check_key(key), offset=start, length=length
-        )
+        length = 0 if end is None else end - start + 1  # 0 = to the end
+        with _s3_errors(f"get {key}", check_key(key)):
+            response = self.client.get_object(self.bucket, key, offset=start, length=length)
         return self._stream(response)
 
     @staticmethod
-    def _stream(response) -> Iterator[bytes]:  # type: ignore[no-untyped-def]
+    def _stream(response) -> Iterator[bytes]:  # type: ignore[no-untyped-def]  # urllib3 response
         try:
             yield from response.stream(CHUNK)
         finally:
@@ -254,26 +243,39 @@ class MinioStorage(Storage):
             response.release_conn()
 
     def list(self, prefix: str) -> list[ObjectInfo]:
-        objects = self._call(
-            f"list {prefix}", lambda: list(self.client.list_objects(self.bucket, prefix=prefix, recursive=True))
-        )
+        with _s3_errors(f"list {prefix}"):
+            objects = list(self.client.list_objects(self.bucket, prefix=prefix, recursive=True))
         return sorted((ObjectInfo(o.object_name, int(o.size)) for o in objects), key=lambda info: info.key)
 
     def delete(self, key: str) -> None:
-        self._call(f"delete {key}", self.client.remove_object, self.bucket, check_key(key))
+        with _s3_errors(f"delete {key}", check_key(key)):
+            self.client.remove_object(self.bucket, key)
 
     def presign(self, key: str, expires_s: int) -> str | None:
-        return self._call(
-            f"presign {key}",
-            self.public_client.presigned_get_object,
-            self.bucket,
-            check_key(key),
-            expires=timedelta(seconds=expires_s),
-        )
+        with _s3_errors(f"presign {key}", check_key(key)):
+            return self.public_client.presigned_get_object(self.bucket, key, expires=timedelta(seconds=expires_s))
 
     def check(self) -> None:
-        if not self._call("bucket_exists", self.client.bucket_exists, self.bucket):
+        with _s3_errors("bucket_exists"):
+            exists = self.client.bucket_exists(self.bucket)
+        if not exists:
             raise StorageError(f"bucket {self.bucket!r} does not exist")
+
+
+@contextmanager
+def _s3_errors(what: str, key: str | None = None) -> Iterator[None]:
+    """Map the client's errors: a missing key to ObjectNotFound, everything else to StorageError."""
+    from minio.error import MinioException, S3Error
+    from urllib3.exceptions import HTTPError
+
+    try:
+        yield
+    except S3Error as exc:
+        if key is not None and exc.code in ("NoSuchKey", "NoSuchObject"):
+            raise ObjectNotFound(key) from exc
+        raise StorageError(f"{what}: {exc.code}: {exc.message}") from exc
+    except (MinioException, HTTPError, OSError) as exc:
+        raise StorageError(f"{what}: {exc}") from exc
 
 
 def make_storage(settings: Settings) -> Storage:

@@ -8,6 +8,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, File, Form, HTTPException, Query, UploadFile, status
 from sqlalchemy import func, select
+from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
 from api.models import Scene, new_id
@@ -77,7 +78,7 @@ def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep) -> SceneOut:
     return scene_out(owned_scene(session, scene_id, owner))
 
 
-def owned_scene(session: SessionDep, scene_id: str, owner: str) -> Scene:
+def owned_scene(session: Session, scene_id: str, owner: str) -> Scene:
     """The scene if it exists and belongs to `owner`; 404 otherwise (never 403: ids are not disclosed)."""
     scene = session.get(Scene, scene_id)
     if scene is None or scene.owner != owner:
