@@ -49,6 +49,16 @@ def test_ssim_matches_skimage(shape: tuple[int, ...], window: str) -> None:
     assert 0.2 < expected < 0.99  # the pair is neither identical nor unrelated
 
 
+def test_grey_rgb_shortcut_matches_skimage() -> None:
+    pred, target = (np.repeat(a, 3, axis=-1) for a in _pair((2, 40, 50, 1)))
+    expected = _skimage_ssim(pred, target, "uniform")
+    assert ssim(torch.from_numpy(pred), torch.from_numpy(target), window="uniform") == pytest.approx(expected, abs=1e-3)
+    tinted = pred.copy()
+    tinted[..., 0] = np.clip(tinted[..., 0] + 0.2, 0, 1)  # no longer grey: all channels count
+    expected = _skimage_ssim(tinted, target, "uniform")
+    assert ssim(torch.from_numpy(tinted), torch.from_numpy(target), window="uniform") == pytest.approx(expected, abs=1e-3)
+
+
 def test_psnr_matches_skimage_per_frame_mean() -> None:
     pred, target = _pair((4, 32, 40, 3), noise=0.03)
     expected = np.mean([peak_signal_noise_ratio(t, p, data_range=1.0) for p, t in zip(pred, target)])

@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict")
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
