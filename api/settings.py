@@ -58,6 +58,9 @@ class Settings(BaseSettings):
         default=900, gt=0, description="a running job silent this long is taken over by another worker"
     )
     max_transient_retries: int = Field(default=3, ge=0)
+    max_job_attempts: int = Field(
+        default=3, ge=1, description="starts of one job (worker deaths included) before it is failed"
+    )
     runners: str | None = Field(
         default=None,
         description="'module:attribute' of a dict replacing the fluidcore job runners; test doubles only",

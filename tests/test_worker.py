@@ -125,6 +125,13 @@ def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None
     assert job.attempts == 2 and job.worker == "second"
 
 
+def test_a_job_whose_worker_keeps_dying_is_failed(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), state=JobState.RUNNING, attempts=3)
+    assert world.executor().run(job_id) is None
+    job = world.get(job_id)
+    assert job.state == JobState.FAILED and "gave up after 3 attempts" in job.error
+
+
 def test_cancel_stops_between_frames(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), params={"frames": [0, 6]})
     executor = world.executor()

@@ -120,6 +120,11 @@ class JobExecutor:
             lease = timedelta(seconds=self.settings.job_lease_seconds)
             if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
                 raise JobBusy((job.heartbeat_at + lease - now).total_seconds())
+            # Found running with an expired lease: the last attempt died (e.g. hard time limit, OOM kill).
+            if job.state == JobState.RUNNING and job.attempts >= self.settings.max_job_attempts:
+                job.state, job.finished_at = JobState.FAILED, now
+                job.error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
+                return None
             job.state, job.stage, job.error = JobState.RUNNING, "preparing", None
             job.started_at = job.started_at or now
             job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
