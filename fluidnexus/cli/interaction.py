@@ -36,7 +36,7 @@ def predict(
     from fluidcore import predict as predict_module
 
     with user_errors(ValueError):
-        path = predict_module.run_predict(run, out, frames=frames, device=device, progress=_progress)
+        path = predict_module.run_predict(run, out, frames=frames, device=device, progress=_ProgressBar())
     typer.echo(str(path))
 
 
@@ -45,7 +45,7 @@ def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OP
     from fluidcore import predict as predict_module
 
     with user_errors(ValueError):
-        path = predict_module.run_resimulate(run, out, device=device, progress=_progress)
+        path = predict_module.run_resimulate(run, out, device=device, progress=_ProgressBar())
     typer.echo(str(path))
 
 
@@ -69,17 +69,28 @@ def interact(
     from fluidcore.interaction import parse_interaction
 
     with user_errors(ValueError):
-        params = parse_interaction(wind, ball)
-        if params.wind is None and params.ball is None:
-            raise ValueError("interact needs --wind, --ball or both (use `fluidnexus predict` for neither)")
+        params = parse_interaction(wind, ball)  # bad JSON fails here, before torch is imported
         from fluidcore import predict as predict_module
 
         path = predict_module.run_interact(
-            run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_progress
+            run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_ProgressBar()
         )
     typer.echo(str(path))
 
 
-def _progress(fraction: float, stage: str) -> None:
-    """Progress on stderr, so stdout carries only the new run's path."""
-    print(f"\r{stage}: {100 * fraction:5.1f}%", end="" if fraction < 1 else "\n", file=sys.stderr, flush=True)
+class _ProgressBar:
+    """A tqdm bar on stderr fed by (fraction, stage) reports, so stdout carries only the run's path."""
+
+    def __init__(self) -> None:
+        self._bar = None
+
+    def __call__(self, fraction: float, stage: str) -> None:
+        if self._bar is None:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=1.0, desc=stage, file=sys.stderr, dynamic_ncols=True,
+                             bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}<{remaining}")
+        self._bar.n = fraction
+        self._bar.refresh()
+        if fraction >= 1.0:
+            self._bar.close()
