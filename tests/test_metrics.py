@@ -231,3 +231,20 @@ def test_decode_and_metrics_reproduce_the_realdata_anchors(realdata: Path) -> No
         expected_psnr, expected_ssim = anchors[frame]
         assert psnr(pred[frame], gt[frame]) == pytest.approx(expected_psnr, abs=1e-3)
         assert ssim(pred[frame], gt[frame], window="uniform") == pytest.approx(expected_ssim, abs=1e-4)
+
+
+@pytest.mark.slow
+def test_metrics_bench_prints_one_json_object() -> None:
+    import json
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, str(root / "bench" / "metrics.py"), "--repeats", "1", "--threads", "1", "--json"],
+        capture_output=True, text=True, check=True, cwd=root,
+    )
+    report = json.loads(result.stdout)
+    assert report["threads"] == 1
+    assert {row["what"] for row in report["rows"]} >= {"ssim_tensor fwd+bwd f32", "read_frames", "write_mp4 (x264 crf 18)"}
+    assert all(row["ms"] > 0 for row in report["rows"])
