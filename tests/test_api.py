@@ -398,3 +398,27 @@ def test_s3_backend_upload_and_presigned_download(tmp_path: Path, scene_dir: dic
             assert part.status_code == 206 and part.content == data[4:12]
     finally:
         server.stop()
+
+
+def test_delete_jobs_then_their_scene(service: Service, scene_id: str) -> None:
+    alice, bob = service.key("alice"), service.key("bob")
+    parent = reconstruct(service, alice, scene_id).json()["id"]
+    add_artifact(service, parent, "videos/cam0.mp4", b"video")
+    assert service.client.delete(f"/v1/jobs/{parent}", headers=alice).status_code == 409  # still queued
+    service.set_job(parent, state=JobState.SUCCEEDED)
+    child = service.client.post("/v1/jobs", headers=alice, json={"type": "predict", "parent_job_id": parent}).json()["id"]
+    service.set_job(child, state=JobState.FAILED)
+
+    in_use = service.client.delete(f"/v1/scenes/{scene_id}", headers=alice)
+    assert in_use.status_code == 409 and parent in in_use.json()["detail"]
+    continued = service.client.delete(f"/v1/jobs/{parent}", headers=alice)
+    assert continued.status_code == 409 and child in continued.json()["detail"]
+    assert service.client.delete(f"/v1/jobs/{child}", headers=bob).status_code == 404
+    assert service.client.delete(f"/v1/jobs/{child}", headers=alice).status_code == 204
+    assert service.client.delete(f"/v1/jobs/{parent}", headers=alice).status_code == 204
+    assert service.storage.list(f"jobs/{parent}/") == [] and service.count(Artifact) == 0
+    assert service.client.get(f"/v1/jobs/{parent}", headers=alice).status_code == 404
+
+    assert service.client.delete(f"/v1/scenes/{scene_id}", headers=bob).status_code == 404
+    assert service.client.delete(f"/v1/scenes/{scene_id}", headers=alice).status_code == 204
+    assert service.storage.list(f"scenes/{scene_id}/") == [] and service.count(Scene) == 0

@@ -8,12 +8,12 @@ from datetime import UTC, datetime
 from typing import Annotated
 
 from fastapi import APIRouter, Body, Header, HTTPException, Query, Response, status
-from sqlalchemy import func, select
+from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep
-from api.models import Job, JobState, utcnow
+from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.models import Artifact, Job, JobState, utcnow
 from api.queue import QueueUnavailable
 from api.routers.scenes import owned_scene
 from api.schemas import (
@@ -122,6 +122,24 @@ def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
         job.state, job.stage, job.finished_at = JobState.CANCELLED, "cancelled", utcnow()
     session.commit()
     return job_out(job)
+
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
+    """Delete a finished job, its run folder and its artifacts; refused (409) while it runs or has
+    continuations."""
+    job = owned_job(session, job_id, owner, for_update=True)
+    if not JobState(job.state).finished:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} is {job.state}; cancel it first")
+    children = session.scalars(select(Job.id).where(Job.parent_job_id == job.id)).all()
+    if children:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"job {job_id} is continued by jobs {', '.join(children)}; delete them first"
+        )
+    session.execute(delete(Artifact).where(Artifact.job_id == job.id))
+    session.delete(job)
+    session.commit()  # rows first: a failed file removal leaves garbage, never a dangling row
+    storage.delete_prefix(f"jobs/{job.id}/")
 
 
 def owned_job(session: Session, job_id: str, owner: str, for_update: bool = False) -> Job:

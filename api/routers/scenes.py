@@ -11,7 +11,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
-from api.models import Scene, new_id
+from api.models import Job, Scene, new_id
 from api.schemas import Page, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene, validate_scene
 
@@ -76,6 +76,20 @@ def list_scenes(
 @router.get("/{scene_id}", response_model=SceneOut)
 def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep) -> SceneOut:
     return scene_out(owned_scene(session, scene_id, owner))
+
+
+@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
+def delete_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
+    """Delete a scene and its files; refused (409) while jobs made from it still exist."""
+    scene = owned_scene(session, scene_id, owner)
+    jobs = session.scalars(select(Job.id).where(Job.scene_id == scene.id)).all()
+    if jobs:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"scene {scene_id} is used by jobs {', '.join(jobs)}; delete them first"
+        )
+    session.delete(scene)
+    session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
+    storage.delete_prefix(f"scenes/{scene.id}/")
 
 
 def owned_scene(session: Session, scene_id: str, owner: str) -> Scene:
