@@ -128,7 +128,7 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
         deployment = Deployment(tmp_path, url, broker_url=None)
         first = start_worker(deployment.settings, frame_seconds=0.4)
         try:
-            job_id = deployment.submit(frames=8)
+            job_id = deployment.submit(frames=20)  # 8 s of work left when it is killed: no race
             states = f"jobs/{job_id}/run/states/"
             wait_for(lambda: len(deployment.storage.list(states)) >= 3, 60, "three checkpointed frames")
         finally:
@@ -143,8 +143,8 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
             stop(second)
         computed = [int(t) for t in (deployment.settings.resolved_work_dir() / "jobs" / job_id / "computed.txt")
                     .read_text().split()]
-        assert sorted(set(computed)) == list(range(8))
-        assert len(computed) <= 9  # at most the frame in flight when the worker died was computed twice
+        assert sorted(set(computed)) == list(range(20))
+        assert len(computed) <= 21  # at most the frame in flight when the worker died was computed twice
         assert deployment.job(job_id).attempts == 2
         deployment.engine.dispose()
 
