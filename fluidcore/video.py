@@ -41,7 +41,8 @@ class VideoError(ValueError):
 
 @dataclass(frozen=True)
 class VideoInfo:
-    """What a video file holds; n_frames is counted from the packets actually present."""
+    """What a video file holds: size as displayed (rotation applied); n_frames counted from
+    the packets actually present."""
 
     width: int
     height: int
@@ -80,8 +81,7 @@ def probe(path: str | Path) -> VideoInfo:
         rate = stream.average_rate or stream.guessed_rate or stream.base_rate
         fps = float(rate) if rate else 0.0
         codec, pix_fmt, declared = stream.codec_context.name, stream.codec_context.pix_fmt or "", stream.frames
-    with _open(path) as container:
-        n_frames = _count_packets(container, container.streams.video[0], path)
+    n_frames = _packets_in(path)
     if declared and n_frames < declared:
         raise VideoError(f"{path.name}: truncated video: header says {declared} frames, only {n_frames} present")
     if not (n_frames > 0 and math.isfinite(fps) and fps > 0):
@@ -105,6 +105,11 @@ def _quarter_turns(frame: av.VideoFrame) -> int:
     """Counter-clockwise quarter turns the player applies (phone videos store portrait as
     landscape plus a display rotation); flips in the display matrix are not handled."""
     return round(frame.rotation / 90) % 4
+
+
+def _packets_in(path: Path) -> int:
+    with _open(path) as container:
+        return _count_packets(container, container.streams.video[0], path)
 
 
 def _count_packets(container: av.container.InputContainer, stream: av.VideoStream, path: Path) -> int:
@@ -147,7 +152,8 @@ def read_frames(
         except av.FFmpegError as error:
             raise VideoError(f"{path.name}: corrupt or truncated video after {index + 1} frames ({_reason(error)})") from None
     decoded = index + 1
-    if stop is None and declared and decoded < declared:
+    if stop is None and declared and decoded < declared and _packets_in(path) < declared:
+        # Fewer packets than declared is a cut-off file; fewer frames alone can be an edit list.
         raise VideoError(f"{path.name}: truncated video: header says {declared} frames, only {decoded} decode")
     if stop is not None and decoded < stop:
         raise VideoError(f"{path.name}: frames up to {stop} requested but the video has only {decoded}")
