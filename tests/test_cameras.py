@@ -189,6 +189,22 @@ def test_nerfstudio_round_trip(tmp_path: Path) -> None:
     assert (loaded["cam2"].fx, loaded["cam2"].fy, loaded["cam2"].width) == (120.0, ring[0].fy, 100)
 
 
+def test_write_transforms_round_trips(tmp_path: Path) -> None:
+    ring = {c.name: c for c in _ring(3)}
+    ring["cam1"] = ring["cam1"].scaled(128, 96)  # per-camera intrinsics survive
+    matrix = np.eye(4).tolist()
+    path = cameras.write_transforms(tmp_path / "out" / "transforms.json", ring, voxel_scale=1.0, voxel_matrix=matrix)
+    loaded = cameras.load(path)
+    assert list(loaded) == list(ring)
+    for name, camera in ring.items():
+        back = loaded[name]
+        assert (back.fx, back.fy, back.cx, back.cy, back.width, back.height) == (
+            camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
+        )
+        np.testing.assert_allclose(back.world_to_camera, camera.world_to_camera, atol=1e-12)
+    assert scene_box(path) is not None
+
+
 def test_nerfstudio_opengl_pose_convention(tmp_path: Path) -> None:
     """An identity OpenGL camera-to-world sits at the origin looking down -z with +y up."""
     frame = {"file_path": "clips/side.mp4", "transform_matrix": np.eye(4).tolist()}

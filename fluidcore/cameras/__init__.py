@@ -18,7 +18,7 @@ from pathlib import Path
 from fluidcore.cameras.boxes import Box, box_center, box_corners, frusta_box, scene_box
 from fluidcore.cameras.camera import Camera, CameraError, check_rigid, look_at, orbit
 from fluidcore.cameras.colmap import find_model_dir, load_colmap_dir, load_colmap_zip
-from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json
+from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json, to_transforms, write_transforms
 
 ZIP_MAGIC = b"PK\x03\x04"
 JSON_START = (b"{", b"\xef\xbb\xbf{")  # optionally after a UTF-8 byte-order mark
@@ -88,4 +88,6 @@ __all__ = [
     "look_at",
     "orbit",
     "scene_box",
+    "to_transforms",
+    "write_transforms",
 ]

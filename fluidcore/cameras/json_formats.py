@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -186,3 +188,38 @@ def _check_distortion(data: dict[str, Any], entry: dict[str, Any]) -> None:
                 f"{key} = {value}: lens distortion is not supported (the renderer is a pinhole); "
                 "undistort the frames first (e.g. COLMAP image_undistorter) and give zero coefficients"
             )
+
+
+def to_transforms(cameras: Mapping[str, Camera], **top_level: Any) -> dict[str, Any]:
+    """A nerfstudio transforms.json object for `cameras` (per-frame intrinsics, PINHOLE), the
+    exact inverse of the reader; `top_level` adds fields such as voxel_scale/voxel_matrix."""
+    frames = [
+        {
+            "camera": name,
+            "file_path": camera.file_path,
+            "fl_x": camera.fx,
+            "fl_y": camera.fy,
+            "cx": camera.cx,
+            "cy": camera.cy,
+            "w": camera.width,
+            "h": camera.height,
+            "transform_matrix": (camera.camera_to_world() @ OPENGL_TO_OPENCV).tolist(),
+        }
+        for name, camera in cameras.items()
+    ]
+    return {"camera_model": "PINHOLE", **top_level, "frames": frames}
+
+
+def write_transforms(path: str | Path, cameras: Mapping[str, Camera], **top_level: Any) -> Path:
+    """Write `to_transforms(...)` atomically (temporary file, then rename); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".json", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as file:
+            json.dump(to_transforms(cameras, **top_level), file, indent=1)
+        os.replace(temporary, path)
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+    return path
