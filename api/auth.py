@@ -10,7 +10,7 @@ import secrets
 
 from sqlalchemy.orm import Session
 
-from api.models import ApiKey
+from api.models import ApiKey, utcnow
 
 PREFIX = "fnx"
 OWNER_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,127}$")
@@ -19,6 +19,10 @@ _KEY_PATTERN = re.compile(rf"^{PREFIX}_([0-9a-f]{{16}})_([A-Za-z0-9_-]{{32,64}})
 
 class InvalidOwner(ValueError):
     """An owner name the service will not accept."""
+
+
+class UnknownKey(ValueError):
+    """No key with that id."""
 
 
 def _hash(salt: str, secret: str) -> str:
@@ -49,3 +53,13 @@ def owner_for_key(session: Session, key: str) -> str | None:
     if not hmac.compare_digest(row.secret_hash, _hash(row.salt, secret)):
         return None
     return row.owner
+
+
+def revoke_key(session: Session, key_id: str) -> ApiKey:
+    """Revoke a key by its id (the part after `fnx_`); the row stays, for the record."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise UnknownKey(f"no API key with id {key_id!r}")
+    if row.revoked_at is None:
+        row.revoked_at = utcnow()
+    return row

@@ -1,4 +1,4 @@
-"""`fluidnexus serve` (API + embedded worker) and `fluidnexus keys create`.
+"""`fluidnexus serve` (API + embedded worker) and `fluidnexus keys create | list | revoke`.
 
 Both read the same settings (`FLUIDNEXUS_*` environment variables, `--data-dir`), so a key
 created here is valid for the server started on the same data dir. Nothing here imports
@@ -10,12 +10,17 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from fluidnexus.cli.errors import user_errors
+
+if TYPE_CHECKING:
+    from sqlalchemy.orm import Session, sessionmaker
 
 DataDir = Annotated[
     Path | None,
@@ -87,21 +92,62 @@ def keys_create(
 ) -> None:
     """Create an API key and print it (the only time it is shown; the database keeps a salted hash)."""
     from api.auth import InvalidOwner, create_key
-    from api.database import make_engine, make_sessionmaker, migrate, session_scope
+    from api.database import session_scope
 
-    settings = _settings(data_dir)
-    url = settings.resolved_database_url()
+    with user_errors(InvalidOwner), _sessions(data_dir) as sessions, session_scope(sessions) as session:
+        key = create_key(session, owner)
+    typer.echo(key)
+
+
+def keys_list(
+    owner: Annotated[str | None, typer.Option(help="only this owner's keys")] = None,
+    data_dir: DataDir = None,
+) -> None:
+    """List key ids, owners and dates (never the keys themselves: only their hashes are stored)."""
+    from sqlalchemy import select
+
+    from api.database import session_scope
+    from api.models import ApiKey
+
+    with _sessions(data_dir) as sessions, session_scope(sessions) as session:
+        query = select(ApiKey).order_by(ApiKey.created_at)
+        for key in session.scalars(query.where(ApiKey.owner == owner) if owner else query):
+            revoked = f"revoked {key.revoked_at:%Y-%m-%d %H:%M}" if key.revoked_at else "active"
+            typer.echo(f"{key.id}  {key.owner}  created {key.created_at:%Y-%m-%d %H:%M}  {revoked}")
+
+
+def keys_revoke(
+    key_id: Annotated[str, typer.Argument(help="the id shown by `keys list` (the part after fnx_)")],
+    data_dir: DataDir = None,
+) -> None:
+    """Revoke a key: requests with it answer 401 from now on."""
+    from api.auth import UnknownKey, revoke_key
+    from api.database import session_scope
+
+    with user_errors(UnknownKey), _sessions(data_dir) as sessions, session_scope(sessions) as session:
+        row = revoke_key(session, key_id)
+        typer.echo(f"revoked {row.id} ({row.owner})")
+
+
+@contextmanager
+def _sessions(data_dir: Path | None) -> Iterator[sessionmaker[Session]]:
+    """Sessions on the (migrated) database the server with the same settings uses."""
+    from api.database import make_engine, make_sessionmaker, migrate
+
+    url = _settings(data_dir).resolved_database_url()
     migrate(url)
     engine = make_engine(url)
-    with user_errors(InvalidOwner), session_scope(make_sessionmaker(engine)) as session:
-        key = create_key(session, owner)
-    engine.dispose()
-    typer.echo(key)
+    try:
+        yield make_sessionmaker(engine)
+    finally:
+        engine.dispose()
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add `serve` and the `keys` group to the top-level app."""
     app.command("serve")(serve)
-    keys = typer.Typer(help="API keys.", no_args_is_help=True)
+    keys = typer.Typer(help="API keys: create, list, revoke.", no_args_is_help=True)
     keys.command("create")(keys_create)
+    keys.command("list")(keys_list)
+    keys.command("revoke")(keys_revoke)
     app.add_typer(keys, name="keys")
