@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics")
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics", "render")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
