@@ -112,7 +112,7 @@ def test_tolerance_stops_early_and_calm_needs_fewer_iterations() -> None:
 
 
 @needs_fused
-@pytest.mark.parametrize("config", [CFG, replace(CFG, s_corr_k=0.0), replace(CFG, tolerance=0.02)])
+@pytest.mark.parametrize("config", [CFG, replace(CFG, s_corr_k=0.1), replace(CFG, tolerance=0.02)])
 def test_fused_solver_agrees_with_torch(config: PBFConfig) -> None:
     p = compressed_block()
     nl = neighbours_torch(p, config.h)

@@ -29,46 +29,56 @@ struct Range {
 };
 
 // Particle ranges of the (up to) 27 occupied cells around cell `m`, in the torch offset order.
+// Cells (x, y, z - 1), (x, y, z), (x, y, z + 1) have consecutive keys, so one binary search per
+// (dx, dy) column finds all three.
 int neighbour_cells(const int64_t* keys, const int64_t* start, int64_t n_cells, int64_t m, Range* out) {
     const int64_t key = keys[m];
     const int64_t c[3] = {key >> (2 * kAxisBits), (key >> kAxisBits) & kAxisMask, key & kAxisMask};
+    const int64_t* end = keys + n_cells;
     int found = 0;
     for (int dx = -1; dx <= 1; ++dx)
-        for (int dy = -1; dy <= 1; ++dy)
-            for (int dz = -1; dz <= 1; ++dz) {
-                const int64_t x = c[0] + dx, y = c[1] + dy, z = c[2] + dz;
-                if (x < 0 || y < 0 || z < 0 || x >= kAxisCells || y >= kAxisCells || z >= kAxisCells) continue;
-                const int64_t k = (x << (2 * kAxisBits)) | (y << kAxisBits) | z;
-                const int64_t* it = std::lower_bound(keys, keys + n_cells, k);
-                if (it != keys + n_cells && *it == k) {
-                    const int64_t s = it - keys;
-                    out[found++] = {start[s], start[s + 1]};
-                }
+        for (int dy = -1; dy <= 1; ++dy) {
+            const int64_t x = c[0] + dx, y = c[1] + dy;
+            if (x < 0 || y < 0 || x >= kAxisCells || y >= kAxisCells) continue;
+            const int64_t column = (x << (2 * kAxisBits)) | (y << kAxisBits);
+            const int64_t z_lo = std::max<int64_t>(c[2] - 1, 0), z_hi = std::min<int64_t>(c[2] + 1, kAxisMask);
+            for (const int64_t* it = std::lower_bound(keys, end, column | z_lo); it != end && *it <= (column | z_hi);
+                 ++it) {
+                const int64_t s = it - keys;
+                out[found++] = {start[s], start[s + 1]};
             }
+        }
     return found;
 }
 
-// Calls visit(a, i, j) for every j != i within h of particle i = order[a], for all particles of cell m.
+// Calls visit(a, b) for every pair of sorted slots a != b within h, for all particles of cell m.
+// `sorted` holds the positions in cell order (slot a is particle order[a]), so the candidates of
+// a neighbour cell are contiguous in memory.
 template <class Visit>
-void for_pairs_in_cell(const float* pos, float h2, const int64_t* keys, const int64_t* start, int64_t n_cells,
-                       const int64_t* order, int64_t m, Visit visit) {
+void for_pairs_in_cell(const float* sorted, float h2, const int64_t* keys, const int64_t* start, int64_t n_cells,
+                       int64_t m, Visit visit) {
     Range ranges[27];
     const int n_ranges = neighbour_cells(keys, start, n_cells, m, ranges);
     for (int64_t a = start[m]; a < start[m + 1]; ++a) {
-        const int64_t i = order[a];
-        const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+        const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
         for (int r = 0; r < n_ranges; ++r)
             for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
-                const int64_t j = order[b];
-                const float dx = xi - pos[3 * j], dy = yi - pos[3 * j + 1], dz = zi - pos[3 * j + 2];
-                if (j != i && dx * dx + dy * dy + dz * dz < h2) visit(a, i, j);
+                const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
+                if (b != a && dx * dx + dy * dy + dz * dz < h2) visit(a, b);
             }
     }
 }
 
+// x^n for 0 <= n < 16 by squaring, without a loop, so that loops calling it still vectorise.
 inline float ipow(float x, int n) {
     float result = 1.0f;
-    for (; n > 0; --n) result *= x;
+    result *= (n & 1) ? x : 1.0f;
+    x *= x;
+    result *= (n & 2) ? x : 1.0f;
+    x *= x;
+    result *= (n & 4) ? x : 1.0f;
+    x *= x;
+    result *= (n & 8) ? x : 1.0f;
     return result;
 }
 
@@ -104,20 +114,161 @@ inline void spiky_gradient(const float* pos, int64_t i, int64_t j, float inv_h, 
     for (int a = 0; a < 3; ++a) g[a] = magnitude * r[a];
 }
 
+
+// One Jacobi density solve over a CSR neighbour list.
+//
+// constraints() (density, C, lambda) stores per pair the Poly6 weight and the factor m with
+// grad W_ij / rho0 = m (x_i - x_j); correct() reuses them, so square roots and divisions are
+// done once per pair and iteration, in loops the compiler vectorises. Coincident pairs (m
+// undefined) are flagged per row and handled by a scalar fix-up.
+//
+// Only where the constraint is active is there work: without s_corr, a particle whose lambda and
+// neighbours' lambdas are all zero gets no correction, and a particle whose neighbourhood did not
+// move keeps its density and lambda. Skipping them gives the same numbers as recomputing, so an
+// expanding, mostly under-dense plume costs little after the first iteration.
+struct Solver {
+    float* pos;
+    const int64_t n;
+    const int64_t* offsets;
+    const int32_t* indices;
+    const float inv_h, inv_h2, inv_rho0, epsilon, inv_w_dq, scorr_scale, grad_scale, max_correction;
+    const int scorr_n;
+    float* density;
+    std::vector<float> lambda, residual, next, weight, factor;
+    std::vector<char> coincident_row, moved;
+
+    Solver(float* pos_, int64_t n_, const int64_t* offsets_, const int32_t* indices_, float h, float rho0,
+           float relaxation, float scorr_k, int scorr_n_, float scorr_dq, float max_correction_, float* density_)
+        : pos(pos_), n(n_), offsets(offsets_), indices(indices_), inv_h(1.0f / h), inv_h2(1.0f / (h * h)),
+          inv_rho0(1.0f / rho0), epsilon(relaxation / (h * h)), inv_w_dq(1.0f / poly6(scorr_dq * scorr_dq)),
+          scorr_scale(scorr_k * h * h), grad_scale(-kSpikyGrad / (h * h * rho0)), max_correction(max_correction_),
+          scorr_n(scorr_n_), density(density_), lambda(n_), residual(n_), next(3 * n_), weight(offsets_[n_]),
+          factor(offsets_[n_]), coincident_row(n_), moved(n_, 1) {}
+
+    bool neighbourhood_moved(int64_t i) const {
+        char any = moved[i];
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) any |= moved[indices[k]];
+        return any;
+    }
+
+    bool neighbourhood_active(int64_t i) const {
+        if (scorr_scale > 0.0f) return true;
+        float sum = lambda[i];
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) sum += lambda[indices[k]];
+        return sum != 0.0f;  // lambdas are <= 0, so the sum is 0 only when all are
+    }
+
+    // Density, residual and lambda of every particle; returns the sum of residuals.
+    double constraints(int threads) {
+        double residual_sum = 0.0;
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads) reduction(+ : residual_sum)
+        for (int64_t i = 0; i < n; ++i) {
+            if (neighbourhood_moved(i)) constraint_row(i);
+            residual_sum += residual[i];
+        }
+        return residual_sum;
+    }
+
+    void constraint_row(int64_t i) {
+        const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+        const float c2 = kCoincident * kCoincident;
+        float rho = kPoly6, gx = 0.0f, gy = 0.0f, gz = 0.0f, sum_g2 = 0.0f;
+        int coincident = 0;
+#pragma omp simd reduction(+ : rho, gx, gy, gz, sum_g2, coincident)
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+            const int64_t j = indices[k];
+            const float dx = xi - pos[3 * j], dy = yi - pos[3 * j + 1], dz = zi - pos[3 * j + 2];
+            const float q2 = (dx * dx + dy * dy + dz * dz) * inv_h2;
+            const float t = std::max(1.0f - q2, 0.0f);
+            const float w = kPoly6 * t * t * t;
+            const float q = std::sqrt(q2);
+            const float u = std::max(1.0f - q, 0.0f);
+            const bool apart = q2 >= c2;
+            const float m = apart ? grad_scale * u * u / q : 0.0f;
+            weight[k] = w;
+            factor[k] = m;
+            rho += w;
+            gx += m * dx, gy += m * dy, gz += m * dz;
+            sum_g2 += m * m * (dx * dx + dy * dy + dz * dz);
+            coincident += apart ? 0 : 1;
+        }
+        coincident_row[i] = coincident > 0;
+        if (coincident) {  // rare: exactly overlapping particles get fixed directions
+            for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                if (factor[k] != 0.0f) continue;
+                float g[3], q2;
+                spiky_gradient(pos, i, indices[k], inv_h, inv_rho0, g, &q2);
+                gx += g[0], gy += g[1], gz += g[2];
+                sum_g2 += g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
+            }
+        }
+        const float c = std::max(rho * inv_rho0 - 1.0f, 0.0f);
+        density[i] = rho;
+        residual[i] = c;
+        lambda[i] = -c / (gx * gx + gy * gy + gz * gz + sum_g2 + epsilon);
+    }
+
+    // One Jacobi position update from the current lambdas.
+    void correct(int threads) {
+#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
+        for (int64_t i = 0; i < n; ++i) {
+            float dp[3] = {0.0f, 0.0f, 0.0f};
+            if (neighbourhood_active(i)) correction_row(i, dp);
+            const float norm = std::sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]);
+            const float shrink = norm > max_correction ? max_correction / norm : 1.0f;
+            for (int a = 0; a < 3; ++a) next[3 * i + a] = pos[3 * i + a] + shrink * dp[a];
+            moved[i] = norm > 0.0f;
+        }
+        std::copy(next.begin(), next.end(), pos);
+    }
+
+    void correction_row(int64_t i, float dp[3]) const {
+        const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
+        const float li = lambda[i];
+        float dx_sum = 0.0f, dy_sum = 0.0f, dz_sum = 0.0f;
+        if (scorr_scale > 0.0f) {
+#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
+            for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                const int64_t j = indices[k];
+                const float s = (li + lambda[j] - scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n)) * factor[k];
+                dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
+            }
+        } else {
+#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
+            for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+                const int64_t j = indices[k];
+                const float s = (li + lambda[j]) * factor[k];
+                dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
+            }
+        }
+        dp[0] = dx_sum, dp[1] = dy_sum, dp[2] = dz_sum;
+        if (!coincident_row[i]) return;
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
+            if (factor[k] != 0.0f) continue;
+            const int64_t j = indices[k];
+            float g[3], q2;
+            spiky_gradient(pos, i, j, inv_h, inv_rho0, g, &q2);
+            float s = li + lambda[j];
+            if (scorr_scale > 0.0f) s -= scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n);
+            dp[0] += s * g[0], dp[1] += s * g[1], dp[2] += s * g[2];
+        }
+    }
+};
+
 }  // namespace
 
 extern "C" {
 
 // Pass 1: number of neighbours of each particle; returns the total.
-int64_t pbf_count_neighbours(const float* pos, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
+int64_t pbf_count_neighbours(const float* sorted, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
                              const int64_t* order, int64_t* counts, int threads) {
     const float h2 = h * h;
     int64_t total = 0;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads) reduction(+ : total)
     for (int64_t m = 0; m < n_cells; ++m) {
         for (int64_t a = start[m]; a < start[m + 1]; ++a) counts[order[a]] = 0;
-        for_pairs_in_cell(pos, h2, keys, start, n_cells, order, m, [&](int64_t, int64_t i, int64_t) {
-            ++counts[i];
+        for_pairs_in_cell(sorted, h2, keys, start, n_cells, m, [&](int64_t a, int64_t) {
+            ++counts[order[a]];
             ++total;
         });
     }
@@ -125,15 +276,15 @@ int64_t pbf_count_neighbours(const float* pos, float h, const int64_t* keys, con
 }
 
 // Pass 2: neighbour indices, row i at indices[offsets[i]:offsets[i + 1]].
-void pbf_fill_neighbours(const float* pos, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
+void pbf_fill_neighbours(const float* sorted, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
                          const int64_t* order, const int64_t* offsets, int32_t* indices, int threads) {
     const float h2 = h * h;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
     for (int64_t m = 0; m < n_cells; ++m) {
         int64_t next = -1, row = -1;  // next free slot of the row being filled
-        for_pairs_in_cell(pos, h2, keys, start, n_cells, order, m, [&](int64_t a, int64_t i, int64_t j) {
-            if (a != row) row = a, next = offsets[i];
-            indices[next++] = int32_t(j);
+        for_pairs_in_cell(sorted, h2, keys, start, n_cells, m, [&](int64_t a, int64_t b) {
+            if (a != row) row = a, next = offsets[order[a]];
+            indices[next++] = int32_t(order[b]);
         });
     }
 }
@@ -158,104 +309,16 @@ void pbf_density(const float* pos, int64_t n, float h, const int64_t* offsets, c
 // Jacobi PBF density solve, one-sided constraint C_i = max(0, rho_i / rho0 - 1), in place on pos.
 // Runs `max_iterations` iterations, or fewer when tolerance > 0 and the mean residual drops below
 // it. On return `density` holds the density of the returned positions; returns iterations used.
-//
-// Pass A (density, lambda) stores, per pair, the Poly6 weight and the factor m with
-// grad W_ij / rho0 = m (x_i - x_j); pass B (corrections) reuses them, so the square roots and
-// divisions are done once per pair and iteration, in loops the compiler can vectorise.
-// Coincident pairs (m undefined) are flagged per row and handled by a scalar fix-up.
 int pbf_solve(float* pos, int64_t n, const int64_t* offsets, const int32_t* indices, float h, float rho0,
               float relaxation, float scorr_k, int scorr_n, float scorr_dq, float max_correction, int max_iterations,
               float tolerance, float* density, int threads) {
-    const float inv_h = 1.0f / h, inv_rho0 = 1.0f / rho0, inv_h2 = inv_h * inv_h;
-    const float epsilon = relaxation * inv_h2;
-    const float inv_w_dq = 1.0f / poly6(scorr_dq * scorr_dq);
-    const float scorr_scale = scorr_k * h * h;
-    const float grad_scale = -kSpikyGrad * inv_h * inv_h * inv_rho0;  // m = grad_scale (1 - q)^2 / q
-    const float c2 = kCoincident * kCoincident;
-    const int64_t n_pairs = offsets[n];
-    std::vector<float> lambda(n), next(3 * n), weight(n_pairs), factor(n_pairs);
-    std::vector<char> coincident_row(n);
+    Solver solver(pos, n, offsets, indices, h, rho0, relaxation, scorr_k, scorr_n, scorr_dq, max_correction, density);
     int iteration = 0;
     for (;; ++iteration) {
-        double residual_sum = 0.0;
-#pragma omp parallel for schedule(dynamic, 256) num_threads(threads) reduction(+ : residual_sum)
-        for (int64_t i = 0; i < n; ++i) {
-            const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
-            float rho = kPoly6, gx = 0.0f, gy = 0.0f, gz = 0.0f, sum_g2 = 0.0f;
-            int coincident = 0;
-#pragma omp simd reduction(+ : rho, gx, gy, gz, sum_g2, coincident)
-            for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                const int64_t j = indices[k];
-                const float dx = xi - pos[3 * j], dy = yi - pos[3 * j + 1], dz = zi - pos[3 * j + 2];
-                const float q2 = (dx * dx + dy * dy + dz * dz) * inv_h2;
-                const float t = std::max(1.0f - q2, 0.0f);
-                const float w = kPoly6 * t * t * t;
-                const float q = std::sqrt(q2);
-                const float u = std::max(1.0f - q, 0.0f);
-                const bool apart = q2 >= c2;
-                const float m = apart ? grad_scale * u * u / q : 0.0f;
-                weight[k] = w;
-                factor[k] = m;
-                rho += w;
-                gx += m * dx, gy += m * dy, gz += m * dz;
-                sum_g2 += m * m * (dx * dx + dy * dy + dz * dz);
-                coincident += apart ? 0 : 1;
-            }
-            coincident_row[i] = coincident > 0;
-            if (coincident) {  // rare: exactly overlapping particles get fixed directions
-                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                    if (factor[k] != 0.0f) continue;
-                    float g[3], q2;
-                    spiky_gradient(pos, i, indices[k], inv_h, inv_rho0, g, &q2);
-                    if (q2 >= c2) continue;
-                    gx += g[0], gy += g[1], gz += g[2];
-                    sum_g2 += g[0] * g[0] + g[1] * g[1] + g[2] * g[2];
-                }
-            }
-            const float c = std::max(rho * inv_rho0 - 1.0f, 0.0f);
-            density[i] = rho;
-            lambda[i] = -c / (gx * gx + gy * gy + gz * gz + sum_g2 + epsilon);
-            residual_sum += c;
-        }
+        const double residual_sum = solver.constraints(threads);
         const bool converged = tolerance > 0.0f && n > 0 && residual_sum / double(n) < tolerance;
-        if (iteration == max_iterations || converged) break;
-#pragma omp parallel for schedule(dynamic, 256) num_threads(threads)
-        for (int64_t i = 0; i < n; ++i) {
-            const float xi = pos[3 * i], yi = pos[3 * i + 1], zi = pos[3 * i + 2];
-            const float li = lambda[i];
-            float dx_sum = 0.0f, dy_sum = 0.0f, dz_sum = 0.0f;
-            if (scorr_scale > 0.0f) {
-#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
-                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                    const int64_t j = indices[k];
-                    const float s = (li + lambda[j] - scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n)) * factor[k];
-                    dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
-                }
-            } else {
-#pragma omp simd reduction(+ : dx_sum, dy_sum, dz_sum)
-                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                    const int64_t j = indices[k];
-                    const float s = (li + lambda[j]) * factor[k];
-                    dx_sum += s * (xi - pos[3 * j]), dy_sum += s * (yi - pos[3 * j + 1]), dz_sum += s * (zi - pos[3 * j + 2]);
-                }
-            }
-            float dp[3] = {dx_sum, dy_sum, dz_sum};
-            if (coincident_row[i]) {
-                for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) {
-                    const int64_t j = indices[k];
-                    float g[3], q2;
-                    spiky_gradient(pos, i, j, inv_h, inv_rho0, g, &q2);
-                    if (q2 >= c2) continue;
-                    float s = li + lambda[j];
-                    if (scorr_scale > 0.0f) s -= scorr_scale * ipow(weight[k] * inv_w_dq, scorr_n);
-                    dp[0] += s * g[0], dp[1] += s * g[1], dp[2] += s * g[2];
-                }
-            }
-            const float norm = std::sqrt(dp[0] * dp[0] + dp[1] * dp[1] + dp[2] * dp[2]);
-            const float shrink = norm > max_correction ? max_correction / norm : 1.0f;
-            for (int a = 0; a < 3; ++a) next[3 * i + a] = pos[3 * i + a] + shrink * dp[a];
-        }
-        std::copy(next.begin(), next.end(), pos);
+        if (iteration == max_iterations || converged || n == 0) break;
+        solver.correct(threads);
     }
     return iteration;
 }

@@ -72,7 +72,9 @@ class PBFConfig:
     tolerance: float | None = None  # stop when the mean residual is below this
     max_iterations: int = 50  # cap when a tolerance is set
     relaxation: float = 0.1  # CFM epsilon, in units of 1/h^2
-    s_corr_k: float = 0.1  # tensile-instability (artificial pressure) strength, Macklin's 0.1; 0 = off
+    # Tensile-instability term (artificial pressure, Macklin's k = 0.1). Off by default: with the
+    # one-sided constraint lambda <= 0, particles never attract, so the clumping it cures cannot occur.
+    s_corr_k: float = 0.0
     s_corr_n: int = 4
     s_corr_dq: float = 0.2  # reference distance, fraction of h
     xsph: float = 0.0  # XSPH viscosity c (0 = off)
@@ -94,8 +96,8 @@ class PBFConfig:
             raise PhysicsInputError(f"iterations must be an integer >= 0, got {self.iterations!r}")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise PhysicsInputError(f"max_iterations must be an integer >= 1, got {self.max_iterations!r}")
-        if not isinstance(self.s_corr_n, int) or self.s_corr_n < 1:
-            raise PhysicsInputError(f"s_corr_n must be an integer >= 1, got {self.s_corr_n!r}")
+        if not isinstance(self.s_corr_n, int) or not 1 <= self.s_corr_n <= 15:
+            raise PhysicsInputError(f"s_corr_n must be an integer in 1..15, got {self.s_corr_n!r}")
         if self.tolerance is not None:
             _finite(self.tolerance, "tolerance", positive=True)
         if self.max_speed is not None:

@@ -58,7 +58,8 @@ def neighbours_fused(positions: Tensor, h: float) -> NeighbourList:
     table = cell_table(pos, h)
     n, n_cells = pos.shape[0], table.keys.shape[0]
     counts = torch.zeros(n, dtype=torch.long)
-    args = (_p(pos), h, _p(table.keys), _p(table.start), n_cells, _p(table.order))
+    in_cell_order = pos[table.order].contiguous()
+    args = (_p(in_cell_order), h, _p(table.keys), _p(table.start), n_cells, _p(table.order))
     total = lib.pbf_count_neighbours(*args, _p(counts), threads)
     offsets = torch.zeros(n + 1, dtype=torch.long)
     torch.cumsum(counts, 0, out=offsets[1:])

@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics", "render")
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics", "physics", "render")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:

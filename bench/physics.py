@@ -1,0 +1,225 @@
+"""PBF physics benchmark: speed and density error against particle count and solver iterations.
+
+    python bench/physics.py                      # sweep: table + JSON + speed-vs-error PNG
+    python bench/physics.py --particles 50000 --iterations 10 --json
+    python bench/physics.py --particles 50000 --tolerance 0.002 --steps 20
+
+Scene ("calm"): a steady plume. N particles fill a vertical column (height 4 x radius), at the
+rest density at the bottom thinning linearly to 40 % of it at the top, as a rising plume
+stretches; random packing leaves many of the lower particles over-dense at the start. Buoyancy
+lifts them and particles leaving the top of the box are re-seeded in a ball at the bottom, so N
+stays constant. "violent": the same column packed 1.6x denser throughout, with a strong side
+wind growing with height. Each run warms up (untimed) before the timed steps.
+
+Density error: the one-sided residual max(0, rho/rho0 - 1) that the solver drives to zero,
+over alive particles after each step; "mean" averages it over particles and timed steps,
+"max" is the largest over particles and timed steps.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import platform
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+SIZES = (10_000, 50_000, 200_000)
+ITERATIONS = (1, 2, 5, 10, 20)
+SWEEP_TOLERANCE = 0.002
+SCENES = ("calm", "violent")
+
+
+@dataclass
+class Result:
+    scene: str
+    particles: int
+    iterations: int | None
+    tolerance: float | None
+    iterations_used: float
+    steps: int
+    steps_per_s: float
+    cpu_s_per_step: float  # process CPU time (all threads): less sensitive than wall time to other load
+    mean_density_error: float
+    max_density_error: float
+
+
+def log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def plume(n: int, scene: str, config, device: str, backend: str):
+    """Simulator and state of the benchmark plume with n particles, plus a re-seeding function."""
+    import torch
+
+    from fluidcore.physics import Box, ParticleState, Simulator, Source, wind_force
+    from fluidcore.physics.source import emit
+
+    packing, thinning = (1.6, 0.0) if scene == "violent" else (1.0, 0.6)  # density at the bottom; its fall to the top
+    volume = n / (8.0 * config.rho0 * packing * (1.0 - thinning / 2.0)) * config.h**3
+    radius = (volume / (4.0 * math.pi)) ** (1.0 / 3.0)
+    height = 4.0 * radius
+    g = torch.Generator().manual_seed(0)
+    u = torch.rand(n, 3, generator=g)
+    angle, r = 2.0 * math.pi * u[:, 0], radius * u[:, 1].sqrt()
+    y = height * u[:, 2] if thinning == 0.0 else height / thinning * (
+        1.0 - torch.sqrt(1.0 - 2.0 * thinning * (1.0 - thinning / 2.0) * u[:, 2]))  # inverse CDF of the linear profile
+    positions = torch.stack([r * angle.cos(), y, r * angle.sin()], dim=1)
+    velocities = torch.zeros(n, 3)
+    velocities[:, 1] = 0.1
+    state = ParticleState.from_positions(positions.to(device), velocities.to(device))
+    box = Box((-3 * radius, -radius, -3 * radius), (3 * radius, height, 3 * radius))
+    force = wind_force((1.0, 0.0, 0.0), 2.0, growth=2.0 / height) if scene == "violent" else None
+    sim = Simulator(config, box, force=force, device=device, backend=backend)
+
+    def reseed(count: int) -> None:
+        if count:
+            source = Source((0.0, 0.1 * radius, 0.0), radius, count, (0.0, 0.1, 0.0), seed=1)
+            state.add(*emit(source, state.step, device))
+
+    return sim, state, reseed
+
+
+def run(n: int, iterations: int | None, tolerance: float | None, steps: int, warmup: int, scene: str,
+        device: str, backend: str) -> Result:
+    """Warm up, then time `steps` steps of the plume."""
+    import torch
+
+    from fluidcore.physics import PRESETS
+
+    base = PRESETS["scalarflow"]
+    config = replace(base, iterations=iterations if iterations is not None else base.iterations, tolerance=tolerance)
+    sim, state, reseed = plume(n, scene, config, device, backend)
+    for _ in range(warmup):
+        reseed(sim.step(state).retired)
+    stats = []
+    if device == "cuda":
+        torch.cuda.synchronize()
+    start, cpu_start = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        stats.append(sim.step(state))
+        reseed(stats[-1].retired)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
+    return Result(
+        scene=scene, particles=n, iterations=None if tolerance is not None else config.iterations, tolerance=tolerance,
+        iterations_used=sum(s.iterations for s in stats) / steps, steps=steps, steps_per_s=steps / elapsed,
+        cpu_s_per_step=cpu / steps,
+        mean_density_error=sum(s.mean_density_error for s in stats) / steps,
+        max_density_error=max(s.max_density_error for s in stats),
+    )
+
+
+def machine(device: str, threads: int, backend: str) -> dict:
+    import torch
+
+    info = {"device": device, "threads": threads, "backend": backend, "cpu_cores": os.cpu_count(),
+            "platform": platform.platform(), "torch": torch.__version__,
+            "load_average": os.getloadavg() if hasattr(os, "getloadavg") else None}
+    if device == "cuda":
+        info["gpu"] = torch.cuda.get_device_name()
+    return info
+
+
+def table(results: list[Result]) -> str:
+    """Markdown table of a sweep."""
+    lines = ["| scene | particles | iterations | tolerance | iterations used | steps/s | CPU s/step | mean density error "
+             "| max density error |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        lines.append(f"| {r.scene} | {r.particles:,} | {r.iterations if r.iterations is not None else '-'} | "
+                     f"{r.tolerance if r.tolerance is not None else '-'} | {r.iterations_used:.1f} | "
+                     f"{r.steps_per_s:.2f} | {r.cpu_s_per_step:.3f} | {r.mean_density_error:.2e} | {r.max_density_error:.2e} |")
+    return "\n".join(lines)
+
+
+def plot(results: list[Result], path: Path) -> None:
+    """Speed (steps/s) against mean density error, one line per particle count."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4.5))
+    for n in sorted({r.particles for r in results}):
+        rows = [r for r in results if r.particles == n and r.iterations is not None and r.scene == "calm"]
+        ax.plot([r.steps_per_s for r in rows], [max(r.mean_density_error, 1e-7) for r in rows], "o-", label=f"{n:,}")
+        for r in rows:
+            ax.annotate(str(r.iterations), (r.steps_per_s, max(r.mean_density_error, 1e-7)), fontsize=7)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("steps per second")
+    ax.set_ylabel("mean density error  max(0, rho/rho0 - 1)")
+    ax.set_title("PBF: speed vs error (labels: solver iterations)")
+    ax.legend(title="particles")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def command(
+    particles: Optional[int] = typer.Option(None, help="Particle count (single run); default: the sweep."),
+    iterations: Optional[int] = typer.Option(None, help="Fixed solver iterations (single run; default 10)."),
+    tolerance: Optional[float] = typer.Option(None, help="Stop iterating when the mean residual is below this."),
+    steps: int = typer.Option(10, help="Timed steps per run."),
+    warmup: int = typer.Option(5, help="Untimed steps before timing."),
+    scene: str = typer.Option("calm", help="calm | violent (single run)."),
+    device: str = typer.Option("cpu", help="cpu | cuda."),
+    backend: str = typer.Option("auto", help="auto | torch | fused."),
+    threads: Optional[int] = typer.Option(None, help="torch/OpenMP threads (default: all cores)."),
+    out: Path = typer.Option(Path("bench/results"), help="Folder for physics.json and physics.png (sweep)."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout, nothing else."),
+) -> None:
+    """Benchmark the PBF simulator: steps/s and density error vs particles and iterations."""
+    import torch
+
+    if device not in ("cpu", "cuda"):
+        raise typer.BadParameter("device must be cpu or cuda", param_hint="--device")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise typer.BadParameter("CUDA is not available on this machine", param_hint="--device")
+    if scene not in SCENES:
+        raise typer.BadParameter(f"scene must be one of {SCENES}", param_hint="--scene")
+    if iterations is not None and tolerance is not None:
+        raise typer.BadParameter("give --iterations or --tolerance, not both", param_hint="--tolerance")
+    if steps < 1 or warmup < 0:
+        raise typer.BadParameter("steps must be >= 1 and warmup >= 0", param_hint="--steps")
+    torch.set_num_threads(threads or os.cpu_count() or 1)
+    info = machine(device, torch.get_num_threads(), backend)
+    log(f"physics bench: {info}")
+
+    if particles is not None or iterations is not None or tolerance is not None:
+        result = run(particles or 50_000, iterations, tolerance, steps, warmup, scene, device, backend)
+        payload = {**asdict(result), "machine": info}
+        if as_json:
+            print(json.dumps(payload, indent=2))
+        else:
+            print(table([result]))
+        return
+
+    results = []
+    plan = [(n, k, None, "calm") for n in SIZES for k in ITERATIONS]
+    plan += [(n, None, SWEEP_TOLERANCE, s) for n in SIZES[:2] for s in SCENES]
+    for n, k, tol, name in plan:
+        log(f"  {name} n={n} iterations={k} tolerance={tol} ...")
+        results.append(run(n, k, tol, steps, warmup, name, device, backend))
+        log(f"    {results[-1].steps_per_s:.2f} steps/s, mean error {results[-1].mean_density_error:.2e}")
+    out.mkdir(parents=True, exist_ok=True)
+    payload = {"machine": info, "steps": steps, "warmup": warmup, "results": [asdict(r) for r in results]}
+    (out / "physics.json").write_text(json.dumps(payload, indent=2))
+    plot(results, out / "physics.png")
+    log(f"wrote {out / 'physics.json'} and {out / 'physics.png'}")
+    if as_json:
+        print(json.dumps(payload, indent=2))
+    else:
+        print(f"threads: {info['threads']}, load average: {info['load_average']}")
+        print(table(results))
+
+
+if __name__ == "__main__":
+    typer.run(command)
