@@ -14,7 +14,17 @@ import pytest
 import torch
 
 from fluidcore import cameras
-from fluidcore.cameras import Camera, CameraError, box_center, check_video_size, frusta_box, look_at, orbit, scene_box
+from fluidcore.cameras import (
+    Camera,
+    CameraError,
+    box_center,
+    check_box_visible,
+    check_video_size,
+    frusta_box,
+    look_at,
+    orbit,
+    scene_box,
+)
 
 PLUME_BASE = np.array([0.339, -0.007, -0.226])  # triangulated from the 5 GT views (realdata README §3)
 OPENGL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -58,6 +68,19 @@ def test_scalarflow_cameras_see_the_scene_box(realdata: Path) -> None:
         assert torch.all((uv[:, 0] >= 0) & (uv[:, 0] < camera.width)), camera.name
         assert torch.all((uv[:, 1] >= 0) & (uv[:, 1] < camera.height)), camera.name
         assert _ray_hits_box(camera.center(), camera.forward(), lo, hi), f"{camera.name} does not look at the box"
+
+
+def test_wrong_axis_convention_is_caught(realdata: Path, tmp_path: Path) -> None:
+    """The same poses stored in OpenCV axes under a nerfstudio label load, but look away."""
+    path = realdata / "scalarflow" / "transforms.json"
+    box = scene_box(path)
+    check_box_visible(cameras.load(path), box)
+    data = json.loads(path.read_text())
+    for frame in data["frames"]:
+        frame["transform_matrix"] = (np.asarray(frame["transform_matrix"]) @ OPENGL_FLIP).tolist()
+    wrong = cameras.load(_write(tmp_path / "transforms.json", data))
+    with pytest.raises(CameraError, match="view_00, view_01, view_02, view_03, view_04 do not see"):
+        check_box_visible(wrong, box)
 
 
 def test_scalarflow_frusta_overlap_contains_the_plume(realdata: Path) -> None:

@@ -130,7 +130,17 @@ def box_center(box: Box) -> np.ndarray:
     return 0.5 * (box[0] + box[1])
 
 
-def box_corners(box: Box) -> np.ndarray:
-    """(8, 3) corners of a box."""
-    return np.array([[box[i][0], box[j][1], box[k][2]] for i, j, k in itertools.product((0, 1), repeat=3)])
+def check_box_visible(cameras: Sequence[Camera] | dict[str, Camera], box: Box) -> None:
+    """Raise CameraError naming every camera that does not see the box centre in its frame.
 
+    Meant for uploads: a camera file in the wrong axis convention (OpenCV poses labelled as
+    OpenGL, world-to-camera given as camera-to-world) loads without complaint but points every
+    camera away from the scene; this catches it before hours of reconstruction."""
+    centre = box_center(box)[None]
+    cams = list(cameras.values()) if isinstance(cameras, dict) else list(cameras)
+    blind = [c.name for c in cams if not c.in_frame(centre)[0]]
+    if blind:
+        raise CameraError(
+            f"cameras {', '.join(blind)} do not see the scene box centre {np.round(centre[0], 4).tolist()}; "
+            "check that transform_matrix is camera-to-world in OpenGL axes (x right, y up, looking along -z)"
+        )
