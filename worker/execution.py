@@ -128,6 +128,7 @@ class JobExecutor:
             job.state, job.stage, job.error = JobState.RUNNING, "preparing", None
             job.started_at = job.started_at or now
             job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
+            log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
             return Claim(job.id, job.type, dict(job.params), job.scene_id, job.parent_job_id)
 
     def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
@@ -226,6 +227,7 @@ class JobExecutor:
                 job.stage_seconds = reporter.stage_seconds(closing=True)
             if state == JobState.SUCCEEDED:
                 job.progress = 1.0
+        log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
         return state.value
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:
