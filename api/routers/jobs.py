@@ -30,10 +30,6 @@ from api.settings import Settings
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
-# Which job types a job may continue: every continuation starts from a reconstruction's run folder.
-PARENT_TYPES = {"predict": ("reconstruct",), "interact": ("reconstruct",), "resimulate": ("reconstruct",)}
-
-
 @router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
 def create_job(
     request: Annotated[JobRequest, Body()],
@@ -172,13 +168,8 @@ def _check_references(session: Session, owner: str, request: JobRequest, setting
                 f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
             )
         return
+    # Any succeeded job can be continued: every job type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
-    allowed = PARENT_TYPES[request.type]
-    if parent.type not in allowed:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"parent_job_id: a {request.type} job continues a {' or '.join(allowed)} job, not a {parent.type} job",
-        )
     if parent.state != JobState.SUCCEEDED:
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it must have succeeded first"
