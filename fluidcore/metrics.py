@@ -258,7 +258,8 @@ def _unit_channels(features: torch.Tensor, eps: float = 1e-10) -> torch.Tensor:
 
 
 def lpips_available(weights_dir: str | Path | None = None) -> bool:
-    """Whether LPIPS weights are present (without loading them)."""
+    """Whether LPIPS weights are present (the network is not built; a heads file without a
+    separate backbone file is opened to see whether it holds the backbone too)."""
     return _lpips_files(weights_dir) is not None
 
 
@@ -267,13 +268,14 @@ def _lpips_files(weights_dir: str | Path | None) -> tuple[Path, Path | None] | N
     if heads is None:
         return None
     backbone = find(LPIPS_BACKBONE, weights_dir)
-    if backbone is None and not _has_backbone(heads):
+    if backbone is None and not _has_backbone(heads, heads.stat().st_mtime_ns):
         return None
     return heads, backbone
 
 
 @functools.lru_cache(maxsize=8)
-def _has_backbone(heads: Path) -> bool:
+def _has_backbone(heads: Path, stamp: int) -> bool:
+    """Whether the heads file also holds the AlexNet backbone (cached per file version)."""
     return "features.0.weight" in _read_state(heads)
 
 
