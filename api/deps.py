@@ -41,18 +41,31 @@ def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
 
 
-def current_owner(
+def unauthorized() -> HTTPException:
+    return HTTPException(
+        status.HTTP_401_UNAUTHORIZED,
+        "missing or invalid API key (send 'Authorization: Bearer KEY')",
+        headers={"WWW-Authenticate": "Bearer"},
+    )
+
+
+def optional_owner(
     session: Annotated[Session, Depends(get_session)],
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> str:
-    """The owner of the Bearer key, or 401."""
-    owner = owner_for_key(session, credentials.credentials) if credentials else None
+) -> str | None:
+    """The owner of the Bearer key; None without one; 401 for a key that is not valid."""
+    if credentials is None:
+        return None
+    owner = owner_for_key(session, credentials.credentials)
     if owner is None:
-        raise HTTPException(
-            status.HTTP_401_UNAUTHORIZED,
-            "missing or invalid API key (send 'Authorization: Bearer KEY')",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
+        raise unauthorized()
+    return owner
+
+
+def current_owner(owner: Annotated[str | None, Depends(optional_owner)]) -> str:
+    """The owner of the Bearer key, or 401."""
+    if owner is None:
+        raise unauthorized()
     return owner
 
 
@@ -61,3 +74,4 @@ StorageDep = Annotated[Storage, Depends(get_storage)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 OwnerDep = Annotated[str, Depends(current_owner)]
+OptionalOwnerDep = Annotated[str | None, Depends(optional_owner)]

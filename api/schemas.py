@@ -159,7 +159,10 @@ class ArtifactOut(BaseModel):
     size: int
     content_type: str
     url: str = Field(description="API download URL (Bearer auth; honours HTTP Range)")
-    presigned_url: str | None = Field(description="direct object-storage URL, when the backend offers one")
+    presigned_url: str = Field(
+        description="time-limited URL that needs no API key (for <video src>): object storage's own, "
+        "or signed by the API for local storage"
+    )
 
 
 class ArtifactList(BaseModel):

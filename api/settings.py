@@ -39,6 +39,9 @@ class Settings(BaseSettings):
         default=None, description="host:port that browsers reach for presigned URLs (default s3_endpoint)"
     )
     presign_seconds: int = Field(default=3600, ge=60, le=7 * 24 * 3600)
+    signing_key: str | None = Field(
+        default=None, description="secret for the API's own signed download URLs; default: data_dir/signing.key"
+    )
 
     # Upload limits: checked before anything is stored.
     max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="whole multipart request")

@@ -327,7 +327,14 @@ def test_artifacts_list_and_download_with_ranges(service: Service, scene_id: str
     assert listing["job_id"] == job
     [item] = listing["items"]
     assert item["kind"] == "video" and item["camera"] == "cam0" and item["size"] == len(data)
-    assert item["presigned_url"] is None  # local storage has none
+    signed = item["presigned_url"]  # local storage: signed by the API, usable without a key (<video src>)
+    assert signed.startswith(item["url"] + "?")
+    assert service.client.get(signed).content == data
+    assert service.client.get(signed, headers={"Range": "bytes=0-9"}).content == data[:10]
+    assert service.client.get(signed.replace("signature=", "signature=0")).status_code == 403
+    other = signed.replace("videos/cam0.mp4", "run/manifest.json")
+    assert service.client.get(other).status_code == 403  # a signature covers one file only
+    assert service.client.get(item["url"]).status_code == 401
 
     whole = service.client.get(item["url"], headers=alice)
     assert whole.status_code == 200 and whole.content == data and whole.headers["accept-ranges"] == "bytes"
@@ -422,3 +429,22 @@ def test_delete_jobs_then_their_scene(service: Service, scene_id: str) -> None:
     assert service.client.delete(f"/v1/scenes/{scene_id}", headers=bob).status_code == 404
     assert service.client.delete(f"/v1/scenes/{scene_id}", headers=alice).status_code == 204
     assert service.storage.list(f"scenes/{scene_id}/") == [] and service.count(Scene) == 0
+
+
+def test_signed_urls_expire_and_the_key_persists(tmp_path: Path) -> None:
+    from urllib.parse import parse_qs, urlsplit
+
+    from api.signing import signed_url, signing_key, verify
+
+    key = signing_key(Settings(data_dir=tmp_path))
+    assert signing_key(Settings(data_dir=tmp_path)) == key  # an embedded server's restart keeps its links valid
+    assert (tmp_path / "signing.key").stat().st_mode & 0o077 == 0
+    assert signing_key(Settings(data_dir=tmp_path, signing_key="configured")) == b"configured"
+
+    def check(url: str) -> bool:
+        query = parse_qs(urlsplit(url).query)
+        return verify(key, urlsplit(url).path, int(query["expires"][0]), query["signature"][0])
+
+    path = "/v1/jobs/j1/artifacts/videos/cam0.mp4"
+    assert check(signed_url(key, path, 60))
+    assert not check(signed_url(key, path, -1))

@@ -9,10 +9,11 @@ from fastapi import APIRouter, Header, HTTPException, status
 from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
-from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
-from api.models import Artifact
+from api.deps import OptionalOwnerDep, OwnerDep, SessionDep, SettingsDep, StorageDep, unauthorized
+from api.models import Artifact, Job
 from api.routers.jobs import owned_job
 from api.schemas import ArtifactList, ArtifactOut
+from api.signing import signed_url, signing_key, verify
 from api.storage import ObjectNotFound
 
 router = APIRouter(prefix="/v1/jobs", tags=["artifacts"])
@@ -49,6 +50,10 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
     return start, end
 
 
+def artifact_path(job_id: str, name: str) -> str:
+    return f"/v1/jobs/{job_id}/artifacts/{quote(name)}"
+
+
 @router.get("/{job_id}/artifacts", response_model=ArtifactList)
 def list_artifacts(
     job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
@@ -56,18 +61,17 @@ def list_artifacts(
     """MP4s per camera, the orbit video, particle-state files and the manifest, with download URLs."""
     job = owned_job(session, job_id, owner)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id).order_by(Artifact.name)).all()
-    items = [
-        ArtifactOut(
-            name=row.name,
-            kind=row.kind,
-            camera=row.camera,
-            size=row.size,
-            content_type=row.content_type,
-            url=f"/v1/jobs/{job.id}/artifacts/{quote(row.name)}",
-            presigned_url=storage.presign(row.key, settings.presign_seconds),
+    key = signing_key(settings)
+    items = []
+    for row in rows:
+        path = artifact_path(job.id, row.name)
+        presigned = storage.presign(row.key, settings.presign_seconds) or signed_url(key, path, settings.presign_seconds)
+        items.append(
+            ArtifactOut(
+                name=row.name, kind=row.kind, camera=row.camera, size=row.size, content_type=row.content_type,
+                url=path, presigned_url=presigned,
+            )
         )
-        for row in rows
-    ]
     return ArtifactList(job_id=job.id, items=items)
 
 
@@ -79,13 +83,29 @@ def list_artifacts(
 def download_artifact(
     job_id: str,
     name: str,
-    owner: OwnerDep,
+    owner: OptionalOwnerDep,
     session: SessionDep,
     storage: StorageDep,
+    settings: SettingsDep,
+    expires: int | None = None,
+    signature: str | None = None,
     range: str | None = Header(default=None),
 ) -> StreamingResponse:
-    """Stream one artifact; honours `Range: bytes=a-b` (206) so videos seek in a browser."""
-    job = owned_job(session, job_id, owner)
+    """Stream one artifact; honours `Range: bytes=a-b` (206) so videos seek in a browser.
+
+    Authorised by the owner's Bearer key, or by the `expires` + `signature` of a signed URL
+    from the artifact listing (what a <video> element can use).
+    """
+    if owner is not None:
+        job = owned_job(session, job_id, owner)
+    elif expires is not None and signature is not None:
+        if not verify(signing_key(settings), artifact_path(job_id, name), expires, signature):
+            raise HTTPException(status.HTTP_403_FORBIDDEN, "download link is invalid or has expired")
+        job = session.get(Job, job_id)
+        if job is None:
+            raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+    else:
+        raise unauthorized()
     row = session.scalars(select(Artifact).where(Artifact.job_id == job.id, Artifact.name == name)).first()
     if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no artifact {name!r}")
@@ -102,10 +122,11 @@ def download_artifact(
         body = storage.iter_range(row.key, start, end) if size else iter(())
     except ObjectNotFound:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"artifact {name!r} is missing from storage") from None
+    disposition = "inline" if row.content_type.startswith("video/") else "attachment"
     headers = {
         "Accept-Ranges": "bytes",
         "Content-Length": str(end - start + 1 if size else 0),
-        "Content-Disposition": f"attachment; filename=\"{name.rsplit('/', 1)[-1]}\"",
+        "Content-Disposition": f"{disposition}; filename=\"{name.rsplit('/', 1)[-1]}\"",
     }
     if span is not None:
         headers["Content-Range"] = f"bytes {start}-{end}/{size}"
