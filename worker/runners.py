@@ -47,7 +47,7 @@ def _callbacks(inputs: RunInputs) -> dict[str, Any]:
 def _render(inputs: RunInputs) -> list[Path]:
     from fluidcore.pipeline import render_artifacts
 
-    inputs.progress(0.0, "render")
+    inputs.progress(1.0, "render")  # the run itself is complete; rendering fills the rest
     return list(render_artifacts(inputs.run_dir, inputs.render_dir))
 
 
