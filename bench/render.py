@@ -1,8 +1,9 @@
 """`fluidnexus bench render` (= `python bench/render.py`): forward + backward time of fluidcore.render.
 
 The scene is what reconstruction renders: a rising smoke plume of many small, semi-transparent
-Gaussians (about 12 % peak opacity, scale set by the particle spacing so coverage does not depend
-on N), seen by a portrait camera that frames the plume like the ScalarFlow views. Images of the
+Gaussians (about 12 % peak opacity; standard deviation half the mean particle spacing, so that
+neighbours overlap into a smooth density and coverage does not depend on N), seen by a portrait
+camera that frames the plume like the ScalarFlow views. Images of the
 same camera at other sizes scale its intrinsics, so the pixel footprint of every Gaussian grows
 with the resolution as it would in a real run.
 
@@ -13,6 +14,11 @@ the channel count matters. The default sweep covers {10k, 100k} Gaussians x {270
 channel target row and the torch-reference compositor at the smallest size (to show what the
 fused kernel buys). `--json` prints one JSON object; with a single configuration its fields are
 also at the top level (`ms_forward_backward`, ...). Progress goes to stderr.
+
+Columns: `coverage` is the fraction of pixels with alpha > 0.01, `pairs` the number of (tile,
+Gaussian) pairs after binning, `ms_*` medians of wall-clock time, `cpu_ms_forward_backward` the
+CPU time of all threads (less sensitive to other load on a shared machine), `ms_composite` the
+compositing stage alone (forward + backward).
 """
 
 from __future__ import annotations
@@ -30,6 +36,7 @@ import typer
 SIZES = ((270, 480), (540, 960), (1080, 1920))
 COUNTS = (10_000, 100_000)
 CHANNELS = (1, 3)
+BACKENDS = ("torch", "torch-reference", "gsplat")
 TARGET = {"gaussians": 20_000, "size": (270, 480), "channels": 1, "ms": 150.0}
 PLUME_HEIGHT = 1.0  # world units; the camera frames it at 80 % of the image height
 PEAK_OPACITY_LOGIT = -2.0  # sigmoid(-2) = 0.12
@@ -50,7 +57,7 @@ def plume(n: int, channels: int, seed: int = 0, device: str = "cpu"):
     spacing = (volume / n) ** (1 / 3)
     g = Gaussians(
         means=means,
-        log_scales=math.log(0.7 * spacing) + 0.3 * torch.randn(n, 3, generator=gen),
+        log_scales=math.log(0.5 * spacing) + 0.3 * torch.randn(n, 3, generator=gen),
         quats=torch.randn(n, 4, generator=gen),
         opacity_logits=PEAK_OPACITY_LOGIT + 0.5 * torch.randn(n, generator=gen),
         colors=(0.8 + 0.1 * torch.randn(n, channels, generator=gen)).clamp(0, 1),
@@ -78,19 +85,20 @@ def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, 
 
     g = plume(gaussians, channels, device=device)
     camera = plume_camera(*size)
-    forward, backward = [], []
+    forward, backward, cpu = [], [], []
     for i in range(repeats + 1):
         _sync(device)
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         out = render(g, camera, background=0.0, backend=backend)
         _sync(device)
         middle = time.perf_counter()
         (out.image.mean() + 0.1 * out.alpha.mean()).backward()
         _sync(device)
-        end = time.perf_counter()
+        end, cpu_end = time.perf_counter(), time.process_time()
         if i > 0:
             forward.append(1e3 * (middle - start))
             backward.append(1e3 * (end - middle))
+            cpu.append(1e3 * (cpu_end - cpu_start))
         for tensor in (g.means, g.log_scales, g.quats, g.opacity_logits, g.colors):
             tensor.grad = None
     row: dict[str, Any] = {
@@ -104,6 +112,9 @@ def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, 
         "ms_forward": statistics.median(forward),
         "ms_backward": statistics.median(backward),
         "ms_forward_backward": statistics.median(f + b for f, b in zip(forward, backward)),
+        # CPU time of all threads: on a shared machine wall time grows with other people's load,
+        # CPU time much less; wall time >= cpu_ms / threads.
+        "cpu_ms_forward_backward": statistics.median(cpu),
     }
     row.update(_composite_stage(g, camera, backend, repeats) if backend != "gsplat" else {"ms_composite": None, "pairs": None})
     return row
@@ -175,10 +186,28 @@ def parse_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+def _check_choices(channels: Optional[int], backend: Optional[str], device: Optional[str]) -> None:
+    """Reject what cannot run here before any timing starts (typer shows it as a usage error)."""
+    import torch
+
+    if channels is not None and channels not in CHANNELS:
+        raise typer.BadParameter(f"--channels must be 1 or 3, got {channels}")
+    if backend is not None and backend not in BACKENDS:
+        raise typer.BadParameter(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if device is not None and device not in ("cpu", "cuda"):
+        raise typer.BadParameter(f"--device must be cpu or cuda, got {device!r}")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise typer.BadParameter("--device cuda: no CUDA device on this machine")
+    if backend == "gsplat" and device != "cuda" and not torch.cuda.is_available():
+        raise typer.BadParameter("--backend gsplat needs a CUDA device")
+    if backend == "gsplat" and device == "cpu":
+        raise typer.BadParameter("--backend gsplat runs on CUDA only; use --device cuda")
+
+
 def table(rows: list[dict[str, Any]]) -> str:
     """A markdown table, then the 1-channel / 3-channel cost ratios of the compositing stage."""
     columns = ["backend", "device", "threads", "gaussians", "size", "channels", "coverage", "pairs",
-               "ms_forward", "ms_backward", "ms_forward_backward", "ms_composite"]  # fmt: skip
+               "ms_forward", "ms_backward", "ms_forward_backward", "cpu_ms_forward_backward", "ms_composite"]  # fmt: skip
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for row in rows:
         lines.append("| " + " | ".join(_cell(row[c]) for c in columns) + " |")
@@ -214,8 +243,7 @@ def command(
     """Time fluidcore.render forward + backward on a smoke plume."""
     import torch
 
-    if channels == 2:
-        raise typer.BadParameter("channels must be 1 or 3")
+    _check_choices(channels, backend, device)
     torch.set_num_threads(threads or os.cpu_count() or 1)
     load_before = [round(x, 2) for x in os.getloadavg()]  # other work on the machine, before ours
     rows = []

@@ -1,0 +1,27 @@
+"""`fluidnexus bench render`: the CLI contract (one JSON object with the timing fields), not speed."""
+
+from __future__ import annotations
+
+import json
+
+from typer.testing import CliRunner
+
+from fluidnexus.cli import app
+
+
+def test_bench_render_json_reports_one_configuration() -> None:
+    result = CliRunner().invoke(
+        app, ["bench", "render", "--gaussians", "300", "--size", "48x64", "--channels", "1", "--repeats", "1", "--threads", "1", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["ms_forward_backward"] > 0 and report["ms_composite"] > 0
+    assert (report["gaussians"], report["size"], report["channels"], report["threads"]) == (300, "48x64", 1, 1)
+    assert report["coverage"] > 0.05  # the plume is in view
+    assert len(report["rows"]) == 1
+
+
+def test_bench_render_rejects_bad_choices() -> None:
+    for args in (["--channels", "2"], ["--backend", "opengl"], ["--size", "48by64"]):
+        result = CliRunner().invoke(app, ["bench", "render", *args, "--gaussians", "10"])
+        assert result.exit_code == 2, args
