@@ -13,7 +13,9 @@ from dataclasses import dataclass
 
 import torch
 
-TILE_SIZE = 16
+from fluidcore.render.gaussians import RenderError
+
+TILE_SIZE = 16  # the fused kernel (fluidcore/kernels/splat.cpp) is compiled for this size
 
 
 @dataclass
@@ -65,6 +67,8 @@ def bin_gaussians(
     tile_y = torch.repeat_interleave(ty0, per_gaussian) + local // span_x
     tile = tile_y * tiles_x + tile_x
 
+    if tile.shape[0] > torch.iinfo(torch.int32).max:
+        raise RenderError(f"{tile.shape[0]} (tile, Gaussian) pairs overflow int32; render at a lower resolution")
     tile, by_tile = torch.sort(tile, stable=True)
     counts = torch.bincount(tile, minlength=tiles_x * tiles_y)
     offsets = torch.zeros(tiles_x * tiles_y + 1, dtype=torch.int64, device=device)
