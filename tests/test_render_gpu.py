@@ -1,6 +1,12 @@
 """The CUDA backend (gsplat) against the CPU torch backend: same picture within 1e-3 per pixel.
 
 Skipped without CUDA (see conftest.py); run on a GPU machine with `pytest -m gpu`.
+
+Both backends skip a (pixel, Gaussian) pair whose alpha is below 1/255. That cut is a step: where
+a pair's alpha lies within float rounding of 1/255 (the two exp implementations differ by an ulp
+or two), one backend may draw it and the other not, moving that pixel by up to 1/255. With ~1e5
+pairs this happens to about one pixel in a few runs, so the check allows a handful of such
+pixels and holds every other pixel to 1e-3.
 """
 
 from __future__ import annotations
@@ -46,10 +52,20 @@ def test_gsplat_on_cuda_matches_torch_on_cpu(channels: int) -> None:
     cpu = render(g, camera, background=background, backend="torch")
     cuda = render(_to(g, "cuda"), camera, background=background.cuda(), backend="gsplat")
     assert cpu.alpha.max() > 0.5
-    assert (cuda.image.cpu() - cpu.image).abs().max() <= 1e-3
-    assert (cuda.alpha.cpu() - cpu.alpha).abs().max() <= 1e-3
+    for name in ("image", "alpha"):
+        _assert_same_picture(getattr(cuda, name).cpu(), getattr(cpu, name), name)
     covered = cpu.alpha > 0.5
-    assert (cuda.depth.cpu()[covered] - cpu.depth[covered]).abs().max() <= 1e-3 * cpu.depth[covered].max()
+    depth_error = (cuda.depth.cpu()[covered] - cpu.depth[covered]).abs() / cpu.depth[covered]
+    assert (depth_error > 1e-3).sum() <= FLIPPED_PIXELS
+
+
+FLIPPED_PIXELS = 3  # pixels allowed to differ by one pair crossing the 1/255 cut (module docstring)
+
+
+def _assert_same_picture(gpu: torch.Tensor, cpu: torch.Tensor, name: str) -> None:
+    error = (gpu - cpu).abs()
+    assert error.max() <= 1 / 255 + 1e-3, name
+    assert (error > 1e-3).sum() <= FLIPPED_PIXELS, name
 
 
 def test_auto_uses_gsplat_on_cuda_and_the_torch_backend_runs_there_too() -> None:
@@ -59,4 +75,4 @@ def test_auto_uses_gsplat_on_cuda_and_the_torch_backend_runs_there_too() -> None
     gsplat = render(on_cuda, camera, backend="gsplat")
     reference = render(on_cuda, camera, backend="torch")  # the torch reference compositor on CUDA
     assert torch.equal(auto.image, gsplat.image)
-    assert (reference.image - gsplat.image).abs().max() <= 1e-3
+    _assert_same_picture(reference.image, gsplat.image, "image")
