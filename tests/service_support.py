@@ -57,10 +57,38 @@ def postgres_database() -> Iterator[str]:
 def database_url(kind: str, tmp_path: Path) -> Iterator[str]:
     """`kind` is 'sqlite' or 'postgres'."""
     if kind == "sqlite":
-        yield f"sqlite:///{tmp_path / 'service.sqlite3'}"
+        yield sqlite_url(tmp_path)
     else:
         with postgres_database() as url:
             yield url
+
+
+def sqlite_url(folder: Path) -> str:
+    return f"sqlite:///{folder / 'service.sqlite3'}"
+
+
+@contextmanager
+def migrated_postgres() -> Iterator[str]:
+    """One migrated PostgreSQL database for a whole test module (see `empty_tables`)."""
+    from api.database import migrate
+
+    with postgres_database() as url:
+        migrate(url)
+        yield url
+
+
+def empty_tables(url: str) -> str:
+    """Delete every row, children first, so tests sharing a migrated database start clean."""
+    from sqlalchemy import create_engine
+
+    from api.models import Base
+
+    engine = create_engine(url)
+    with engine.begin() as connection:
+        for table in reversed(Base.metadata.sorted_tables):
+            connection.execute(table.delete())
+    engine.dispose()
+    return url
 
 
 # -- a tiny scene ---------------------------------------------------------------------------------

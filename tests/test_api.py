@@ -16,7 +16,7 @@ from api.auth import create_key
 from api.database import session_scope
 from api.models import Artifact, Job, JobState, Scene
 from api.settings import Settings
-from service_support import RecordingQueue, database_url, scene_files, upload_parts, write_video
+from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,23 +45,32 @@ class Service:
                 setattr(job, name, value)
 
 
-def make_service(tmp_path: Path, db: str, queue: RecordingQueue | None = None, **overrides: object) -> Iterator[Service]:
-    with database_url(db, tmp_path) as url:
-        settings = Settings(data_dir=tmp_path / "data", database_url=url, **overrides)
-        queue = queue or RecordingQueue()
-        with TestClient(create_app(settings, queue=queue)) as client:
-            yield Service(client, queue)
-            client.app.state.engine.dispose()
+def make_service(
+    tmp_path: Path, url: str | None = None, queue: RecordingQueue | None = None, **overrides: object
+) -> Iterator[Service]:
+    """An app on `url` (default: a new SQLite file) with storage and data dir under `tmp_path`."""
+    settings = Settings(data_dir=tmp_path / "data", database_url=url or sqlite_url(tmp_path), **overrides)
+    queue = queue or RecordingQueue()
+    with TestClient(create_app(settings, queue=queue)) as client:
+        yield Service(client, queue)
+        client.app.state.engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    with migrated_postgres() as url:
+        yield url
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
 def service(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Service]:
-    yield from make_service(tmp_path, request.param)
+    url = empty_tables(request.getfixturevalue("postgres_url")) if request.param == "postgres" else None
+    yield from make_service(tmp_path, url)
 
 
 @pytest.fixture
 def sqlite_service(tmp_path: Path) -> Iterator[Service]:
-    yield from make_service(tmp_path, "sqlite")
+    yield from make_service(tmp_path)
 
 
 @pytest.fixture(scope="module")
@@ -105,7 +114,7 @@ def test_health_ready_and_web_page(sqlite_service: Service) -> None:
 
 
 def test_readyz_names_the_failing_dependency(tmp_path: Path) -> None:
-    for service in make_service(tmp_path, "sqlite", queue=RecordingQueue(fail=True)):
+    for service in make_service(tmp_path, queue=RecordingQueue(fail=True)):
         ready = service.client.get("/readyz")
         assert ready.status_code == 503
         body = ready.json()
@@ -200,10 +209,10 @@ def test_bad_uploads_are_refused_and_store_nothing(
 
 
 def test_upload_limits_answer_413(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
-    for service in make_service(tmp_path, "sqlite", max_video_bytes=1000):
+    for service in make_service(tmp_path, max_video_bytes=1000):
         response = upload(service, service.key("alice"), scene_dir)
         assert response.status_code == 413 and "larger than the limit" in response.json()["detail"]
-    for service in make_service(tmp_path / "b", "sqlite", max_upload_bytes=2000):
+    for service in make_service(tmp_path / "b", max_upload_bytes=2000):
         response = upload(service, service.key("alice"), scene_dir)
         assert response.status_code == 413
         assert service.storage.list("") == [] and service.count(Scene) == 0
@@ -299,7 +308,7 @@ def test_cancel(service: Service, scene_id: str) -> None:
 
 
 def test_broker_down_fails_the_job_with_503(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
-    for service in make_service(tmp_path, "sqlite", queue=RecordingQueue(fail=True)):
+    for service in make_service(tmp_path, queue=RecordingQueue(fail=True)):
         alice = service.key("alice")
         scene = upload(service, alice, scene_dir).json()["id"]
         response = reconstruct(service, alice, scene)
@@ -364,18 +373,14 @@ def test_other_owners_get_404_for_everything(service: Service, scene_id: str) ->
     assert service.client.get("/v1/jobs", headers=bob).json()["total"] == 0
 
 
-def test_migrations_match_the_models_on_postgres(tmp_path: Path) -> None:
+def test_migrations_match_the_models_on_postgres(postgres_url: str) -> None:
     """`alembic check`: the models have no change that a migration does not carry."""
     from alembic import command
     from alembic.config import Config
 
-    from api.database import migrate
-
-    with database_url("postgres", tmp_path) as url:
-        migrate(url)
-        config = Config(str(ROOT / "alembic.ini"))
-        config.set_main_option("sqlalchemy.url", url)
-        command.check(config)
+    config = Config(str(ROOT / "alembic.ini"))
+    config.set_main_option("sqlalchemy.url", postgres_url)
+    command.check(config)
 
 
 def test_s3_backend_upload_and_presigned_download(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
@@ -391,7 +396,7 @@ def test_s3_backend_upload_and_presigned_download(tmp_path: Path, scene_dir: dic
     server.start()
     try:
         s3 = {"storage_backend": "s3", "s3_endpoint": f"127.0.0.1:{port}", "s3_region": "us-east-1"}
-        for service in make_service(tmp_path, "sqlite", **s3):
+        for service in make_service(tmp_path, **s3):
             service.storage.ensure_bucket()
             alice = service.key("alice")
             scene = upload(service, alice, scene_dir).json()

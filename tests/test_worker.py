@@ -16,7 +16,7 @@ from api.settings import Settings
 from api.storage import LocalStorage, Storage, StorageError
 from worker.execution import JobBusy, JobExecutor, run_prefix
 from worker.runners import RunInputs
-from service_support import FAKE_RUNNERS, SimulatedCrash, database_url, fake_job, scene_files
+from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
 
 
 class World:
@@ -59,12 +59,21 @@ class World:
             return {a.name: a for a in session.query(Artifact).filter_by(job_id=job_id)}
 
 
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    with migrated_postgres() as url:
+        yield url
+
+
 @pytest.fixture(params=["sqlite", "postgres"])
 def world(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[World]:
-    with database_url(request.param, tmp_path) as url:
-        world = World(tmp_path, url, LocalStorage(tmp_path / "storage"))
-        yield world
-        world.engine.dispose()
+    if request.param == "postgres":
+        url = empty_tables(request.getfixturevalue("postgres_url"))
+    else:
+        url = sqlite_url(tmp_path)
+    world = World(tmp_path, url, LocalStorage(tmp_path / "storage"))
+    yield world
+    world.engine.dispose()
 
 
 def test_reconstruct_runs_to_success_and_publishes_artifacts(world: World) -> None:
@@ -202,12 +211,11 @@ def test_s3_storage_round_trip(tmp_path: Path) -> None:
     try:
         storage = MinioStorage(f"127.0.0.1:{port}", "k", "s", "fluidnexus", region="us-east-1")
         storage.ensure_bucket()
-        with database_url("sqlite", tmp_path) as url:
-            world = World(tmp_path, url, storage)
-            job_id = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
-            assert world.executor().run(job_id) == "succeeded"
-            video = world.artifacts(job_id)["videos/cam0.mp4"]
-            assert storage.stat(video.key).size == video.size
-            world.engine.dispose()
+        world = World(tmp_path, sqlite_url(tmp_path), storage)
+        job_id = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+        assert world.executor().run(job_id) == "succeeded"
+        video = world.artifacts(job_id)["videos/cam0.mp4"]
+        assert storage.stat(video.key).size == video.size
+        world.engine.dispose()
     finally:
         server.stop()
