@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 import torch
 
-from fluidcore.cameras import look_at, Camera
+from fluidcore.cameras import Camera, look_at
 from fluidcore.render import Gaussians, render
 
 pytestmark = pytest.mark.gpu
+FLIPPED_PIXELS = 3  # pixels allowed to differ by one pair crossing the 1/255 cut (module docstring)
 
 
 def _plume_and_camera(n: int, channels: int) -> tuple[Gaussians, Camera]:
@@ -41,6 +42,12 @@ def _plume_and_camera(n: int, channels: int) -> tuple[Gaussians, Camera]:
     return g, look_at([0.4, 0.8, 1.6], [0.0, 0.5, 0.0], [0.0, 1.0, 0.0], like, "gpu")
 
 
+def _assert_same_picture(gpu: torch.Tensor, cpu: torch.Tensor, name: str) -> None:
+    error = (gpu - cpu).abs()
+    assert error.max() <= 1 / 255 + 1e-3, name
+    assert (error > 1e-3).sum() <= FLIPPED_PIXELS, name
+
+
 def _to(g: Gaussians, device: str) -> Gaussians:
     return Gaussians(*(t.to(device) for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.colors)))
 
@@ -58,14 +65,6 @@ def test_gsplat_on_cuda_matches_torch_on_cpu(channels: int) -> None:
     depth_error = (cuda.depth.cpu()[covered] - cpu.depth[covered]).abs() / cpu.depth[covered]
     assert (depth_error > 1e-3).sum() <= FLIPPED_PIXELS
 
-
-FLIPPED_PIXELS = 3  # pixels allowed to differ by one pair crossing the 1/255 cut (module docstring)
-
-
-def _assert_same_picture(gpu: torch.Tensor, cpu: torch.Tensor, name: str) -> None:
-    error = (gpu - cpu).abs()
-    assert error.max() <= 1 / 255 + 1e-3, name
-    assert (error > 1e-3).sum() <= FLIPPED_PIXELS, name
 
 
 def test_auto_uses_gsplat_on_cuda_and_the_torch_backend_runs_there_too() -> None:
