@@ -69,16 +69,19 @@ class Server:
         raise AssertionError(f"job {job_id} not finished in {timeout} s: {job}\n{self.output()}")
 
     def worker_pids(self) -> list[int]:
-        """Processes in the server's session other than the server itself (the embedded worker)."""
-        pids = []
+        """The embedded worker: the server's child processes and their process groups (pool children)."""
+        processes = {}
         for entry in Path("/proc").iterdir():
-            if entry.name.isdigit() and int(entry.name) != self.process.pid:
-                try:
-                    if os.getsid(int(entry.name)) == self.process.pid:
-                        pids.append(int(entry.name))
-                except (ProcessLookupError, PermissionError):
-                    continue
-        return pids
+            if not entry.name.isdigit():
+                continue
+            try:
+                stat = (entry / "stat").read_text()
+            except (FileNotFoundError, ProcessLookupError, PermissionError):  # the process just ended
+                continue
+            fields = stat.rsplit(")", 1)[1].split()  # after "pid (name)": state, ppid, pgrp, ...
+            processes[int(entry.name)] = (int(fields[1]), int(fields[2]))
+        children = {pid for pid, (ppid, _) in processes.items() if ppid == self.process.pid}
+        return sorted(pid for pid, (_, group) in processes.items() if pid in children or group in children)
 
     def stop(self) -> None:
         if self.process.poll() is None:

@@ -8,6 +8,7 @@ torch: the embedded worker is a separate process that does.
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -73,17 +74,23 @@ def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
         "--pool", "prefork", "--loglevel", "INFO", "--without-gossip", "--without-mingle", "--without-heartbeat",
         "--hostname", f"embedded-{os.getpid()}@%h",
     ]
-    return subprocess.Popen(command, env=env)
+    # Its own process group: a Ctrl-C meant for the server does not also hit the worker mid-boot,
+    # and stopping signals the worker's pool children along with it.
+    return subprocess.Popen(command, env=env, start_new_session=True)
 
 
 def _stop_worker(process: subprocess.Popen[bytes]) -> None:
-    """Warm shutdown (the running job's checkpoints are already in storage), then kill if it hangs."""
-    process.terminate()
+    """Warm shutdown (the running job's checkpoints are already in storage), then kill the group if it hangs."""
+    os.killpg(process.pid, signal.SIGTERM)
     try:
         process.wait(WORKER_STOP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        process.kill()
-        process.wait()
+        typer.echo(f"worker did not stop in {WORKER_STOP_TIMEOUT_S} s; killing it", err=True)
+    try:
+        os.killpg(process.pid, signal.SIGKILL)  # whatever is left of the group (pool children)
+    except ProcessLookupError:
+        pass
+    process.wait()
 
 
 def keys_create(
