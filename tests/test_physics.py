@@ -181,6 +181,28 @@ def test_wind_pushes_the_smoke() -> None:
     assert bool((pushed[:, 0] > calm[:, 0]).all())
 
 
+def test_xsph_smooths_the_velocity_field() -> None:
+    config = replace(CFG, alpha=0.0, drag=0.0)
+    x = random_block(800, 8.0, CFG.h)
+    v = 0.05 * torch.randn(800, 3, generator=torch.Generator().manual_seed(2))
+    _, plain = sim_step(x, v, config)
+    _, smooth = sim_step(x, v, replace(config, xsph=0.5))
+    assert float(smooth.var(0).sum()) < 0.9 * float(plain.var(0).sum())
+
+
+def test_vorticity_confinement_strengthens_a_swirl() -> None:
+    config = replace(CFG, alpha=0.0, drag=0.0)
+    x = random_block(800, 8.0, CFG.h)
+    r = x - x.mean(0)
+    v = torch.stack([-r[:, 2], torch.zeros(800), r[:, 0]], dim=1)  # rigid rotation about y
+
+    def spin(u: torch.Tensor) -> float:
+        return float((r[:, 0] * u[:, 2] - r[:, 2] * u[:, 0]).sum())
+    _, plain = sim_step(x, v, config)
+    _, confined = sim_step(x, v, replace(config, vorticity=5.0))
+    assert spin(confined) > spin(plain) > 0
+
+
 def test_interpolated_velocity_reproduces_a_uniform_flow() -> None:
     p = random_block(500, 10.0, CFG.h)
     u = torch.tensor([0.3, -0.1, 0.2]).expand(500, 3)

@@ -28,12 +28,13 @@ struct Range {
     int64_t begin, end;
 };
 
-// Particle ranges of the (up to) 27 occupied cells around cell `m`, in the torch offset order.
-// Cells (x, y, z - 1), (x, y, z), (x, y, z + 1) have consecutive keys, so one binary search per
-// (dx, dy) column finds all three.
-int neighbour_cells(const int64_t* keys, const int64_t* start, int64_t n_cells, int64_t m, Range* out) {
+// Particle ranges of the occupied cells around cell `m`, one per (dx, dy) column: cells
+// (x, y, z - 1), (x, y, z), (x, y, z + 1) have consecutive keys, so their particles are contiguous
+// in cell order and one binary search finds all three.
+int neighbour_columns(const int64_t* keys, const int64_t* start, int64_t n_cells, int64_t m, Range* out) {
     const int64_t key = keys[m];
     const int64_t c[3] = {key >> (2 * kAxisBits), (key >> kAxisBits) & kAxisMask, key & kAxisMask};
+    const int64_t z_lo = std::max<int64_t>(c[2] - 1, 0), z_hi = std::min<int64_t>(c[2] + 1, kAxisMask);
     const int64_t* end = keys + n_cells;
     int found = 0;
     for (int dx = -1; dx <= 1; ++dx)
@@ -41,32 +42,26 @@ int neighbour_cells(const int64_t* keys, const int64_t* start, int64_t n_cells, 
             const int64_t x = c[0] + dx, y = c[1] + dy;
             if (x < 0 || y < 0 || x >= kAxisCells || y >= kAxisCells) continue;
             const int64_t column = (x << (2 * kAxisBits)) | (y << kAxisBits);
-            const int64_t z_lo = std::max<int64_t>(c[2] - 1, 0), z_hi = std::min<int64_t>(c[2] + 1, kAxisMask);
-            for (const int64_t* it = std::lower_bound(keys, end, column | z_lo); it != end && *it <= (column | z_hi);
-                 ++it) {
-                const int64_t s = it - keys;
-                out[found++] = {start[s], start[s + 1]};
-            }
+            const int64_t* first = std::lower_bound(keys, end, column | z_lo);
+            const int64_t* last = first;
+            while (last != end && *last <= (column | z_hi)) ++last;
+            if (last != first) out[found++] = {start[first - keys], start[last - keys]};
         }
     return found;
 }
 
-// Calls visit(a, b) for every pair of sorted slots a != b within h, for all particles of cell m.
-// `sorted` holds the positions in cell order (slot a is particle order[a]), so the candidates of
-// a neighbour cell are contiguous in memory.
-template <class Visit>
-void for_pairs_in_cell(const float* sorted, float h2, const int64_t* keys, const int64_t* start, int64_t n_cells,
-                       int64_t m, Visit visit) {
-    Range ranges[27];
-    const int n_ranges = neighbour_cells(keys, start, n_cells, m, ranges);
-    for (int64_t a = start[m]; a < start[m + 1]; ++a) {
-        const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
-        for (int r = 0; r < n_ranges; ++r)
-            for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
-                const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
-                if (b != a && dx * dx + dy * dy + dz * dz < h2) visit(a, b);
-            }
+// Number of particles within h of sorted slot a (itself excluded) among the slots of `ranges`.
+int64_t count_within(const float* sorted, float h2, int64_t a, const Range* ranges, int n_ranges) {
+    const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
+    int64_t count = 0;
+    for (int r = 0; r < n_ranges; ++r) {
+#pragma omp simd reduction(+ : count)
+        for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
+            const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
+            count += (dx * dx + dy * dy + dz * dz < h2) ? 1 : 0;
+        }
     }
+    return count - 1;  // the particle itself is at distance 0
 }
 
 // x^n for 0 <= n < 16 by squaring, without a loop, so that loops calling it still vectorise.
@@ -259,33 +254,42 @@ struct Solver {
 
 extern "C" {
 
-// Pass 1: number of neighbours of each particle; returns the total.
+// Pass 1: number of neighbours of each particle; returns the total. `sorted` holds the positions
+// in cell order (slot a is particle order[a]), so each column's candidates are contiguous.
 int64_t pbf_count_neighbours(const float* sorted, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
                              const int64_t* order, int64_t* counts, int threads) {
     const float h2 = h * h;
     int64_t total = 0;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads) reduction(+ : total)
     for (int64_t m = 0; m < n_cells; ++m) {
-        for (int64_t a = start[m]; a < start[m + 1]; ++a) counts[order[a]] = 0;
-        for_pairs_in_cell(sorted, h2, keys, start, n_cells, m, [&](int64_t a, int64_t) {
-            ++counts[order[a]];
-            ++total;
-        });
+        Range ranges[9];
+        const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
+        for (int64_t a = start[m]; a < start[m + 1]; ++a) {
+            const int64_t count = count_within(sorted, h2, a, ranges, n_ranges);
+            counts[order[a]] = count;
+            total += count;
+        }
     }
     return total;
 }
 
-// Pass 2: neighbour indices, row i at indices[offsets[i]:offsets[i + 1]].
+// Pass 2: neighbour indices, row i at indices[offsets[i]:offsets[i + 1]], in cell order.
 void pbf_fill_neighbours(const float* sorted, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
                          const int64_t* order, const int64_t* offsets, int32_t* indices, int threads) {
     const float h2 = h * h;
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
     for (int64_t m = 0; m < n_cells; ++m) {
-        int64_t next = -1, row = -1;  // next free slot of the row being filled
-        for_pairs_in_cell(sorted, h2, keys, start, n_cells, m, [&](int64_t a, int64_t b) {
-            if (a != row) row = a, next = offsets[order[a]];
-            indices[next++] = int32_t(order[b]);
-        });
+        Range ranges[9];
+        const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
+        for (int64_t a = start[m]; a < start[m + 1]; ++a) {
+            const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
+            int32_t* out = indices + offsets[order[a]];
+            for (int r = 0; r < n_ranges; ++r)
+                for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
+                    const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
+                    if (b != a && dx * dx + dy * dy + dz * dz < h2) *out++ = int32_t(order[b]);
+                }
+        }
     }
 }
 

@@ -41,6 +41,12 @@ def push_out(positions: Tensor, spheres: Sequence[Sphere], time: float) -> tuple
     return positions, contacts
 
 
+def merge(first: Sequence[Contact], second: Sequence[Contact]) -> list[Contact]:
+    """Contacts of two push-outs of the same spheres: in contact if pushed by either."""
+    return [Contact(a.inside | b.inside, torch.where(b.inside[:, None], b.normal, a.normal), b.velocity)
+            for a, b in zip(first, second)]
+
+
 def slide(velocities: Tensor, contacts: Sequence[Contact]) -> Tensor:
     """Remove the normal component of the velocity relative to the sphere for contacted particles."""
     for contact in contacts:

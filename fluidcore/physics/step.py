@@ -1,14 +1,17 @@
 """One PBF step on a compact set of particles: the core shared by `Simulator` and `sim_step`.
 
 Order (Macklin & Mueller 2013, Algorithm 1, with the smoke model's forces):
-  1. v* = v + dt (alpha g + f_ext(x, t));  p = x + dt v*
-  2. neighbours of p (built once, reused by every solver iteration and the filters below)
-  3. density-constraint iterations on p
-  4. displacement capped at speed_limit * dt; spheres push particles out
-  5. v = (p - x) / dt, then drag (needs the density just solved), XSPH, vorticity,
+  1. v* = v + dt (alpha g + f_ext(x, t)), capped at the speed limit;  p = x + dt v*
+  2. spheres push p out
+  3. neighbours of p (built once, reused by every solver iteration and the filters below)
+  4. density-constraint iterations on p (they spread what a sphere piled onto its surface)
+  5. spheres push particles out again (exact contact)
+  6. v = (p - x) / dt, then drag (needs the density just solved), XSPH, vorticity,
      sliding along spheres, and the speed limit.
 Drag is applied after the solve, as a velocity filter, because it needs the density of the
-new positions, which the solver has just computed: no extra neighbour pass.
+new positions, which the solver has just computed: no extra neighbour pass. The speed limit
+bounds velocities; a particle's displacement per step is then at most the limit x dt plus
+the solver's capped corrections (max_correction x h per iteration).
 """
 
 from __future__ import annotations
@@ -68,16 +71,18 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
     acceleration = x.new_tensor(config.body_acceleration)
     if force is not None:
         acceleration = acceleration + external_force(force, x, time)
-    p = x + dt * (v + dt * acceleration)
+    p = x + dt * cap_length(v + dt * acceleration, config.speed_limit)
+    contacts: list[coupling.Contact] = []
+    if spheres:
+        p, contacts = coupling.push_out(p, spheres, time + dt)
 
     neighbours: NeighbourList = fused.neighbours_fused(p, config.h) if fast else neighbours_torch(p, config.h)
     solution = (fused.solve_fused if fast else solve_torch)(p, neighbours, config)
     p, density = solution.positions, solution.density
 
-    p = x + cap_length(p - x, config.speed_limit * dt)
-    contacts: list[coupling.Contact] = []
     if spheres:
-        p, contacts = coupling.push_out(p, spheres, time + dt)
+        p, after_solve = coupling.push_out(p, spheres, time + dt)
+        contacts = coupling.merge(contacts, after_solve)
         density = fused.density_fused(p, neighbours, config.h) if fast else sph_density(p, *neighbours.pairs(), config.h)
 
     velocities = forces.drag((p - x) / dt, density, config)
