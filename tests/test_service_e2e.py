@@ -85,7 +85,7 @@ class Server:
 
     def stop(self) -> None:
         if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
+            self.process.send_signal(signal.SIGTERM)  # what systemd and docker send
             try:
                 self.process.wait(40)
             except subprocess.TimeoutExpired:

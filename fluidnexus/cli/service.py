@@ -59,11 +59,18 @@ def serve(
         if orphans:
             typer.echo(f"resuming {len(orphans)} job(s) left running by the last server: {', '.join(orphans)}", err=True)
     process = _start_worker(settings.resolved_data_dir()) if worker else None
+    # uvicorn re-raises SIGTERM after its graceful shutdown; the default action would end this
+    # process before the `finally` below stops the worker.
+    signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         uvicorn.run(create_app(settings, queue=queue), host=host, port=port)
     finally:
         if process is not None:
             _stop_worker(process)
+
+
+def _exit_on_sigterm(signum: int, frame: object) -> None:
+    raise SystemExit(0)
 
 
 def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
@@ -81,7 +88,7 @@ def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
 
 def _stop_worker(process: subprocess.Popen[bytes]) -> None:
     """Warm shutdown (the running job's checkpoints are already in storage), then kill the group if it hangs."""
-    os.killpg(process.pid, signal.SIGTERM)
+    process.terminate()  # Celery's warm shutdown stops its own pool children
     try:
         process.wait(WORKER_STOP_TIMEOUT_S)
     except subprocess.TimeoutExpired:
