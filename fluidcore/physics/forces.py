@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Vec3, _finite, _vec3
-from fluidcore.physics.sph import pair_geometry, poly6, spiky_gradient
+from fluidcore.physics.sph import differences, pair_geometry, poly6, spiky_gradient
 
 ForceField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> force (N, 3)
 
@@ -63,9 +63,9 @@ def drag(velocities: Tensor, density: Tensor, config: PBFConfig) -> Tensor:
 
 def xsph(velocities: Tensor, positions: Tensor, i: Tensor, j: Tensor, config: PBFConfig) -> Tensor:
     """XSPH viscosity: v_i += c sum_j (v_j - v_i) W_ij (smooths the velocity field)."""
-    r = positions[i] - positions[j]
+    r = differences(positions, i, j)
     w = poly6((r * r).sum(1) / (config.h * config.h))
-    blend = torch.zeros_like(velocities).index_add(0, i, w[:, None] * (velocities[j] - velocities[i]))
+    blend = torch.zeros_like(velocities).index_add(0, i, w[:, None] * differences(velocities, j, i))
     return velocities + config.xsph * blend
 
 
@@ -74,8 +74,8 @@ def vorticity_confinement(velocities: Tensor, positions: Tensor, i: Tensor, j: T
     numerical damping removes, f_i = epsilon (N_i x omega_i), N = grad|omega| / |grad|omega||."""
     q, direction, _ = pair_geometry(positions, i, j, config.h)
     grad = spiky_gradient(q, direction, config.h)  # grad_i W_ij; grad_j W_ij = -grad
-    omega = torch.zeros_like(velocities).index_add(0, i, torch.cross(velocities[j] - velocities[i], -grad, dim=1))
+    omega = torch.zeros_like(velocities).index_add(0, i, torch.cross(differences(velocities, j, i), -grad, dim=1))
     magnitude = torch.linalg.vector_norm(omega, dim=1)
-    eta = torch.zeros_like(velocities).index_add(0, i, (magnitude[j] - magnitude[i])[:, None] * grad)
+    eta = torch.zeros_like(velocities).index_add(0, i, differences(magnitude, j, i)[:, None] * grad)
     normal = eta / torch.linalg.vector_norm(eta, dim=1, keepdim=True).clamp_min(1e-12)
     return velocities + config.dt * config.vorticity * torch.cross(normal, omega, dim=1)

@@ -11,12 +11,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fluidcore.physics import checks
+from fluidcore.physics import checks, sph
 from fluidcore.physics.config import PBFConfig, PhysicsInputError
 from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.solver import residual
-from fluidcore.physics.sph import SELF_DENSITY, poly6
+from fluidcore.physics.sph import poly6
 from fluidcore.physics.step import advance, use_fused
 
 
@@ -38,10 +38,7 @@ def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: Fo
 def density(positions: Tensor, h: float) -> Tensor:
     """Dimensionless density (8 particles per h^3 = 1) of each particle, differentiable."""
     positions = checks.points(positions, "positions")
-    i, j = neighbour_pairs(positions, positions, h, exclude_self=True)
-    r = positions[i] - positions[j]
-    rho = torch.full((positions.shape[0],), SELF_DENSITY, dtype=positions.dtype, device=positions.device)
-    return rho.index_add(0, i, poly6((r * r).sum(1) / (h * h)))
+    return sph.density(positions, *neighbour_pairs(positions, positions, h, exclude_self=True), h)
 
 
 def density_residual(positions: Tensor, config: PBFConfig) -> Tensor:
@@ -68,10 +65,10 @@ def interpolate_velocity(query: Tensor, positions: Tensor, velocities: Tensor, h
     if not (isinstance(h, (int, float)) and h > 0 and h < float("inf")):
         raise PhysicsInputError(f"h must be a positive finite number, got {h!r}")
     qi, pj = neighbour_pairs(query, positions, float(h))
-    r = query[qi] - positions[pj]
+    r = query.index_select(0, qi) - positions.index_select(0, pj)
     w = poly6((r * r).sum(1) / (h * h))
     total = torch.zeros(query.shape[0], dtype=query.dtype, device=query.device).index_add(0, qi, w)
-    weighted = torch.zeros_like(query).index_add(0, qi, w[:, None] * velocities[pj])
+    weighted = torch.zeros_like(query).index_add(0, qi, w[:, None] * velocities.index_select(0, pj))
     return weighted / total.clamp_min(1e-12)[:, None]
 
 

@@ -108,8 +108,8 @@ def neighbour_pairs(queries: Tensor, points: Tensor, h: float, table: CellTable 
     q = torch.repeat_interleave(torch.arange(queries.shape[0], device=device), length.reshape(queries.shape[0], -1).sum(1))
     first = torch.cumsum(length, 0) - length
     local = torch.arange(total, device=device) - torch.repeat_interleave(first, length)
-    p = table.order[torch.repeat_interleave(start.reshape(-1), length) + local]
-    d = queries.detach()[q] - points.detach()[p]
+    p = table.order.index_select(0, torch.repeat_interleave(start.reshape(-1), length) + local)
+    d = queries.detach().index_select(0, q) - points.detach().index_select(0, p)
     keep = (d * d).sum(dim=1) < h * h
     if exclude_self:
         keep &= q != p

@@ -58,7 +58,7 @@ def solve_torch(positions: Tensor, neighbours: NeighbourList, config: PBFConfig)
         grad_sum = torch.zeros_like(p).index_add(0, i, grad)
         denominator = (grad_sum * grad_sum).sum(1) + torch.zeros_like(rho).index_add(0, i, (grad * grad).sum(1))
         lam = -c / (denominator + epsilon)
-        weight = lam[i] + lam[j]
+        weight = lam.index_select(0, i) + lam.index_select(0, j)
         if s_corr_scale > 0.0:
             weight = weight - s_corr_scale * (poly6(q2) / w_dq) ** config.s_corr_n
         dp = torch.zeros_like(p).index_add(0, i, weight[:, None] * grad)
