@@ -5,7 +5,9 @@
     run_resimulate  from the FIRST frame of a run, simulate its whole window again (the paper's
                     re-simulation task: how much of the reconstruction the physics alone explains)
 
-Every new frame costs one simulator step. The visual Gaussians ride on the physical velocity
+Every new frame costs one simulator step, with the parent's scene and physics except that the
+source seeds no faster than its inlet carries particles away at rest density (`inlet_source`;
+the run's manifest records the rate used). The visual Gaussians ride on the physical velocity
 field exactly as during reconstruction (`fluidcore.reconstruct.physical.visual_means`:
 kernel-interpolated displacement, forward Euler), so a prediction continues the reconstruction
 without a visual jump; Gaussians are born with every new physical particle and take the
@@ -27,10 +29,11 @@ Until it exists the simulated result stands and the manifest says why (`refineme
 from __future__ import annotations
 
 import importlib.util
+import math
 import os
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +41,7 @@ import numpy as np
 import torch
 
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
-from fluidcore.physics import ParticleState, Simulator, Sphere, wind_force
+from fluidcore.physics import ParticleState, PBFConfig, Simulator, Source, Sphere, wind_force
 from fluidcore.physics.coupling import push_out
 from fluidcore.pipeline import Cancelled, Progress, ShouldCancel
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
@@ -152,6 +155,25 @@ def _select(appearance: Appearance, index: torch.Tensor) -> Appearance:
     return Appearance(
         appearance.log_scales[index], appearance.quats[index], appearance.opacity_logits[index], appearance.colors[index]
     )
+
+
+def inlet_source(source: Source, config: PBFConfig) -> Source:
+    """The source, seeding no faster than its inlet carries particles away at rest density.
+
+    A source ball of radius r whose particles leave at speed v stays at rest density when it
+    seeds n0 pi r^2 v dt particles per step, n0 = 8 rho0 / h^3 being the number density at rest
+    (fluidcore.physics: density 1 = 8 particles per h^3). Seeding faster piles particles up at
+    the inlet: during reconstruction the image fit absorbs the excess, but a free simulation
+    pushes it sideways and the plume's base widens and darkens frame after frame. The inlet
+    speed is the source's velocity, or the buoyancy-drag terminal speed when that is larger.
+    """
+    speed = math.hypot(*source.velocity)
+    if config.drag > 0:
+        speed = max(speed, math.hypot(*config.body_acceleration) / config.drag)
+    capacity = 8.0 * config.rho0 / config.h**3 * math.pi * source.radius**2 * speed * config.dt
+    if speed == 0.0 or source.rate <= capacity:
+        return source
+    return replace(source, rate=max(1, round(capacity)))
 
 
 def source_template(visual: Visual, center: Sequence[float], size: int = TEMPLATE_SIZE) -> Appearance:
@@ -273,7 +295,7 @@ def _write(
 ) -> Path:
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
     its frame `start_frame` (written unchanged first when it lies inside the range)."""
-    scene = parent.scene
+    scene = _continued_scene(parent.scene)
     n_frames = frame_range[1] - frame_range[0]
     params.check_run_scene(scene.to_json(), n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
@@ -290,6 +312,7 @@ def _write(
         settings={
             "start_frame": start_frame,
             "visual": visual_settings,
+            "parent_source_rate": parent.scene.source["rate"],
             "wind": None if params.wind is None else params.wind.model_dump(),
             "ball": None if params.ball is None else params.ball.model_dump(),
         },
@@ -311,6 +334,12 @@ def _write(
         run.write_frame(t, _frame_state(state, visual), stats, time.perf_counter() - began)
         report((t + 1 - frame_range[0]) / n_frames, kind)
     return Path(out_dir)
+
+
+def _continued_scene(scene: Scene) -> Scene:
+    """The parent's scene, its source seeding at most what the inlet carries at rest density."""
+    config, _, source = scene.simulator_parts()
+    return replace(scene, source={**scene.source, "rate": inlet_source(source, config).rate})
 
 
 def _rollout(

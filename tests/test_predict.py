@@ -4,12 +4,13 @@ reproducible, resumable, continuable and finite over long horizons."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-from predict_scenes import SPEC, live, plume_run
+from predict_scenes import SPEC, horizontal_distance, live, plume_run
 from typer.testing import CliRunner
 
 from fluidcore import pipeline, predict
@@ -221,3 +222,35 @@ def test_cli_predict_on_a_folder_that_is_not_a_run(tmp_path: Path) -> None:
     out = CliRunner().invoke(app, ["predict", str(tmp_path), "--frames", "2", "--out", str(tmp_path / "p")])
     assert out.exit_code == 2 and "not a run folder" in out.output
 
+
+
+def test_an_overfilled_source_is_capped_to_what_its_inlet_carries_at_rest_density() -> None:
+    config, source = SPEC.config(), SPEC.source()
+    speed = max(math.hypot(*source.velocity), math.hypot(*config.body_acceleration) / config.drag)
+    capacity = 8 * config.rho0 / config.h**3 * math.pi * source.radius**2 * speed * config.dt
+    assert predict.inlet_source(source, config) == source  # the test plume seeds below capacity
+    flooded = replace(source, rate=round(4 * capacity))
+    assert predict.inlet_source(flooded, config).rate == round(capacity)
+    # Physically: the flooded inlet piles particles up and pushes them sideways; the capped one
+    # keeps the plume's base as narrow as an inlet at rest density allows.
+    widths = []
+    for seeded in (flooded, predict.inlet_source(flooded, config)):
+        simulator = Simulator(config, SPEC.box(), seeded)
+        state = simulator.new_state()
+        for _ in range(30):
+            simulator.step(state)
+        x = state.positions[state.alive]
+        base = x[(x[:, 1] > source.center[1]) & (x[:, 1] < source.center[1] + 2 * source.radius)]
+        widths.append(float(horizontal_distance(base, source.center).mean()))
+    assert widths[1] < 0.8 * widths[0], widths
+
+
+def test_a_prediction_records_the_inlet_rate_it_used(tmp_path: Path) -> None:
+    config, source = SPEC.config(), SPEC.source()
+    flooded = replace(SPEC, particles_per_step=10 * source.rate)
+    parent = plume_run(tmp_path / "parent", frames=1, warmup=2, spec=flooded)
+    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=2))
+    assert run.manifest["settings"]["parent_source_rate"] == 10 * source.rate
+    assert run.scene.source["rate"] == predict.inlet_source(flooded.source(), config).rate < 10 * source.rate
+    continued = Run.open(predict.run_predict(run.path, tmp_path / "again", frames=1))
+    assert continued.scene.source["rate"] == run.scene.source["rate"]
