@@ -178,8 +178,9 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     folder plus a manifest, resume from the frames already there, should_cancel between frames,
     progress per frame; then one MP4 per camera and an orbit video.
 
-    It appends each frame it computes to `<job folder>/computed.txt` (outside the checkpointed
-    run folder), so tests can tell a resumed run from a restarted one. `params["crash_after"]`
+    It appends each frame it computes to `<work dir>/computed-<job id>.txt` (outside the job's
+    folder, which the worker removes when the job ends), so tests can tell a resumed run from a
+    restarted one. `params["crash_after"]`
     raises SimulatedCrash after that many frames; FAKE_FRAME_SECONDS slows each frame down.
     """
     import os
@@ -193,7 +194,7 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
         n_frames = int(frames) if isinstance(frames, int) else (frames[1] - frames[0] if frames else 4)
     states = inputs.run_dir / "states"
     states.mkdir(parents=True, exist_ok=True)
-    computed = inputs.run_dir.parent / "computed.txt"
+    computed = inputs.run_dir.parents[2] / f"computed-{inputs.job_id}.txt"  # run_dir = WORK/jobs/ID/run
     crash_after = params.get("crash_after")
     done = 0
     for t in range(n_frames):

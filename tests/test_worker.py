@@ -98,17 +98,19 @@ def test_reconstruct_runs_to_success_and_publishes_artifacts(world: World) -> No
 def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
     parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
     world.executor("a").run(parent)
-    seen: list[RunInputs] = []
+    seen: list[tuple[RunInputs, dict]] = []
 
     def interact(inputs: RunInputs) -> list[Path]:
-        seen.append(inputs)
+        assert inputs.parent_run is not None
+        seen.append((inputs, json.loads((inputs.parent_run / "manifest.json").read_text())))
         return fake_job(inputs)
 
     child = world.job("interact", parent_job_id=parent, params={"frames": 2, "wind": {"direction": [1, 0, 0]}})
     assert world.executor("b", {**FAKE_RUNNERS, "interact": interact}).run(child) == "succeeded"
-    parent_run = seen[0].parent_run
-    assert parent_run is not None and json.loads((parent_run / "manifest.json").read_text())["kind"] == "reconstruct"
-    assert seen[0].params["wind"] == {"direction": [1, 0, 0]} and seen[0].cameras_path is None
+    [(inputs, parent_manifest)] = seen
+    assert parent_manifest["kind"] == "reconstruct"
+    assert inputs.params["wind"] == {"direction": [1, 0, 0]} and inputs.cameras_path is None
+    assert not inputs.parent_run.exists()  # the local copy is removed when the job ends
 
 
 def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None:
@@ -128,10 +130,11 @@ def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None
         job.heartbeat_at = utcnow() - timedelta(seconds=61)
         job.params = {"frames": [0, 5]}
     assert second.run(job_id) == "succeeded"
-    computed = (world.tmp_path / "cache-second" / "jobs" / job_id / "computed.txt").read_text().split()
+    computed = (world.tmp_path / "cache-second" / f"computed-{job_id}.txt").read_text().split()
     assert computed == ["2", "3", "4"]
     job = world.get(job_id)
     assert job.attempts == 2 and job.worker == "second"
+    assert list((world.tmp_path / "cache-second" / "jobs").iterdir()) == []  # local copies removed at the end
 
 
 def test_a_job_whose_worker_keeps_dying_is_failed(world: World) -> None:

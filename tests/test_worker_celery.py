@@ -141,7 +141,7 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
             wait_for(lambda: deployment.job(job_id).state == JobState.SUCCEEDED, 60, "the resumed job to succeed")
         finally:
             stop(second)
-        computed = [int(t) for t in (deployment.settings.resolved_work_dir() / "jobs" / job_id / "computed.txt")
+        computed = [int(t) for t in (deployment.settings.resolved_work_dir() / f"computed-{job_id}.txt")
                     .read_text().split()]
         assert sorted(set(computed)) == list(range(20))
         assert len(computed) <= 21  # at most the frame in flight when the worker died was computed twice

@@ -8,6 +8,7 @@ directly with test-double runners against real databases and storage.
 from __future__ import annotations
 
 import logging
+import shutil
 import socket
 import time
 from dataclasses import dataclass
@@ -85,6 +86,22 @@ class JobExecutor:
         claim = self.claim(job_id)
         if claim is None:
             return None
+        try:
+            return self._run_claimed(claim)
+        finally:  # storage holds the checkpoints and results; the local copies would only pile up
+            for folder in self._local_folders(claim):
+                shutil.rmtree(folder, ignore_errors=True)
+
+    def _local_folders(self, claim: Claim) -> list[Path]:
+        folders = [self.work_dir / "jobs" / claim.job_id]
+        if claim.parent_job_id is not None:
+            folders.append(self.work_dir / "jobs" / claim.parent_job_id)
+        if claim.scene_id is not None:
+            folders.append(self.work_dir / "scenes" / claim.scene_id)
+        return folders
+
+    def _run_claimed(self, claim: Claim) -> str:
+        job_id = claim.job_id
         reporter = ProgressReporter(self.sessions, job_id)
         try:
             files = self._execute(claim, reporter)
@@ -171,7 +188,6 @@ class JobExecutor:
         return {"parent_run": parent_dir}
 
     def _fetch_scene(self, scene_id: str) -> dict[str, object]:
-        """Scene inputs are immutable, so a worker keeps them cached between jobs."""
         with session_scope(self.sessions) as session:
             scene = session.get(Scene, scene_id)
             if scene is None:
@@ -180,8 +196,7 @@ class JobExecutor:
         folder = self.work_dir / "scenes" / scene_id
         local = {key: folder / PurePosixPath(key).name for key in [cameras_key, *video_keys.values()]}
         for key, path in local.items():
-            if not path.is_file():
-                self.storage.get_file(key, path)
+            self.storage.get_file(key, path)
         return {"cameras_path": local[cameras_key], "videos": {c: local[k] for c, k in video_keys.items()}}
 
     def _publish(self, claim: Claim, files: list[Path], reporter: ProgressReporter) -> None:
