@@ -63,7 +63,8 @@ def serve(
     # process before the `finally` below stops the worker.
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
-        uvicorn.run(create_app(settings, queue=queue), host=host, port=port)
+        app = create_app(settings.model_copy(update={"migrate_on_start": False}), queue=queue)  # migrated above
+        uvicorn.run(app, host=host, port=port)
     finally:
         if process is not None:
             _stop_worker(process)
