@@ -23,6 +23,8 @@ from fluidnexus.cli.errors import user_errors
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
 
+    from api.settings import Settings
+
 DataDir = Annotated[
     Path | None,
     typer.Option("--data-dir", help="database, storage and broker folder (default ./data or FLUIDNEXUS_DATA_DIR)"),
@@ -30,7 +32,7 @@ DataDir = Annotated[
 WORKER_STOP_TIMEOUT_S = 30
 
 
-def _settings(data_dir: Path | None):  # type: ignore[no-untyped-def]
+def _settings(data_dir: Path | None) -> Settings:
     from api.settings import Settings
 
     settings = Settings(data_dir=data_dir) if data_dir is not None else Settings()
@@ -48,16 +50,15 @@ def serve(
     import uvicorn
 
     from api.app import create_app
-    from api.database import make_engine, make_sessionmaker, migrate
     from api.queue import CeleryQueue, requeue_orphans
 
     settings = _settings(data_dir)
-    migrate(settings.resolved_database_url())
     queue = CeleryQueue(settings)
-    if worker and settings.is_embedded_broker():
-        orphans = requeue_orphans(make_sessionmaker(make_engine(settings.resolved_database_url())), queue)
-        if orphans:
-            typer.echo(f"resuming {len(orphans)} job(s) left running by the last server: {', '.join(orphans)}", err=True)
+    with _database(settings) as sessions:  # migrates
+        if worker and settings.is_embedded_broker():
+            orphans = requeue_orphans(sessions, queue)
+            if orphans:
+                typer.echo(f"resuming {len(orphans)} job(s) left running by the last server: {', '.join(orphans)}", err=True)
     process = _start_worker(settings.resolved_data_dir()) if worker else None
     # uvicorn re-raises SIGTERM after its graceful shutdown; the default action would end this
     # process before the `finally` below stops the worker.
@@ -109,7 +110,7 @@ def keys_create(
     from api.auth import InvalidOwner, create_key
     from api.database import session_scope
 
-    with user_errors(InvalidOwner), _sessions(data_dir) as sessions, session_scope(sessions) as session:
+    with user_errors(InvalidOwner), _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         key = create_key(session, owner)
     typer.echo(key)
 
@@ -124,7 +125,7 @@ def keys_list(
     from api.database import session_scope
     from api.models import ApiKey
 
-    with _sessions(data_dir) as sessions, session_scope(sessions) as session:
+    with _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         query = select(ApiKey).order_by(ApiKey.created_at)
         for key in session.scalars(query.where(ApiKey.owner == owner) if owner else query):
             revoked = f"revoked {key.revoked_at:%Y-%m-%d %H:%M}" if key.revoked_at else "active"
@@ -139,17 +140,17 @@ def keys_revoke(
     from api.auth import UnknownKey, revoke_key
     from api.database import session_scope
 
-    with user_errors(UnknownKey), _sessions(data_dir) as sessions, session_scope(sessions) as session:
+    with user_errors(UnknownKey), _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         row = revoke_key(session, key_id)
         typer.echo(f"revoked {row.id} ({row.owner})")
 
 
 @contextmanager
-def _sessions(data_dir: Path | None) -> Iterator[sessionmaker[Session]]:
-    """Sessions on the (migrated) database the server with the same settings uses."""
+def _database(settings: Settings) -> Iterator[sessionmaker[Session]]:
+    """Sessions on the settings' database, migrated to the latest schema first."""
     from api.database import make_engine, make_sessionmaker, migrate
 
-    url = _settings(data_dir).resolved_database_url()
+    url = settings.resolved_database_url()
     migrate(url)
     engine = make_engine(url)
     try:
