@@ -100,6 +100,7 @@ def command(
         pipeline.run_reconstruct(cameras_path, inputs, run_dir, quality=preset, frames=frame_range, progress_bar=not json_out)
         seconds = time.perf_counter() - started
         result = _score(run_dir, cameras, scored, inputs, frame_range)
+        result["anchors_same_frames"] = _anchors(scene / "anchors.json", sorted(scored), frame_range)
         result.update(
             {
                 "scene": str(scene),
@@ -150,12 +151,36 @@ def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[s
     return {"views": views, "mean_held_out": mean, "fit_seconds_per_frame": float(np.mean(log))}
 
 
+def _anchors(path: Path, views: list[str], frame_range: tuple[int, int]) -> dict[str, dict[str, float]] | None:
+    """The published methods' PSNR / SSIM (realdata anchors.json, per-frame NVS lists) averaged
+    over exactly the scored views and frames, so a partial run is compared like for like.
+    None when the scene has no such file or the view names are not view_K."""
+    if not path.is_file():
+        return None
+    per_frame = json.loads(path.read_text()).get("per_frame", {}).get("nvs")
+    keys = [name.rsplit("_", 1)[-1].lstrip("0") or "0" for name in views]
+    if per_frame is None or any(k not in per_frame for k in keys):
+        return None
+    out = {}
+    for method in per_frame[keys[0]]:
+        rows = [per_frame[k][method][frame_range[0] : frame_range[1]] for k in keys]
+        if any(len(r) != frame_range[1] - frame_range[0] for r in rows):
+            return None
+        out[method] = {
+            "psnr": sum(sum(f[0] for f in r) / len(r) for r in rows) / len(rows),
+            "ssim": sum(sum(f[1] for f in r) / len(r) for r in rows) / len(rows),
+        }
+    return out
+
+
 def _print_table(result: dict) -> None:
     print(f"{'view':<10} {'role':<9} {'PSNR':>7} {'SSIM':>7} {'blank PSNR':>11} {'blank SSIM':>11}")
     for name, v in result["views"].items():
         print(f"{name:<10} {v['role']:<9} {v['psnr']:7.2f} {v['ssim']:7.4f} {v['blank_psnr']:11.2f} {v['blank_ssim']:11.4f}")
     m = result["mean_held_out"]
     print(f"{'mean':<10} {'held-out':<9} {m['psnr']:7.2f} {m['ssim']:7.4f} {m['blank_psnr']:11.2f} {m['blank_ssim']:11.4f}")
+    for method, v in (result.get("anchors_same_frames") or {}).items():
+        print(f"{'anchor':<10} {method:<9} {v['psnr']:7.2f} {v['ssim']:7.4f}")
     print(
         f"{result['seconds_per_frame']:.2f} s/frame ({result['fit_seconds_per_frame']:.2f} s fitting), "
         f"{result['seconds_total']:.1f} s total, {result['threads']} threads, load {result['load_average'][0]:.2f}"
