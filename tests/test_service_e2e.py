@@ -1,6 +1,7 @@
 """End to end through `fluidnexus serve` (embedded mode: SQLite, local storage, filesystem broker,
 embedded Celery worker process): create a key with the CLI, upload a tiny synthetic scene over
-HTTP, reconstruct it, ask what a wind would do, and download a playable MP4.
+HTTP, reconstruct it, ask what a wind would do (and predict on from there), and download a
+playable MP4.
 
 Nothing is faked: the worker runs fluidcore's real pipeline (preview quality, a 2-frame
 24x32 scene, one torch thread: about 20 s on a 2-core CPU). The test also checks the
@@ -132,6 +133,10 @@ def test_upload_reconstruct_interact_download(server: Server, tmp_path: Path) ->
     assert interact.status_code == 202, interact.text
     interacted = server.wait_job(interact.json()["id"], timeout=600)
     assert interacted["state"] == "succeeded", interacted
+
+    body = {"type": "predict", "parent_job_id": interacted["id"], "params": {"frames": 1}}  # a chain of runs
+    chained = server.wait_job(server.client.post("/v1/jobs", json=body).json()["id"], timeout=600)
+    assert chained["state"] == "succeeded", chained
 
     artifacts = server.client.get(f"/v1/jobs/{interacted['id']}/artifacts").json()["items"]
     kinds = {a["kind"] for a in artifacts}

@@ -112,6 +112,18 @@ def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
     assert inputs.params["wind"] == {"direction": [1, 0, 0]} and inputs.cameras_path is None
     assert not inputs.parent_run.exists()  # the local copy is removed when the job ends
 
+    # A continuation of a continuation: the whole chain is back where its manifests say it is.
+    def predict(inputs: RunInputs) -> list[Path]:
+        assert inputs.parent_run is not None
+        grandparent = Path(json.loads((inputs.parent_run / "manifest.json").read_text())["parent"])
+        seen.append((inputs, json.loads((grandparent / "manifest.json").read_text())))
+        return fake_job(inputs)
+
+    grandchild = world.job("predict", parent_job_id=child, params={"frames": 2})
+    assert world.executor("b", {**FAKE_RUNNERS, "predict": predict}).run(grandchild) == "succeeded"
+    assert seen[-1][1]["kind"] == "reconstruct"
+    assert list((world.tmp_path / "cache-b" / "jobs").iterdir()) == []
+
 
 def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), params={"frames": [0, 5], "crash_after": 2})

@@ -54,7 +54,7 @@ class Claim:
     job_type: str
     params: dict
     scene_id: str | None
-    parent_job_id: str | None
+    ancestors: tuple[str, ...]  # parent job first, then its parent, ...: the runs this one continues
 
 
 class JobExecutor:
@@ -93,9 +93,7 @@ class JobExecutor:
                 shutil.rmtree(folder, ignore_errors=True)
 
     def _local_folders(self, claim: Claim) -> list[Path]:
-        folders = [self.work_dir / "jobs" / claim.job_id]
-        if claim.parent_job_id is not None:
-            folders.append(self.work_dir / "jobs" / claim.parent_job_id)
+        folders = [self.work_dir / "jobs" / job_id for job_id in (claim.job_id, *claim.ancestors)]
         if claim.scene_id is not None:
             folders.append(self.work_dir / "scenes" / claim.scene_id)
         return folders
@@ -146,7 +144,7 @@ class JobExecutor:
             job.started_at = job.started_at or now
             job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
             log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
-            return Claim(job.id, job.type, dict(job.params), job.scene_id, job.parent_job_id)
+            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job))
 
     def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
         job_dir = self.work_dir / "jobs" / claim.job_id
@@ -177,15 +175,20 @@ class JobExecutor:
         return files
 
     def _fetch_inputs(self, claim: Claim) -> dict[str, object]:
-        """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder."""
+        """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder.
+
+        A run names its parent by path (rendering looks up the chain for the background), so
+        every ancestor is fetched to the same place in the work dir it was written from; workers
+        share one work-dir layout, so those paths hold on every machine.
+        """
         if claim.scene_id is not None:
             return self._fetch_scene(claim.scene_id)
-        assert claim.parent_job_id is not None
-        parent_dir = self.work_dir / "jobs" / claim.parent_job_id / "run"
-        FolderMirror(self.storage, parent_dir, run_prefix(claim.parent_job_id)).pull()
-        if not (parent_dir / MANIFEST).is_file():
-            raise ValueError(f"parent job {claim.parent_job_id} has no run folder in storage")
-        return {"parent_run": parent_dir}
+        for job_id in claim.ancestors:
+            folder = self.work_dir / "jobs" / job_id / "run"
+            FolderMirror(self.storage, folder, run_prefix(job_id)).pull()
+            if not (folder / MANIFEST).is_file():
+                raise ValueError(f"job {job_id} has no run folder in storage")
+        return {"parent_run": self.work_dir / "jobs" / claim.ancestors[0] / "run"}
 
     def _fetch_scene(self, scene_id: str) -> dict[str, object]:
         with session_scope(self.sessions) as session:
@@ -255,6 +258,15 @@ class JobExecutor:
                     job.stage_seconds = reporter.stage_seconds(closing=True)
         except Exception:  # the database itself may be what failed; the lease then expires on its own
             log.exception("could not put job %s back in the queue", job_id)
+
+
+def _ancestors(session: Session, job: Job) -> tuple[str, ...]:
+    chain: list[str] = []
+    parent_id = job.parent_job_id
+    while parent_id is not None:
+        chain.append(parent_id)
+        parent_id = session.scalar(select(Job.parent_job_id).where(Job.id == parent_id))
+    return tuple(chain)
 
 
 class ProgressReporter:
