@@ -3,6 +3,8 @@ job queue standing in for the broker (the worker has its own tests)."""
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -89,17 +91,32 @@ def reconstruct(service: Service, headers: dict[str, str], scene_id: str, **para
 
 # -- process and auth ---------------------------------------------------------------------------------
 
-def test_importing_and_building_the_app_does_not_import_torch(tmp_path: Path) -> None:
-    code = (
-        "import sys\n"
-        "from api.app import create_app\n"
-        "from api.settings import Settings\n"
-        f"create_app(Settings(data_dir={str(tmp_path)!r}))\n"
-        "import api.routers.scenes, api.uploads, worker.celery_app\n"
-        "print('torch' in sys.modules)\n"
-    )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
-    assert result.stdout.strip() == "False"
+def test_the_api_never_imports_torch(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
+    """Build the app and serve a whole upload plus a job request in a fresh interpreter: torch stays out."""
+    code = f"""
+import sys
+from fastapi.testclient import TestClient
+from api.app import create_app
+from api.auth import create_key
+from api.database import session_scope
+from api.settings import Settings
+from service_support import RecordingQueue, upload_parts
+from pathlib import Path
+
+files = {{k: Path(v) for k, v in {json.dumps({k: str(v) for k, v in scene_dir.items()})}.items()}}
+with TestClient(create_app(Settings(data_dir={str(tmp_path)!r}), queue=RecordingQueue())) as client:
+    with session_scope(client.app.state.sessionmaker) as session:
+        auth = {{"Authorization": "Bearer " + create_key(session, "alice")}}
+    scene = client.post("/v1/scenes", files=upload_parts(files), headers=auth)
+    assert scene.status_code == 201, scene.text
+    job = client.post("/v1/jobs", headers=auth, json={{"type": "reconstruct", "scene_id": scene.json()["id"]}})
+    assert job.status_code == 202, job.text
+print(sorted(m for m in sys.modules if m == "torch" or m.startswith("torch.")))
+"""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"
 
 
 def test_health_ready_and_web_page(sqlite_service: Service) -> None:
