@@ -274,21 +274,32 @@ int64_t pbf_count_neighbours(const float* sorted, float h, const int64_t* keys, 
 }
 
 // Pass 2: neighbour indices, row i at indices[offsets[i]:offsets[i + 1]], in cell order.
+// Candidates are written without branches into a scratch row (the write pointer advances only
+// for a neighbour), then copied: no mispredicted branch per candidate.
 void pbf_fill_neighbours(const float* sorted, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
                          const int64_t* order, const int64_t* offsets, int32_t* indices, int threads) {
     const float h2 = h * h;
-#pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
-    for (int64_t m = 0; m < n_cells; ++m) {
-        Range ranges[9];
-        const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
-        for (int64_t a = start[m]; a < start[m + 1]; ++a) {
-            const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
-            int32_t* out = indices + offsets[order[a]];
-            for (int r = 0; r < n_ranges; ++r)
-                for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
-                    const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
-                    if (b != a && dx * dx + dy * dy + dz * dz < h2) *out++ = int32_t(order[b]);
-                }
+#pragma omp parallel num_threads(threads)
+    {
+        std::vector<int32_t> scratch;
+#pragma omp for schedule(dynamic, 64)
+        for (int64_t m = 0; m < n_cells; ++m) {
+            Range ranges[9];
+            const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
+            int64_t candidates = 0;
+            for (int r = 0; r < n_ranges; ++r) candidates += ranges[r].end - ranges[r].begin;
+            scratch.resize(candidates);
+            for (int64_t a = start[m]; a < start[m + 1]; ++a) {
+                const float xa = sorted[3 * a], ya = sorted[3 * a + 1], za = sorted[3 * a + 2];
+                int64_t found = 0;
+                for (int r = 0; r < n_ranges; ++r)
+                    for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
+                        const float dx = xa - sorted[3 * b], dy = ya - sorted[3 * b + 1], dz = za - sorted[3 * b + 2];
+                        scratch[found] = int32_t(order[b]);
+                        found += (b != a) & (dx * dx + dy * dy + dz * dz < h2);
+                    }
+                std::copy(scratch.begin(), scratch.begin() + found, indices + offsets[order[a]]);
+            }
         }
     }
 }
