@@ -10,6 +10,7 @@ degenerating into needles that only look right from the input view).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -47,22 +48,28 @@ class Appearance:
 
 
 def spawn(
-    parents: torch.Tensor, per_parent: int, spread: float, scale: float, opacity: float, color: torch.Tensor, generator: torch.Generator
+    parent_rows: torch.Tensor,
+    per_parent: int,
+    spread: float,
+    scale: float,
+    opacity: float,
+    color: torch.Tensor,
+    generator: torch.Generator,
 ) -> tuple[torch.Tensor, torch.Tensor, Appearance]:
-    """Visual Gaussians for newly born physical particles.
+    """Visual Gaussians for newly born physical particles (rows `parent_rows` of the frame's particles).
 
-    Returns (owner index into `parents` (G,), offset from the owner (G, 3), appearance).
-    Each new particle gets `per_parent` isotropic Gaussians jittered by `spread`.
+    Returns (owner row (G,), offset from the owner (G, 3), appearance): `per_parent` round
+    Gaussians per new particle, jittered by `spread` (drawn on the CPU generator, so the result
+    does not depend on the device).
     """
-    n = len(parents)
-    device = parents.device
-    owner = torch.arange(n, device=device).repeat_interleave(per_parent)
-    offsets = torch.randn((len(owner), 3), generator=generator, device="cpu").to(device) * spread
+    device = parent_rows.device
+    owner = parent_rows.repeat_interleave(per_parent)
     g = len(owner)
+    offsets = (torch.randn((g, 3), generator=generator) * spread).to(device)
     appearance = Appearance(
-        log_scales=torch.full((g, 3), float(torch.log(torch.tensor(scale))), device=device),
+        log_scales=torch.full((g, 3), math.log(scale), device=device),
         quats=torch.tensor([1.0, 0.0, 0.0, 0.0], device=device).repeat(g, 1),
-        opacity_logits=torch.full((g,), float(torch.logit(torch.tensor(opacity))), device=device),
+        opacity_logits=torch.full((g,), math.log(opacity / (1.0 - opacity)), device=device),
         colors=color.to(device).expand(g, -1).clone(),
     )
     return owner, offsets, appearance
