@@ -158,7 +158,7 @@ def prepare(
         seed=quality.seed,
     )
     pseudo = []
-    if quality.symmetry_views > 0:
+    if quality.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
         pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, quality.symmetry_weight / quality.symmetry_views)
     return Reconstruction(
         cameras=dict(cameras),

@@ -54,8 +54,8 @@ class Quality:
     velocity_radius: float  # visual Gaussians follow the velocity interpolated within this many h
     visual_per_physical: int  # visual Gaussians spawned per new physical particle
     next_step_incompressibility: bool
-    symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off)
-    symmetry_weight: float  # their loss weight relative to a real view
+    symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
+    symmetry_weight: float  # their total loss weight relative to the input view
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02
