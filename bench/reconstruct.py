@@ -100,7 +100,7 @@ def command(
         pipeline.run_reconstruct(cameras_path, inputs, run_dir, quality=preset, frames=frame_range, progress_bar=not json_out)
         seconds = time.perf_counter() - started
         result = _score(run_dir, cameras, scored, inputs, frame_range)
-        result["anchors_same_frames"] = _anchors(scene / "anchors.json", sorted(scored), frame_range)
+        result["anchors_same_frames"] = _anchors(scene / "anchors.json", sorted(inputs), sorted(scored), frame_range)
         result.update(
             {
                 "scene": str(scene),
@@ -151,15 +151,27 @@ def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[s
     return {"views": views, "mean_held_out": mean, "fit_seconds_per_frame": float(np.mean(log))}
 
 
-def _anchors(path: Path, views: list[str], frame_range: tuple[int, int]) -> dict[str, dict[str, float]] | None:
+def _view_key(name: str) -> str:
+    """'view_02' -> '2', the view keys of the realdata anchors."""
+    return name.rsplit("_", 1)[-1].lstrip("0") or "0"
+
+
+def _anchors(
+    path: Path, inputs: list[str], views: list[str], frame_range: tuple[int, int]
+) -> dict[str, dict[str, float]] | None:
     """The published methods' PSNR / SSIM (realdata anchors.json, per-frame NVS lists) averaged
     over exactly the scored views and frames, so a partial run is compared like for like.
-    None when the scene has no such file or the view names are not view_K."""
+    None when the scene has no such file, when the input views are not the anchors' single
+    input view (the anchors are single-view results), or the view names are not view_K."""
     if not path.is_file():
         return None
-    per_frame = json.loads(path.read_text()).get("per_frame", {}).get("nvs")
-    keys = [name.rsplit("_", 1)[-1].lstrip("0") or "0" for name in views]
-    if per_frame is None or any(k not in per_frame for k in keys):
+    anchors = json.loads(path.read_text())
+    per_frame = anchors.get("per_frame", {}).get("nvs")
+    input_view = anchors.get("frame_windows", {}).get("nvs", {}).get("input_view")
+    if per_frame is None or [_view_key(n) for n in inputs] != [str(input_view)]:
+        return None
+    keys = [_view_key(name) for name in views]
+    if any(k not in per_frame for k in keys):
         return None
     out = {}
     for method in per_frame[keys[0]]:
