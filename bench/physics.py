@@ -145,24 +145,29 @@ def table(results: list[Result]) -> str:
 
 
 def plot(results: list[Result], path: Path) -> None:
-    """Speed (steps/s) against mean density error, one line per particle count."""
+    """Speed (steps/s) against mean density error, one line per scene and particle count."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4.5))
-    for n in sorted({r.particles for r in results}):
-        rows = [r for r in results if r.particles == n and r.iterations is not None and r.scene == "calm"]
-        ax.plot([r.steps_per_s for r in rows], [max(r.mean_density_error, 1e-7) for r in rows], "o-", label=f"{n:,}")
-        for r in rows:
-            ax.annotate(str(r.iterations), (r.steps_per_s, max(r.mean_density_error, 1e-7)), fontsize=7)
+    floor = 1e-9  # an error of exactly 0 still gets a point on the log axis
+    for scene, style in (("calm", "o-"), ("violent", "s--")):
+        for n in sorted({r.particles for r in results}):
+            rows = [r for r in results if r.particles == n and r.iterations is not None and r.scene == scene]
+            if not rows:
+                continue
+            errors = [max(r.mean_density_error, floor) for r in rows]
+            ax.plot([r.steps_per_s for r in rows], errors, style, label=f"{scene} {n:,}")
+            for r, e in zip(rows, errors):
+                ax.annotate(str(r.iterations), (r.steps_per_s, e), fontsize=7)
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("steps per second")
     ax.set_ylabel("mean density error  max(0, rho/rho0 - 1)")
     ax.set_title("PBF: speed vs error (labels: solver iterations)")
-    ax.legend(title="particles")
+    ax.legend(title="scene, particles", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -209,6 +214,7 @@ def command(
 
     results = []
     plan = [(n, k, None, "calm") for n in SIZES for k in ITERATIONS]
+    plan += [(n, k, None, "violent") for n in SIZES[:2] for k in ITERATIONS]
     plan += [(n, None, SWEEP_TOLERANCE, s) for n in SIZES[:2] for s in SCENES]
     for n, k, tol, name in plan:
         log(f"  {name} n={n} iterations={k} tolerance={tol} ...")
