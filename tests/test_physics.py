@@ -28,6 +28,7 @@ from fluidcore.physics import (
 from fluidcore.physics import fused
 from fluidcore.physics.neighbours import neighbours_torch
 from fluidcore.physics.solver import residual, solve_torch
+from fluidcore.physics.source import emit
 
 needs_fused = pytest.mark.skipif(not fused.available(), reason="fused PBF kernel cannot be built here")
 CFG = PRESETS["scalarflow"]
@@ -228,19 +229,25 @@ def test_sphere_pushes_particles_to_its_surface_and_removes_normal_velocity() ->
 
 
 def test_source_is_deterministic_and_seeds_inside_its_ball() -> None:
-    def run(seed: int) -> torch.Tensor:
-        sim = Simulator(CFG, Box((-1, -1, -1), (1, 1, 1)), Source((0.1, 0.2, 0.3), 0.04, 50, seed=seed))
-        state = sim.new_state()
-        positions = []
-        for _ in range(3):
-            sim._seed(state)  # seeding alone, before any motion
-            positions.append(state.positions[state.alive].clone())
-            state.step += 1
-        return torch.cat(positions)
+    def births(seed: int) -> torch.Tensor:
+        source = Source((0.1, 0.2, 0.3), 0.04, 50, velocity=(0.0, 0.2, 0.0), seed=seed)
+        return torch.cat([emit(source, step, "cpu")[0] for step in range(3)])
 
-    a, b, c = run(7), run(7), run(8)
+    a, b, c = births(7), births(7), births(8)
     assert torch.equal(a, b) and not torch.equal(a, c)
-    assert float((a[-50:] - torch.tensor([0.1, 0.2, 0.3])).norm(dim=1).max()) <= 0.04 + 1e-6
+    assert not torch.equal(a[:50], a[50:100])  # each step seeds new positions
+    assert float((a - torch.tensor([0.1, 0.2, 0.3])).norm(dim=1).max()) <= 0.04 + 1e-6
+
+
+def test_simulator_seeds_the_same_particles_on_every_run() -> None:
+    runs = []
+    for _ in range(2):
+        sim = plume_simulator("auto")
+        state = sim.new_state()
+        stats = [sim.step(state) for _ in range(3)]
+        runs.append(state.positions[state.alive])
+        assert [s.seeded for s in stats] == [60, 60, 60]
+    assert torch.equal(runs[0], runs[1])
 
 
 def test_particles_leaving_the_box_are_retired_and_slots_reused() -> None:
