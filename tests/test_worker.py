@@ -149,6 +149,26 @@ def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None
     assert list((world.tmp_path / "cache-second" / "jobs").iterdir()) == []  # local copies removed at the end
 
 
+def test_progress_and_stage_time_are_visible_while_running(world: World) -> None:
+    import time
+
+    snapshots: list[Job] = []
+
+    def slow(inputs: RunInputs) -> list[Path]:
+        inputs.progress(0.5, "fit")
+        time.sleep(1.2)  # past the one-second write throttle
+        inputs.progress(0.6, "fit")
+        snapshots.append(world.get(inputs.job_id))
+        return []
+
+    job_id = world.job(scene_id=world.scene())
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": slow}).run(job_id) == "succeeded"
+    [running] = snapshots
+    assert running.state == JobState.RUNNING and running.stage == "fit"
+    assert running.progress == pytest.approx(0.6 * 0.95)
+    assert running.stage_seconds["fit"] >= 1.2
+
+
 def test_a_job_whose_worker_keeps_dying_is_failed(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), state=JobState.RUNNING, attempts=3)
     assert world.executor().run(job_id) is None

@@ -242,7 +242,7 @@ class JobExecutor:
             job.state, job.error, job.finished_at = state, error, utcnow()
             job.stage = stage or job.stage
             if reporter is not None:
-                job.stage_seconds = reporter.stage_seconds(closing=True)
+                job.stage_seconds = reporter.final_stage_seconds()
             if state == JobState.SUCCEEDED:
                 job.progress = 1.0
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
@@ -255,7 +255,7 @@ class JobExecutor:
                 job = session.get(Job, job_id)
                 if job is not None and job.state == JobState.RUNNING:
                     job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to retry", None
-                    job.stage_seconds = reporter.stage_seconds(closing=True)
+                    job.stage_seconds = reporter.final_stage_seconds()
         except Exception:  # the database itself may be what failed; the lease then expires on its own
             log.exception("could not put job %s back in the queue", job_id)
 
@@ -287,9 +287,8 @@ class ProgressReporter:
     def report(self, fraction: float, stage: str) -> None:
         now = time.monotonic()
         stage_changed = stage != self._stage
-        if stage_changed:
-            self._close_stage(now)
-            self._stage, self._stage_started = stage, now
+        self._accumulate(now)
+        self._stage = stage
         if not stage_changed and now - self._last_write < DB_WRITE_INTERVAL_S:
             return
         self._last_write = now
@@ -298,22 +297,23 @@ class ProgressReporter:
             if job is None:
                 return
             job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
-            job.stage_seconds = self.stage_seconds()
+            job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
 
     def cancel_requested(self) -> bool:
         with session_scope(self.sessions) as session:
             return bool(session.scalar(select(Job.cancel_requested).where(Job.id == self.job_id)))
 
-    def stage_seconds(self, closing: bool = False) -> dict[str, float]:
-        if closing:
-            self._close_stage(time.monotonic())
-            self._stage = None
+    def final_stage_seconds(self) -> dict[str, float]:
+        """Seconds per stage, the current one closed (the job is ending or handing back)."""
+        self._accumulate(time.monotonic())
+        self._stage = None
         return dict(self._seconds)
 
-    def _close_stage(self, now: float) -> None:
+    def _accumulate(self, now: float) -> None:
+        """Add the time since the last call to the current stage."""
         if self._stage is not None:
             self._seconds[self._stage] = round(self._seconds.get(self._stage, 0.0) + now - self._stage_started, 3)
-            self._stage_started = now
+        self._stage_started = now
 
 
 def _transient_errors() -> tuple[type[BaseException], ...]:
