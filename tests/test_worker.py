@@ -14,7 +14,7 @@ from api.database import make_engine, make_sessionmaker, migrate, session_scope
 from api.models import Artifact, Job, JobState, Scene, utcnow
 from api.settings import Settings
 from api.storage import LocalStorage, Storage, StorageError
-from worker.execution import JobBusy, JobExecutor, run_prefix
+from worker.execution import RUN_SHARE, JobBusy, JobExecutor, run_prefix
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
 
@@ -165,7 +165,7 @@ def test_progress_and_stage_time_are_visible_while_running(world: World) -> None
     assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": slow}).run(job_id) == "succeeded"
     [running] = snapshots
     assert running.state == JobState.RUNNING and running.stage == "fit"
-    assert running.progress == pytest.approx(0.6 * 0.95)
+    assert running.progress == pytest.approx(0.6 * RUN_SHARE)  # the runner's share of the whole job
     assert running.stage_seconds["fit"] >= 1.2
 
 
