@@ -8,6 +8,7 @@ removes what it had written, so a bad request never leaves or loses anything.
 
 from __future__ import annotations
 
+import mimetypes
 import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
@@ -21,7 +22,6 @@ if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api
     from fluidcore.video import VideoInfo
 
 _SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
-VIDEO_CONTENT_TYPE = "video/mp4"
 
 
 class UploadRejected(ValueError):
@@ -162,13 +162,11 @@ def store_scene(storage: Storage, prefix: str, scene: ValidatedScene) -> dict[st
     Returns file name -> storage key. Videos and the cameras file share one folder because a
     cameras file may name its videos by relative path (and read their size from them).
     """
-    files = [(scene.cameras_path, "application/octet-stream")]
-    files += [(v.path, VIDEO_CONTENT_TYPE) for v in scene.videos.values()]
     written: dict[str, str] = {}
     try:
-        for path, content_type in files:
+        for path in [scene.cameras_path, *(v.path for v in scene.videos.values())]:
             key = f"{prefix}/{path.name}"
-            storage.put_file(key, path, content_type)
+            storage.put_file(key, path, mimetypes.guess_type(path.name)[0] or "application/octet-stream")
             written[path.name] = key
     except BaseException:
         for key in written.values():
