@@ -94,14 +94,13 @@ def candidate_ranges(table: CellTable, coords: Tensor) -> tuple[Tensor, Tensor]:
     return start, length
 
 
-def neighbour_pairs(queries: Tensor, points: Tensor, h: float, table: CellTable | None = None,
-                    exclude_self: bool = False) -> tuple[Tensor, Tensor]:
+def neighbour_pairs(queries: Tensor, points: Tensor, h: float, exclude_self: bool = False) -> tuple[Tensor, Tensor]:
     """All (query q, point p) with |queries[q] - points[p]| < h, grouped by q (torch, any device)."""
     device = queries.device
     if queries.shape[0] == 0 or points.shape[0] == 0:
         empty = torch.zeros(0, dtype=torch.long, device=device)
         return empty, empty
-    table = table if table is not None else cell_table(points, h)
+    table = cell_table(points, h)
     start, length = candidate_ranges(table, cell_coords(queries, table.origin, h))
     length = length.reshape(-1)
     total = int(length.sum())
