@@ -137,7 +137,7 @@ def run_reconstruct(
         cancelled = bool(should_cancel and should_cancel())
         return cancelled
 
-    reconstructor.run(out_dir, on_frame=on_frame, should_stop=should_stop)
+    run = reconstructor.run(out_dir, on_frame=on_frame, should_stop=should_stop)
     if bar is not None:
         bar.close()
     if cancelled:

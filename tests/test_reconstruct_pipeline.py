@@ -1,0 +1,68 @@
+"""fluidcore.pipeline as the worker calls it: progress, cancel then resume, only the named videos
+read, and the rendered artifacts of a run."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from fluidcore import pipeline, synth, video
+from fluidcore.reconstruct import get
+from fluidcore.runs import Run
+
+QUICK = get("preview").with_overrides(position_iterations=3, appearance_iterations=2, first_frame_factor=1)
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scene")
+    synth.write(synth.generate(synth.SynthSpec(frames=3, width=32, height=48, views=3)), folder)
+    # Another view's file_path now points at garbage: reading it would fail the job.
+    (folder / "videos" / "view_02.mp4").write_bytes(b"not a video")
+    return folder
+
+
+def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
+    seen: list[tuple[float, str]] = []
+    answers = iter([False, True])
+    with pytest.raises(pipeline.Cancelled, match="resumes from frame 1"):
+        pipeline.run_reconstruct(
+            scene / "transforms.json",
+            {"view_01": scene / "videos" / "view_01.mp4"},
+            tmp_path / "run",
+            quality=QUICK,
+            progress=lambda fraction, stage: seen.append((fraction, stage)),
+            should_cancel=lambda: next(answers),
+        )
+    assert Run.open(tmp_path / "run").frames() == [0]
+    assert seen[0] == (0.0, "prepare") and seen[-1] == (pytest.approx(1 / 3), "reconstruct")
+    pipeline.run_reconstruct(
+        scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "run", quality=QUICK
+    )
+    run = Run.open(tmp_path / "run")
+    assert run.frames() == [0, 1, 2] and run.manifest["complete"]
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["input_views"] == ["view_01"]
+
+
+def test_render_artifacts_one_video_per_camera_and_an_orbit(scene, tmp_path):
+    pipeline.run_reconstruct(
+        scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "run",
+        quality=QUICK, frames=(0, 2),
+    )
+    files = pipeline.render_artifacts(tmp_path / "run", tmp_path / "out")
+    assert sorted(f.name for f in files) == ["orbit.mp4", "view_00.mp4", "view_01.mp4", "view_02.mp4"]
+    assert video.probe(tmp_path / "out" / "view_00.mp4").n_frames == 2
+    assert video.probe(tmp_path / "out" / "orbit.mp4").n_frames == pipeline.ORBIT_FRAMES
+
+
+def test_bad_requests_are_refused_before_any_work(scene, tmp_path):
+    with pytest.raises(pipeline.PipelineError, match="frames"):
+        pipeline.run_reconstruct(
+            scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "a", frames=(0, 99)
+        )
+    with pytest.raises(pipeline.PipelineError, match="videos"):
+        pipeline.run_reconstruct(scene / "transforms.json", {}, tmp_path / "b")
+    with pytest.raises(pipeline.PipelineError, match="START:END"):
+        pipeline.parse_frames("5")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
