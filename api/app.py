@@ -16,7 +16,7 @@ from api.database import make_engine, make_sessionmaker, migrate
 from api.queue import CeleryQueue, JobQueue
 from api.routers import artifacts, health, jobs, scenes
 from api.settings import Settings, get_settings
-from api.storage import make_storage
+from api.storage import StorageError, make_storage
 from api.uploads import UploadRejected
 
 
@@ -45,11 +45,17 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
 
     app.add_middleware(BodySizeLimit, limit=settings.max_upload_bytes)
     app.add_exception_handler(UploadRejected, _upload_rejected)
+    app.add_exception_handler(StorageError, _storage_unavailable)
     for router in (scenes.router, jobs.router, artifacts.router, health.router):
         app.include_router(router)
     if settings.web_dir.is_dir():  # mounted last: API routes take precedence over files
         app.mount("/", StaticFiles(directory=settings.web_dir, html=True), name="web")
     return app
+
+
+async def _storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """Object storage down or full: the request may succeed later, nothing was half-written."""
+    return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503)
 
 
 async def _upload_rejected(request: Request, exc: Exception) -> JSONResponse:

@@ -40,6 +40,25 @@ class ObjectInfo:
     size: int
 
 
+# The layout of the service's objects, shared by the API and the worker.
+def scene_prefix(scene_id: str) -> str:
+    """An uploaded scene: `input/` holds the cameras file and videos under their upload names."""
+    return f"scenes/{scene_id}"
+
+
+def job_prefix(job_id: str) -> str:
+    """A job: `run/` is its run folder (checkpoints, states, manifest), `videos/` its rendered MP4s."""
+    return f"jobs/{job_id}"
+
+
+def run_prefix(job_id: str) -> str:
+    return f"{job_prefix(job_id)}/run"
+
+
+def videos_prefix(job_id: str) -> str:
+    return f"{job_prefix(job_id)}/videos"
+
+
 def check_key(key: str) -> str:
     """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
     if not key or "\\" in key or any(part in ("", ".", "..") for part in key.split("/")):

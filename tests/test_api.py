@@ -284,6 +284,16 @@ def test_idempotency_key_returns_the_same_job(service: Service, scene_id: str) -
     assert different.status_code == 422 and "Idempotency-Key" in different.json()["detail"]
 
 
+def succeed_with_run(service: Service, job_id: str) -> None:
+    """What a worker leaves behind: a succeeded job and a run manifest with its scene (box 1 unit wide)."""
+    from fluidcore.runs import Scene as RunScene
+
+    scene = RunScene(box_lo=(-0.5, 0.0, -0.5), box_hi=(0.5, 1.0, 0.5), up=(0.0, 1.0, 0.0),
+                     physics={"dt": 1 / 30, "h": 0.05}, source={"center": [0.0, 0.1, 0.0], "radius": 0.05})
+    service.storage.put_bytes(f"jobs/{job_id}/run/manifest.json", json.dumps({"scene": scene.to_json()}).encode())
+    service.set_job(job_id, state=JobState.SUCCEEDED)
+
+
 def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) -> None:
     alice = service.key("alice")
     parent = reconstruct(service, alice, scene_id).json()["id"]
@@ -292,7 +302,7 @@ def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) 
     early = service.client.post("/v1/jobs", json=interact, headers=alice)
     assert early.status_code == 409 and "queued" in early.json()["detail"]
 
-    service.set_job(parent, state=JobState.SUCCEEDED)
+    succeed_with_run(service, parent)
     created = service.client.post("/v1/jobs", json=interact, headers=alice)
     assert created.status_code == 202, created.text
     assert created.json()["params"]["wind"]["direction"] == [1.0, 0.0, 0.0]
@@ -303,10 +313,12 @@ def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) 
     further = service.client.post("/v1/jobs", json=chained, headers=alice)  # runs continue runs of any kind
     assert further.status_code == 202 and further.json()["parent_job_id"] == created.json()["id"]
 
-    for bad in ({"frames": 10}, {"frames": 10, "wind": {"direction": [0, 0, 0], "strength": 1}},
-                {"frames": 100000, "ball": {"center": [0, 0, 0], "radius": 0.1}}):
+    for bad, field in (({"frames": 10}, "wind, ball or both"),
+                       ({"frames": 10, "wind": {"direction": [0, 0, 0], "strength": 1}}, "direction"),
+                       ({"frames": 100000, "ball": {"center": [0, 0.5, 0], "radius": 0.1}}, "frames"),
+                       ({"frames": 10, "ball": {"center": [3, 0.5, 0], "radius": 0.1}}, "ball")):  # outside the box
         response = service.client.post("/v1/jobs", json={**interact, "params": bad}, headers=alice)
-        assert response.status_code == 422, bad
+        assert response.status_code == 422 and field in response.text, (bad, response.text)
     scene_for_predict = {"type": "predict", "scene_id": scene_id, "params": {"frames": 5}}
     assert service.client.post("/v1/jobs", json=scene_for_predict, headers=alice).status_code == 422
 
@@ -434,7 +446,7 @@ def test_delete_jobs_then_their_scene(service: Service, scene_id: str) -> None:
     parent = reconstruct(service, alice, scene_id).json()["id"]
     add_artifact(service, parent, "videos/cam0.mp4", b"video")
     assert service.client.delete(f"/v1/jobs/{parent}", headers=alice).status_code == 409  # still queued
-    service.set_job(parent, state=JobState.SUCCEEDED)
+    succeed_with_run(service, parent)
     child = service.client.post("/v1/jobs", headers=alice, json={"type": "predict", "parent_job_id": parent}).json()["id"]
     service.set_job(child, state=JobState.FAILED)
 

@@ -127,6 +127,11 @@ def test_upload_reconstruct_interact_download(server: Server, tmp_path: Path) ->
     assert reconstructed["state"] == "succeeded", reconstructed
     assert reconstructed["progress"] == 1.0 and "reconstruct" in reconstructed["timings"]["stages"]
 
+    far_ball = {"center": [100.0, 0.0, 0.0], "radius": 0.05}  # checked against the real run's scene box
+    body = {"type": "interact", "parent_job_id": job["id"], "params": {"frames": 2, "ball": far_ball}}
+    refused = server.client.post("/v1/jobs", json=body)
+    assert refused.status_code == 422 and "ball" in refused.json()["detail"], refused.text
+
     wind = {"direction": [1, 0, 0], "strength": 2.0}
     body = {"type": "interact", "parent_job_id": job["id"], "params": {"frames": 2, "wind": wind}}
     interact = server.client.post("/v1/jobs", json=body)

@@ -13,8 +13,8 @@ import pytest
 from api.database import make_engine, make_sessionmaker, migrate, session_scope
 from api.models import Artifact, Job, JobState, Scene, utcnow
 from api.settings import Settings
-from api.storage import LocalStorage, Storage, StorageError
-from worker.execution import RUN_SHARE, JobBusy, JobExecutor, run_prefix
+from api.storage import LocalStorage, Storage, StorageError, run_prefix
+from worker.execution import RUN_SHARE, JobBusy, JobExecutor
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
 

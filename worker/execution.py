@@ -22,7 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from api.database import session_scope
 from api.models import Artifact, Job, JobState, Scene, utcnow
 from api.settings import Settings
-from api.storage import Storage
+from api.storage import Storage, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
@@ -38,14 +38,6 @@ class JobBusy(Exception):
     def __init__(self, retry_in: float) -> None:
         super().__init__(f"job is running elsewhere; retry in {retry_in:.0f} s")
         self.retry_in = retry_in
-
-
-def run_prefix(job_id: str) -> str:
-    return f"jobs/{job_id}/run"
-
-
-def render_prefix(job_id: str) -> str:
-    return f"jobs/{job_id}/videos"
 
 
 @dataclass(frozen=True)
@@ -207,7 +199,7 @@ class JobExecutor:
         reporter.report(RUN_SHARE, "publish")
         rows = []
         for path in files:
-            key = f"{render_prefix(claim.job_id)}/{path.name}"
+            key = f"{videos_prefix(claim.job_id)}/{path.name}"
             self.storage.put_file(key, path, "video/mp4")
             orbit = path.stem.startswith("orbit")
             rows.append(

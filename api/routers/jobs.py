@@ -23,10 +23,13 @@ from api.schemas import (
     JobStateName,
     JobTimings,
     JobTypeName,
+    InteractParams,
+    InteractRequest,
     Page,
     ReconstructRequest,
 )
 from api.settings import Settings
+from api.storage import ObjectNotFound, Storage, job_prefix, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -36,6 +39,7 @@ def create_job(
     owner: OwnerDep,
     session: SessionDep,
     queue: QueueDep,
+    storage: StorageDep,
     settings: SettingsDep,
     response: Response,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
@@ -49,7 +53,7 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
-    _check_references(session, owner, request, settings)
+    _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
         type=request.type,
@@ -135,7 +139,7 @@ def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: Stora
     session.execute(delete(Artifact).where(Artifact.job_id == job.id))
     session.delete(job)
     session.commit()  # rows first: a failed file removal leaves garbage, never a dangling row
-    storage.delete_prefix(f"jobs/{job.id}/")
+    storage.delete_prefix(f"{job_prefix(job.id)}/")
 
 
 def owned_job(session: Session, job_id: str, owner: str, for_update: bool = False) -> Job:
@@ -157,7 +161,9 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
     return job
 
 
-def _check_references(session: Session, owner: str, request: JobRequest, settings: Settings) -> None:
+def _check_references(
+    session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
+) -> None:
     """The scene or parent job exists, belongs to the caller, and fits the parameters."""
     if isinstance(request, ReconstructRequest):
         scene = owned_scene(session, request.scene_id, owner)
@@ -180,6 +186,24 @@ def _check_references(session: Session, owner: str, request: JobRequest, setting
             status.HTTP_422_UNPROCESSABLE_CONTENT,
             f"params.frames: at most {settings.max_predict_frames} new frames per job",
         )
+    if isinstance(request, InteractRequest):
+        _check_in_run_scene(storage, parent.id, request.params)
+
+
+def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:
+    """Wind and ball against the parent run's scene (box, time step, speed limit), read from its
+    manifest: a ball outside the box or a wind that tears the smoke apart is a 422 now, not a
+    failed job later."""
+    from fluidcore.interaction import InteractionError, InteractionParams
+
+    try:
+        manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
+    except ObjectNotFound:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
+    try:
+        InteractionParams(wind=params.wind, ball=params.ball).check_run_scene(manifest.get("scene") or {}, params.frames)
+    except InteractionError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params: {exc}") from None
 
 
 def job_out(job: Job) -> JobOut:

@@ -13,6 +13,7 @@ from sqlalchemy.orm import Session
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
 from api.models import Job, Scene, new_id
 from api.schemas import Page, SceneOut, SceneVideo
+from api.storage import scene_prefix
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene, validate_scene
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
@@ -42,7 +43,7 @@ def create_scene(
         validated = validate_scene(folder, cameras_name, sizes, settings)
 
         scene_id = new_id()
-        keys = store_scene(storage, f"scenes/{scene_id}/input", validated)
+        keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
         try:
             scene = _scene_row(scene_id, owner, name, validated, keys)
             session.add(scene)
@@ -89,7 +90,7 @@ def delete_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: S
         )
     session.delete(scene)
     session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
-    storage.delete_prefix(f"scenes/{scene.id}/")
+    storage.delete_prefix(f"{scene_prefix(scene.id)}/")
 
 
 def owned_scene(session: Session, scene_id: str, owner: str) -> Scene:
