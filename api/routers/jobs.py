@@ -1,4 +1,4 @@
-"""`/v1/jobs`: create (idempotently), read, list, cancel."""
+"""`/v1/jobs`: create (idempotently), read, list, cancel, delete."""
 
 from __future__ import annotations
 
@@ -17,14 +17,14 @@ from api.models import Artifact, Job, JobState, utcnow
 from api.queue import QueueUnavailable
 from api.routers.scenes import owned_scene
 from api.schemas import (
+    InteractParams,
+    InteractRequest,
     JobLinks,
     JobOut,
     JobRequest,
     JobStateName,
     JobTimings,
     JobTypeName,
-    InteractParams,
-    InteractRequest,
     Page,
     ReconstructRequest,
 )
