@@ -5,10 +5,10 @@
 // front-to-back list, for each tile row its screen box covers, all 16 pixels of the row as one
 // SIMD loop. The per-pixel state (transmittance, accumulated features, where the pixel stopped)
 // lives in small tile arrays. Smoke Gaussians are small, so skipping the rows outside a
-// Gaussian's box saves most of the work of the usual pixel-major loop, while full 16-pixel rows
-// give the vectoriser fixed-length, branch-free loops (pixels outside the box fail the alpha
-// test like any other). The backward pass sums one Gaussian's gradient over the tile in
-// registers before writing it.
+// Gaussian's box avoids much of the work of a pixel-major loop over all of a tile's (pixel,
+// Gaussian) pairs, while full 16-pixel rows give the vectoriser fixed-length, branch-free loops
+// (pixels outside the box fail the alpha test like any other). The backward pass sums one
+// Gaussian's gradient over the tile in registers before writing it.
 //
 // Per-pixel rules (gsplat's classic mode, so both backends draw the same picture):
 //   alpha = min(0.999, opacity * exp(-sigma)); a pixel skips a Gaussian when alpha < 1/255;
@@ -27,7 +27,7 @@
 // Without these, GCC keeps the per-pixel min/select code below as branches instead of SIMD
 // blends (it must preserve FP exception flags, signed zeros and NaN ordering). None of that is
 // observable here: inputs are checked finite in Python, exp_neg's argument is clamped and
-// 1 - alpha >= 0.001, so every value stays finite. (Clang needs no such hint to vectorise.)
+// 1 - alpha >= 0.001, so every value stays finite.
 #if defined(__GNUC__) && !defined(__clang__)
 #pragma GCC optimize("no-trapping-math", "no-signed-zeros", "finite-math-only")
 #endif
