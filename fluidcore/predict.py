@@ -41,7 +41,7 @@ import numpy as np
 import torch
 
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
-from fluidcore.physics import ParticleState, PBFConfig, Simulator, Source, Sphere, wind_force
+from fluidcore.physics import ForceField, ParticleState, PBFConfig, Simulator, Source, Sphere, wind_force
 from fluidcore.physics.coupling import push_out
 from fluidcore.pipeline import Cancelled, Progress, ShouldCancel
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
@@ -184,7 +184,7 @@ def source_template(visual: Visual, center: Sequence[float], size: int = TEMPLAT
 
 
 # -- interventions -------------------------------------------------------------------------------
-def wind_field(wind: WindParams, start_time: float, dt: float, base_height: float, up: Sequence[float]):  # noqa: ANN201
+def wind_field(wind: WindParams, start_time: float, dt: float, base_height: float, up: Sequence[float]) -> ForceField:
     """The physics force field of a wind whose frame 0 is the step starting at `start_time`.
 
     Frame windows become time windows half a step early, so the step that produces new frame
