@@ -140,17 +140,19 @@ struct Solver {
           scorr_n(scorr_n_), density(density_), lambda(n_), residual(n_), next(3 * n_), weight(offsets_[n_]),
           factor(offsets_[n_]), coincident_row(n_), moved(n_, 1) {}
 
+    // Early exits: in a busy neighbourhood the first few neighbours settle it.
     bool neighbourhood_moved(int64_t i) const {
-        char any = moved[i];
-        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) any |= moved[indices[k]];
-        return any;
+        if (moved[i]) return true;
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k)
+            if (moved[indices[k]]) return true;
+        return false;
     }
 
     bool neighbourhood_active(int64_t i) const {
-        if (scorr_scale > 0.0f) return true;
-        float sum = lambda[i];
-        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k) sum += lambda[indices[k]];
-        return sum != 0.0f;  // lambdas are <= 0, so the sum is 0 only when all are
+        if (scorr_scale > 0.0f || lambda[i] != 0.0f) return true;
+        for (int64_t k = offsets[i]; k < offsets[i + 1]; ++k)
+            if (lambda[indices[k]] != 0.0f) return true;
+        return false;
     }
 
     // Density, residual and lambda of every particle; returns the sum of residuals.
