@@ -25,8 +25,9 @@ from fluidcore.physics import (
     sim_step,
     wind_force,
 )
-from fluidcore.physics import fused
-from fluidcore.physics.neighbours import neighbours_torch
+from fluidcore.physics import coupling, forces, fused
+from fluidcore.physics import step as step_module
+from fluidcore.physics.neighbours import cell_table, neighbours_torch
 from fluidcore.physics.solver import residual, solve_torch
 from fluidcore.physics.source import emit
 
@@ -82,6 +83,25 @@ def test_neighbour_list_matches_brute_force(builder: str) -> None:
     assert list_pairs(nl) == brute_force_pairs(p, h)
     i, _ = nl.pairs()
     assert bool((i[1:] >= i[:-1]).all()), "rows must be grouped by particle"
+
+
+def test_grid_holds_occupied_cells_only() -> None:
+    p = torch.tensor([[0.0, 0.0, 0.0], [1.0e4, 0.0, 0.0], [1.0e4, 0.001, 0.0]])
+    table = cell_table(p, 0.02)
+    assert table.keys.shape[0] == 2  # two occupied cells, not the 5e5 cells between them
+
+
+def test_unused_features_cost_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    def forbidden(*args, **kwargs):
+        raise AssertionError("a feature the scene does not use was evaluated")
+
+    for module, name in ((coupling, "push_out"), (coupling, "slide"), (forces, "xsph"),
+                         (forces, "vorticity_confinement")):
+        monkeypatch.setattr(module, name, forbidden)
+    monkeypatch.setattr(step_module, "external_force", forbidden)
+    sim = plume_simulator("auto")
+    state = sim.new_state()
+    assert sim.step(state).n_alive > 0
 
 
 # -- solver --------------------------------------------------------------------------------

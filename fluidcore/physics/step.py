@@ -92,7 +92,9 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
             velocities = forces.xsph(velocities, p, i, j, config)
         if config.vorticity > 0.0:
             velocities = forces.vorticity_confinement(velocities, p, i, j, config)
-    velocities = cap_length(coupling.slide(velocities, contacts), config.speed_limit)
+    if contacts:
+        velocities = coupling.slide(velocities, contacts)
+    velocities = cap_length(velocities, config.speed_limit)
     return Advanced(p, velocities, density, solution.iterations)
 
 
