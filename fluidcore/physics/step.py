@@ -26,7 +26,7 @@ from fluidcore.physics import coupling, forces, fused
 from fluidcore.physics.checks import points
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Sphere
 from fluidcore.physics.forces import ForceField
-from fluidcore.physics.neighbours import NeighbourList, neighbours_torch
+from fluidcore.physics.neighbours import NeighbourList, cell_table, neighbours_torch
 from fluidcore.physics.solver import solve_torch
 from fluidcore.physics.sph import density as sph_density
 
@@ -66,16 +66,38 @@ def external_force(force: ForceField, positions: Tensor, time: float) -> Tensor:
 
 def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: ForceField | None = None,
             spheres: Sequence[Sphere] = (), fast: bool = False) -> Advanced:
-    """Advance particles x, v (N, 3) by one step of config.dt (differentiable when fast=False)."""
+    """Advance particles x, v (N, 3) by one step of config.dt (differentiable when fast=False).
+
+    The fused path works on the particles sorted by grid cell: neighbours are then close in
+    memory, which makes every solver pass cache-friendly (callers' particle order is arbitrary,
+    e.g. a state's slot order). The external force is evaluated before sorting, in the caller's
+    order, so a field may index its particles. Everything after is independent of the order up to
+    float rounding, except the fixed separating directions of exactly coincident particles
+    (any antisymmetric choice is as valid; see sph.index_directions).
+    """
+    p = x + config.dt * cap_length(v + config.dt * acceleration(x, config, time, force), config.speed_limit)
+    if not fast:
+        return correct(x, p, config, time=time, spheres=spheres, fast=False)
+    order = cell_table(p, config.h).order
+    out = correct(x[order], p[order], config, time=time, spheres=spheres, fast=True)
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.arange(order.shape[0], device=order.device)
+    return Advanced(out.positions[inverse], out.velocities[inverse], out.density[inverse], out.iterations)
+
+
+def acceleration(x: Tensor, config: PBFConfig, time: float, force: ForceField | None) -> Tensor:
+    """Buoyancy plus the external force field, if any: (3,) or (N, 3), world units / s^2."""
+    body = x.new_tensor(config.body_acceleration)
+    return body if force is None else body + external_force(force, x, time)
+
+
+def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, spheres: Sequence[Sphere],
+            fast: bool) -> Advanced:
+    """Steps 2-6 of the module docstring: from predicted positions p to the step's result."""
     dt = config.dt
-    acceleration = x.new_tensor(config.body_acceleration)
-    if force is not None:
-        acceleration = acceleration + external_force(force, x, time)
-    p = x + dt * cap_length(v + dt * acceleration, config.speed_limit)
     contacts: list[coupling.Contact] = []
     if spheres:
         p, contacts = coupling.push_out(p, spheres, time + dt)
-
     neighbours: NeighbourList = fused.neighbours_fused(p, config.h) if fast else neighbours_torch(p, config.h)
     solution = (fused.solve_fused if fast else solve_torch)(p, neighbours, config)
     p, density = solution.positions, solution.density
