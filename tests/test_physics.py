@@ -233,6 +233,39 @@ def test_interpolated_velocity_reproduces_a_uniform_flow() -> None:
     assert field[20].tolist() == [0.0, 0.0, 0.0]
 
 
+@needs_fused
+def test_fused_interpolation_agrees_with_torch() -> None:
+    h = 2 * CFG.h
+    p = torch.cat([random_block(3000, 10.0, CFG.h), torch.full((2, 3), 5.0)])
+    u = torch.randn(p.shape[0], 3, generator=torch.Generator().manual_seed(4))
+    side = float(p[:3000].max())
+    g = torch.Generator().manual_seed(5)
+    query = torch.cat([torch.rand(700, 3, generator=g) * (side + 2 * h) - h,  # inside, on the edges and beyond
+                       p[:50], torch.tensor([[5.0 + 0.5 * h, 5.0, 5.0], [-1.0e5, 3.0, 0.0]])])
+    reference = interpolate_velocity(query, p, u, h, backend="torch")
+    fast = interpolate_velocity(query, p, u, h, backend="fused")
+    torch.testing.assert_close(fast, reference, atol=1e-5, rtol=1e-4)
+    assert fast[-1].tolist() == [0.0, 0.0, 0.0] and bool((fast[-2] != 0).any())
+    assert int((reference.abs().sum(1) == 0).sum()) > 0  # some queries had no particle within h
+
+
+@needs_fused
+def test_interpolation_uses_the_fused_kernel_only_without_gradients(monkeypatch: pytest.MonkeyPatch) -> None:
+    calls = []
+    original = fused.interpolate_fused
+    monkeypatch.setattr(fused, "interpolate_fused", lambda *a: calls.append(1) or original(*a))
+    p = random_block(300, 10.0, CFG.h)
+    u = torch.randn(300, 3, generator=torch.Generator().manual_seed(6)).requires_grad_(True)
+    field = interpolate_velocity(p[:40], p, u, CFG.h)
+    assert calls == [] and field.requires_grad
+    field.sum().backward()
+    assert u.grad is not None and float(u.grad.abs().sum()) > 0
+    with torch.no_grad():
+        again = interpolate_velocity(p[:40], p, u, CFG.h)
+    assert calls == [1]
+    torch.testing.assert_close(again, field.detach(), atol=1e-5, rtol=1e-4)
+
+
 # -- coupling, seeding, open domain ------------------------------------------------------
 
 def test_sphere_pushes_particles_to_its_surface_and_removes_normal_velocity() -> None:

@@ -28,11 +28,10 @@ struct Range {
     int64_t begin, end;
 };
 
-// Particle ranges of the occupied cells around cell `m`, one per (dx, dy) column: cells
-// (x, y, z - 1), (x, y, z), (x, y, z + 1) have consecutive keys, so their particles are contiguous
-// in cell order and one binary search finds all three.
-int neighbour_columns(const int64_t* keys, const int64_t* start, int64_t n_cells, int64_t m, Range* out) {
-    const int64_t key = keys[m];
+// Particle ranges of the occupied cells around the cell with key `key` (occupied or not), one
+// per (dx, dy) column: cells (x, y, z - 1), (x, y, z), (x, y, z + 1) have consecutive keys, so
+// their particles are contiguous in cell order and one binary search finds all three.
+int neighbour_columns(const int64_t* keys, const int64_t* start, int64_t n_cells, int64_t key, Range* out) {
     const int64_t c[3] = {key >> (2 * kAxisBits), (key >> kAxisBits) & kAxisMask, key & kAxisMask};
     const int64_t z_lo = std::max<int64_t>(c[2] - 1, 0), z_hi = std::min<int64_t>(c[2] + 1, kAxisMask);
     const int64_t* end = keys + n_cells;
@@ -265,7 +264,7 @@ int64_t pbf_count_neighbours(const float* sorted, float h, const int64_t* keys, 
 #pragma omp parallel for schedule(dynamic, 64) num_threads(threads) reduction(+ : total)
     for (int64_t m = 0; m < n_cells; ++m) {
         Range ranges[9];
-        const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
+        const int n_ranges = neighbour_columns(keys, start, n_cells, keys[m], ranges);
         for (int64_t a = start[m]; a < start[m + 1]; ++a) {
             const int64_t count = count_within(sorted, h2, a, ranges, n_ranges);
             counts[order[a]] = count;
@@ -287,7 +286,7 @@ void pbf_fill_neighbours(const float* sorted, float h, const int64_t* keys, cons
 #pragma omp for schedule(dynamic, 64)
         for (int64_t m = 0; m < n_cells; ++m) {
             Range ranges[9];
-            const int n_ranges = neighbour_columns(keys, start, n_cells, m, ranges);
+            const int n_ranges = neighbour_columns(keys, start, n_cells, keys[m], ranges);
             int64_t candidates = 0;
             for (int r = 0; r < n_ranges; ++r) candidates += ranges[r].end - ranges[r].begin;
             scratch.resize(candidates);
@@ -320,6 +319,35 @@ void pbf_density(const float* pos, int64_t n, float h, const int64_t* offsets, c
             rho += poly6((dx * dx + dy * dy + dz * dz) * inv_h2);
         }
         density[i] = rho;
+    }
+}
+
+// Shepard (normalised Poly6) average of point values at query points: out[q] = sum_p W v_p / sum_p W
+// over the points within h of query q, 0 where there is none. Points are given in cell order
+// (`sorted_points`, `sorted_values`: slot a of the cell table); `query_keys` are the cells of the
+// queries in the same grid, clamped into it, so a far query still gets exact distances.
+void pbf_interpolate(const float* query, const int64_t* query_keys, int64_t n_query, const float* sorted_points,
+                     const float* sorted_values, float h, const int64_t* keys, const int64_t* start, int64_t n_cells,
+                     float* out, int threads) {
+    const float inv_h2 = 1.0f / (h * h);
+#pragma omp parallel for schedule(dynamic, 64) num_threads(threads)
+    for (int64_t q = 0; q < n_query; ++q) {
+        Range ranges[9];
+        const int n_ranges = neighbour_columns(keys, start, n_cells, query_keys[q], ranges);
+        const float xq = query[3 * q], yq = query[3 * q + 1], zq = query[3 * q + 2];
+        float total = 0.0f, vx = 0.0f, vy = 0.0f, vz = 0.0f;
+        for (int r = 0; r < n_ranges; ++r) {
+#pragma omp simd reduction(+ : total, vx, vy, vz)
+            for (int64_t b = ranges[r].begin; b < ranges[r].end; ++b) {
+                const float dx = xq - sorted_points[3 * b], dy = yq - sorted_points[3 * b + 1],
+                            dz = zq - sorted_points[3 * b + 2];
+                const float w = poly6((dx * dx + dy * dy + dz * dz) * inv_h2);
+                total += w;
+                vx += w * sorted_values[3 * b], vy += w * sorted_values[3 * b + 1], vz += w * sorted_values[3 * b + 2];
+            }
+        }
+        const float inv = 1.0f / std::max(total, 1.0e-12f);
+        out[3 * q] = vx * inv, out[3 * q + 1] = vy * inv, out[3 * q + 2] = vz * inv;
     }
 }
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fluidcore.physics import checks, sph
+from fluidcore.physics import checks, fused, sph
 from fluidcore.physics.config import PBFConfig, PhysicsInputError
 from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import neighbour_pairs
@@ -31,7 +31,7 @@ def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: Fo
     positions = checks.points(positions, "positions")
     velocities = checks.points(velocities, "velocities", positions.shape[0])
     out = advance(positions, velocities, config, time=float(time), force=force,
-                  fast=use_fused(backend, positions) and not velocities.requires_grad)
+                  fast=use_fused(backend, positions, velocities))
     return checks.finite_result(out.positions, "sim_step positions"), checks.finite_result(out.velocities, "sim_step velocities")
 
 
@@ -53,17 +53,22 @@ def incompressibility_loss(positions: Tensor, config: PBFConfig) -> Tensor:
     return (r * r).mean() if r.numel() else r.sum()
 
 
-def interpolate_velocity(query: Tensor, positions: Tensor, velocities: Tensor, h: float) -> Tensor:
+def interpolate_velocity(query: Tensor, positions: Tensor, velocities: Tensor, h: float,
+                         backend: str = "auto") -> Tensor:
     """Velocity at query points (Q, 3): Poly6-weighted average of particle velocities within h.
 
     A Shepard (normalised) average, so a uniform flow is reproduced exactly; a query with no
-    particle within h gets zero velocity.
+    particle within h gets zero velocity. backend="auto" uses the fused CPU kernel when no
+    gradient is needed (it never materialises the query-particle pairs), the torch reference
+    (differentiable, any device) otherwise.
     """
     query = checks.points(query, "query")
     positions = checks.points(positions, "positions")
     velocities = checks.points(velocities, "velocities", positions.shape[0])
     if not (isinstance(h, (int, float)) and h > 0 and h < float("inf")):
         raise PhysicsInputError(f"h must be a positive finite number, got {h!r}")
+    if use_fused(backend, query, positions, velocities):
+        return checks.finite_result(fused.interpolate_fused(query, positions, velocities, float(h)), "interpolated velocity")
     qi, pj = neighbour_pairs(query, positions, float(h))
     r = query.index_select(0, qi) - positions.index_select(0, pj)
     w = poly6((r * r).sum(1) / (h * h))

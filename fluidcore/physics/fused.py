@@ -5,6 +5,7 @@ simulation without gradients on CPU, where it is several times faster than eager
 from __future__ import annotations
 
 import ctypes
+import os
 from functools import lru_cache
 
 import torch
@@ -12,7 +13,7 @@ from torch import Tensor
 
 from fluidcore import kernels
 from fluidcore.physics.config import PBFConfig
-from fluidcore.physics.neighbours import NeighbourList, cell_table
+from fluidcore.physics.neighbours import NeighbourList, cell_coords, cell_table, encode
 from fluidcore.physics.solver import Solution
 
 _i64, _f32, _int, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_int, ctypes.c_void_p
@@ -20,7 +21,13 @@ _i64, _f32, _int, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_int, ctypes.c_
 
 @lru_cache(maxsize=None)
 def library() -> ctypes.CDLL | None:
-    """The compiled kernel with its signatures declared, or None when it cannot be built."""
+    """The compiled kernel with its signatures declared, or None when it cannot be built.
+
+    OpenMP threads sleep at barriers instead of spinning (unless the environment says
+    otherwise): the solver meets ~40 barriers per step, and on a machine shared with other
+    processes a spinning thread burns the core its partner needs, halving throughput.
+    """
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = kernels.load("pbf")
     if lib is None:
         return None
@@ -32,6 +39,8 @@ def library() -> ctypes.CDLL | None:
     lib.pbf_density.restype = None
     lib.pbf_solve.argtypes = [_ptr, _i64, _ptr, _ptr, _f32, _f32, _f32, _f32, _int, _f32, _f32, _int, _f32, _ptr, _int]
     lib.pbf_solve.restype = _int
+    lib.pbf_interpolate.argtypes = [_ptr, _ptr, _i64, _ptr, _ptr, _f32, _ptr, _ptr, _i64, _ptr, _int]
+    lib.pbf_interpolate.restype = None
     return lib
 
 
@@ -92,3 +101,20 @@ def solve_fused(positions: Tensor, neighbours: NeighbourList, config: PBFConfig)
         config.iteration_cap, config.tolerance or 0.0, _p(density), torch.get_num_threads(),
     )
     return Solution(pos, density, iterations)
+
+
+def interpolate_fused(query: Tensor, points: Tensor, values: Tensor, h: float) -> Tensor:
+    """Shepard Poly6 average of `values` (N, 3) at `query` (Q, 3), as `functional.interpolate_velocity`."""
+    query, points = query.detach().contiguous(), points.detach().contiguous()
+    out = torch.zeros_like(query)
+    if query.shape[0] == 0 or points.shape[0] == 0:
+        return out
+    table = cell_table(points, h)
+    query_keys = encode(cell_coords(query, table.origin, h)).contiguous()
+    sorted_points = points.index_select(0, table.order).contiguous()
+    sorted_values = values.detach().index_select(0, table.order).contiguous()
+    _lib().pbf_interpolate(
+        _p(query), _p(query_keys), query.shape[0], _p(sorted_points), _p(sorted_values), h, _p(table.keys),
+        _p(table.start), table.keys.shape[0], _p(out), torch.get_num_threads(),
+    )
+    return out

@@ -43,16 +43,18 @@ class Advanced:
     iterations: int
 
 
-def use_fused(backend: str, positions: Tensor) -> bool:
-    """Resolve a backend name: the fused kernel runs on CPU without gradients, torch everywhere."""
+def use_fused(backend: str, *tensors: Tensor) -> bool:
+    """Resolve a backend name for these inputs: the fused kernel runs on CPU when none of them
+    needs a gradient, torch everywhere."""
     if backend not in BACKENDS:
         raise PhysicsInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
-    differentiable = torch.is_grad_enabled() and positions.requires_grad
+    differentiable = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    on_cpu = all(t.device.type == "cpu" for t in tensors)
     if backend == "fused":
-        if positions.device.type != "cpu" or differentiable or not fused.available():
+        if not on_cpu or differentiable or not fused.available():
             raise PhysicsInputError("backend='fused' needs CPU tensors without gradients and a C++ compiler")
         return True
-    return backend == "auto" and positions.device.type == "cpu" and not differentiable and fused.available()
+    return backend == "auto" and on_cpu and not differentiable and fused.available()
 
 
 def external_force(force: ForceField, positions: Tensor, time: float) -> Tensor:
