@@ -4,7 +4,8 @@
 
 Each result is one point: x = fitting seconds per frame, y = mean held-out PSNR, labelled with
 its iterations per frame and render resolution; the blank-frame PSNR of the same frames is
-drawn as a reference line.
+drawn as a reference line, with the published HyFluid and PINF numbers on the same views and
+frames when the results carry them.
 """
 
 from __future__ import annotations
@@ -39,6 +40,12 @@ def command(
         ax.annotate(_label(result), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=7)
     blank = sum(r["mean_held_out"]["blank_psnr"] for r in loaded) / len(loaded)
     ax.axhline(blank, color="grey", linestyle="--", linewidth=1, label=f"blank frame ({blank:.2f} dB)")
+    anchors = loaded[0].get("anchors_same_frames") or {}
+    for method, color in (("hyfluid", "tab:orange"), ("pinf", "tab:green")):
+        if method in anchors:
+            value = anchors[method]["psnr"]
+            ax.axhline(value, color=color, linestyle=":", linewidth=1, label=f"{method}, same frames ({value:.2f} dB)")
+    ax.margins(x=0.3)
     ax.set_xlabel("fitting seconds per frame (2-core CPU)")
     ax.set_ylabel("mean held-out PSNR (dB)")
     ax.set_title("Reconstruction: speed vs novel-view error", fontsize=10)

@@ -41,7 +41,6 @@ from fluidcore.runs import FrameState, Run, Scene
 
 STABILIZATION_STEPS = 20
 KERNEL_RADIUS_SIM = 2.0  # the release's kernel radius (0.02 world = 2 simulation units)
-INITIAL_OPACITY = 0.3
 FrameCallback = Callable[[int, dict[str, float]], None]
 
 
@@ -266,7 +265,7 @@ class Reconstructor:
             q.visual_per_physical,
             spread=0.25 * config.h,
             scale=0.35 * config.h,
-            opacity=INITIAL_OPACITY,
+            opacity=q.initial_opacity,
             color=torch.from_numpy(rec.smoke_color).to(self.device),
             generator=generator,
         )

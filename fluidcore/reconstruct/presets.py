@@ -56,6 +56,7 @@ class Quality:
     next_step_incompressibility: bool
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
     symmetry_weight: float  # their total loss weight relative to the input view
+    initial_opacity: float = 0.3  # of a newborn visual Gaussian
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02
