@@ -6,8 +6,10 @@
                     re-simulation task: how much of the reconstruction the physics alone explains)
 
 Every new frame costs one simulator step, with the parent's scene and physics except that the
-source seeds no faster than its inlet carries particles away at rest density (`inlet_source`;
-the run's manifest records the rate used). The visual Gaussians ride on the physical velocity
+source seeds no faster than its inlet carries particles away at rest density (`inlet_source`)
+and, when the parent is a reconstruction, the buoyancy is scaled to the one under which physics
+best replays the reconstruction's last frames (`calibrate_buoyancy`, a one-off cost of a few
+dozen steps); the run's manifest records both. The visual Gaussians ride on the physical velocity
 field exactly as during reconstruction (`fluidcore.reconstruct.physical.visual_means`:
 kernel-interpolated displacement, forward Euler), so a prediction continues the reconstruction
 without a visual jump; Gaussians are born with every new physical particle and take the
@@ -52,6 +54,8 @@ TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newbo
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
 DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for parents that record none
 NO_REFINER = "skipped: no video model weights"
+CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
+BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)  # candidate multiples of the preset buoyancy
 
 
 class PredictError(ValueError):
@@ -176,6 +180,49 @@ def inlet_source(source: Source, config: PBFConfig) -> Source:
     return replace(source, rate=max(1, round(capacity)))
 
 
+def calibrate_buoyancy(
+    parent: Run, scene: Scene, start_frame: int, device: str, scales: Sequence[float] = BUOYANCY_SCALES
+) -> tuple[float, dict[str, float]]:
+    """The multiple of the scene's buoyancy under which physics best replays the reconstruction's
+    last `CALIBRATION_FRAMES` frames (system identification on the observed window only).
+
+    The preset alpha is a property of a dataset, not of this plume: a reconstruction whose column
+    is denser than rest density feels no drag inside it (drag scales with 1 - rho/rho0), so with
+    the preset buoyancy a free simulation accelerates the column well beyond the speed the video
+    showed. Each candidate re-simulates the window from the reconstructed state at its start and
+    is scored by the mean squared distance, over every frame of the window, between simulated and
+    reconstructed positions of the particles alive in both. Returns (scale, error per scale).
+    """
+    frames = [t for t in parent.frames() if start_frame - CALIBRATION_FRAMES <= t <= start_frame]
+    if len(frames) < 2 or frames != list(range(frames[0], start_frame + 1)):
+        return 1.0, {}
+    targets = [parent.read_frame(t) for t in frames[1:]]
+    begin, _ = _load_state(parent.read_frame(frames[0]), device)
+    config, box, source = scene.simulator_parts()
+    errors: dict[str, float] = {}
+    for scale in scales:
+        simulator = Simulator(replace(config, alpha=config.alpha * scale), box, source, device=device)
+        state, total = begin.clone(), 0.0
+        for target in targets:
+            simulator.step(state)
+            total += _tracking_error(state, begin.alive, target)
+        errors[f"{scale:g}"] = total / len(targets)
+    best = min(scales, key=lambda scale: errors[f"{scale:g}"])
+    return float(best), errors
+
+
+def _tracking_error(state: ParticleState, tracked: torch.Tensor, target: FrameState) -> float:
+    """Mean squared distance between simulated and reconstructed positions of the particles that
+    were alive at the window's start and still are in both."""
+    n = min(len(tracked), len(target.alive), state.capacity)
+    alive = torch.from_numpy(np.ascontiguousarray(target.alive[:n])).to(tracked.device)
+    both = tracked[:n] & state.alive[:n] & alive
+    if not bool(both.any()):
+        return 0.0
+    reference = torch.from_numpy(np.ascontiguousarray(target.positions[:n])).to(state.positions)
+    return float(((state.positions[:n][both] - reference[both]).mean(dim=0) ** 2).sum())
+
+
 def source_template(visual: Visual, center: Sequence[float], size: int = TEMPLATE_SIZE) -> Appearance:
     """The appearance of the `size` Gaussians nearest the source centre: what newborn smoke looks like."""
     distance = torch.linalg.vector_norm(visual.means - visual.means.new_tensor(center), dim=1)
@@ -296,6 +343,10 @@ def _write(
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
     its frame `start_frame` (written unchanged first when it lies inside the range)."""
     scene = _continued_scene(parent.scene)
+    buoyancy_scale, calibration = 1.0, {}
+    if kind != "resimulate" and parent.kind == "reconstruct":
+        buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, start_frame, device)
+        scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
     n_frames = frame_range[1] - frame_range[0]
     params.check_run_scene(scene.to_json(), n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
@@ -313,6 +364,8 @@ def _write(
             "start_frame": start_frame,
             "visual": visual_settings,
             "parent_source_rate": parent.scene.source["rate"],
+            "buoyancy_scale": buoyancy_scale,
+            "buoyancy_calibration_error": calibration,
             "wind": None if params.wind is None else params.wind.model_dump(),
             "ball": None if params.ball is None else params.ball.model_dump(),
         },

@@ -81,11 +81,16 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
 
     monkeypatch.setattr(Simulator, "step", counting_step)
     monkeypatch.setattr(render_module, "render", counting_render)
+    reconstruction = Run.open(parent)
+    predict.calibrate_buoyancy(reconstruction, reconstruction.scene, reconstruction.frames()[-1], "cpu")
+    once = calls["step"]  # the one-off identification of the buoyancy, not a per-frame cost
+    assert 0 < once <= len(predict.BUOYANCY_SCALES) * predict.CALIBRATION_FRAMES
+    calls["step"] = 0
     run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
-    assert calls == {"step": FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
+    assert calls == {"step": once + FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
     for camera in run.cameras().values():
         pipeline.render_frames(run, camera)
-    assert calls == {"step": FRAMES, "render": FRAMES * len(run.cameras())}
+    assert calls == {"step": once + FRAMES, "render": FRAMES * len(run.cameras())}
 
 
 def test_prediction_without_forces_is_deterministic(parent: Path, tmp_path: Path) -> None:
@@ -254,3 +259,25 @@ def test_a_prediction_records_the_inlet_rate_it_used(tmp_path: Path) -> None:
     assert run.scene.source["rate"] == predict.inlet_source(flooded.source(), config).rate < 10 * source.rate
     continued = Run.open(predict.run_predict(run.path, tmp_path / "again", frames=1))
     assert continued.scene.source["rate"] == run.scene.source["rate"]
+
+
+@pytest.mark.parametrize("preset_factor", [1.0, 2.0, 4.0])
+def test_the_buoyancy_is_identified_from_the_reconstructed_motion(tmp_path: Path, preset_factor: float) -> None:
+    # A 'reconstruction' that is pure physics under the true alpha, continued under a preset that
+    # overstates the buoyancy: replaying its last frames finds the factor that undoes the preset.
+    parent = Run.open(plume_run(tmp_path / "parent", frames=6, warmup=20))
+    truth = parent.scene
+    preset = replace(truth, physics={**truth.physics, "alpha": truth.physics["alpha"] * preset_factor})
+    scale, errors = predict.calibrate_buoyancy(parent, preset, parent.frames()[-1], "cpu")
+    assert scale == 1.0 / preset_factor
+    assert errors[f"{scale:g}"] < min(e for k, e in errors.items() if k != f"{scale:g}")
+
+
+def test_a_prediction_from_a_reconstruction_records_its_buoyancy_calibration(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=2))
+    settings = run.manifest["settings"]
+    assert settings["buoyancy_scale"] == 1.0  # the test plume is pure physics under its own alpha
+    assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]
+    assert set(settings["buoyancy_calibration_error"]) == {f"{s:g}" for s in predict.BUOYANCY_SCALES}
+    chained = Run.open(predict.run_predict(run.path, tmp_path / "again", frames=1))
+    assert chained.manifest["settings"]["buoyancy_calibration_error"] == {}  # physics is not re-identified on itself
