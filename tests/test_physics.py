@@ -12,6 +12,7 @@ import torch
 from fluidcore.physics import (
     PRESETS,
     Box,
+    NeighbourCache,
     ParticleState,
     PBFConfig,
     PhysicsInputError,
@@ -368,6 +369,35 @@ def test_density_residual_is_one_sided() -> None:
     assert float(density_residual(sparse, CFG).max()) == 0.0
     dense = compressed_block(500)
     assert float(density_residual(dense, CFG).mean()) > 0.0
+
+
+def test_neighbour_cache_gives_fresh_results_and_is_reused_until_stale() -> None:
+    config = replace(CFG, iterations=3)
+    p0 = compressed_block(600)
+    v = 0.05 * torch.randn(600, 3, generator=torch.Generator().manual_seed(7))
+    step_cache, loss_cache = NeighbourCache(config.h), NeighbourCache(config.h)
+    drift = torch.randn(600, 3, generator=torch.Generator().manual_seed(8))
+    drift = drift / drift.norm(dim=1, keepdim=True)  # unit length: particle k moves 0.02 h per call
+    for k in range(6):  # an optimiser's iterations, then a jump past skin / 2 = 0.1 h
+        p = (p0 + (0.02 * k + (0.3 if k == 5 else 0.0)) * config.h * drift).requires_grad_(True)
+        fresh, fresh_v = sim_step(p, v, config)
+        fresh_loss = incompressibility_loss(p, config)
+        (grad_fresh,) = torch.autograd.grad(fresh.square().sum() + fresh_loss, p)
+        cached, cached_v = sim_step(p, v, config, neighbour_cache=step_cache)
+        cached_loss = incompressibility_loss(p, config, neighbour_cache=loss_cache)
+        (grad_cached,) = torch.autograd.grad(cached.square().sum() + cached_loss, p)
+        torch.testing.assert_close(cached, fresh, atol=1e-5 * config.h, rtol=0)
+        torch.testing.assert_close(cached_v, fresh_v, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(cached_loss, fresh_loss, atol=1e-7, rtol=1e-5)
+        torch.testing.assert_close(grad_cached, grad_fresh, atol=1e-4, rtol=1e-4)
+    assert step_cache.builds == 2 and loss_cache.builds == 2  # reused for k = 1..4, rebuilt after the jump
+
+
+def test_neighbour_cache_rejects_another_kernel_radius() -> None:
+    with pytest.raises(PhysicsInputError, match="neighbour_cache was made for h"):
+        sim_step(torch.zeros(2, 3), torch.zeros(2, 3), CFG, neighbour_cache=NeighbourCache(2 * CFG.h))
+    with pytest.raises(PhysicsInputError, match="skin"):
+        NeighbourCache(CFG.h, skin=-1.0)
 
 
 # -- input validation ---------------------------------------------------------------------

@@ -21,9 +21,10 @@ from fluidcore.physics.functional import (
 )
 from fluidcore.physics.simulator import Simulator, StepStats
 from fluidcore.physics.state import ParticleState
+from fluidcore.physics.verlet import NeighbourCache
 
 __all__ = [
-    "PRESETS", "Box", "ForceField", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "PRESETS", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
     "sim_step", "wind_force",
 ]

@@ -17,21 +17,26 @@ from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.solver import residual
 from fluidcore.physics.sph import poly6
-from fluidcore.physics.step import advance, use_fused
+from fluidcore.physics.step import advance, neighbour_list, use_fused
+from fluidcore.physics.verlet import NeighbourCache
 
 
 def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: ForceField | None = None,
-             time: float = 0.0, backend: str = "auto") -> tuple[Tensor, Tensor]:
+             time: float = 0.0, backend: str = "auto",
+             neighbour_cache: NeighbourCache | None = None) -> tuple[Tensor, Tensor]:
     """One PBF step of the given particles (no source, no box, no spheres): new (positions, velocities).
 
     Differentiable w.r.t. positions and velocities; with backend="auto" the fused CPU kernel
-    is used only when no gradient is needed.
+    is used only when no gradient is needed. An optimiser calling this many times on slowly
+    moving particles may pass `neighbour_cache=NeighbourCache(config.h)` (one per sequence of
+    calls, see `verlet`): the neighbour list of the predicted positions is then reused while
+    it stays valid, with the same pairs, so results agree with a fresh list up to float rounding.
     """
     _check_config(config)
     positions = checks.points(positions, "positions")
     velocities = checks.points(velocities, "velocities", positions.shape[0])
     out = advance(positions, velocities, config, time=float(time), force=force,
-                  fast=use_fused(backend, positions, velocities))
+                  fast=use_fused(backend, positions, velocities), cache=neighbour_cache)
     return checks.finite_result(out.positions, "sim_step positions"), checks.finite_result(out.velocities, "sim_step velocities")
 
 
@@ -41,15 +46,22 @@ def density(positions: Tensor, h: float) -> Tensor:
     return sph.density(positions, *neighbour_pairs(positions, positions, h, exclude_self=True), h)
 
 
-def density_residual(positions: Tensor, config: PBFConfig) -> Tensor:
-    """Per-particle one-sided residual max(0, rho/rho0 - 1), differentiable w.r.t. positions."""
+def density_residual(positions: Tensor, config: PBFConfig, neighbour_cache: NeighbourCache | None = None) -> Tensor:
+    """Per-particle one-sided residual max(0, rho/rho0 - 1), differentiable w.r.t. positions.
+
+    `neighbour_cache` (optional, for repeated calls on slowly moving positions): see `sim_step`."""
     _check_config(config)
-    return residual(density(positions, config.h), config.rho0)
+    if neighbour_cache is None:
+        return residual(density(positions, config.h), config.rho0)
+    positions = checks.points(positions, "positions")
+    pairs = neighbour_list(positions, config.h, False, neighbour_cache).pairs()
+    return residual(sph.density(positions, *pairs, config.h), config.rho0)
 
 
-def incompressibility_loss(positions: Tensor, config: PBFConfig) -> Tensor:
+def incompressibility_loss(positions: Tensor, config: PBFConfig,
+                           neighbour_cache: NeighbourCache | None = None) -> Tensor:
     """L_incomp: mean squared one-sided density residual (0 for no particles), a scalar."""
-    r = density_residual(positions, config)
+    r = density_residual(positions, config, neighbour_cache)
     return (r * r).mean() if r.numel() else r.sum()
 
 

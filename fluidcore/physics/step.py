@@ -29,6 +29,7 @@ from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import NeighbourList, cell_table, neighbours_torch
 from fluidcore.physics.solver import solve_torch
 from fluidcore.physics.sph import density as sph_density
+from fluidcore.physics.verlet import NeighbourCache
 
 BACKENDS = ("auto", "torch", "fused")
 
@@ -67,7 +68,7 @@ def external_force(force: ForceField, positions: Tensor, time: float) -> Tensor:
 
 
 def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: ForceField | None = None,
-            spheres: Sequence[Sphere] = (), fast: bool = False) -> Advanced:
+            spheres: Sequence[Sphere] = (), fast: bool = False, cache: NeighbourCache | None = None) -> Advanced:
     """Advance particles x, v (N, 3) by one step of config.dt (differentiable when fast=False).
 
     The fused path works on the particles sorted by grid cell: neighbours are then close in
@@ -75,11 +76,12 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
     e.g. a state's slot order). The external force is evaluated before sorting, in the caller's
     order, so a field may index its particles. Everything after is independent of the order up to
     float rounding, except the fixed separating directions of exactly coincident particles
-    (any antisymmetric choice is as valid; see sph.index_directions).
+    (any antisymmetric choice is as valid; see sph.index_directions). With a neighbour `cache`
+    (whose lists are in the caller's order) nothing is sorted.
     """
     p = x + config.dt * cap_length(v + config.dt * acceleration(x, config, time, force), config.speed_limit)
-    if not fast:
-        return correct(x, p, config, time=time, spheres=spheres, fast=False)
+    if not fast or cache is not None:
+        return correct(x, p, config, time=time, spheres=spheres, fast=fast, cache=cache)
     order = cell_table(p, config.h).order
     out = correct(x[order], p[order], config, time=time, spheres=spheres, fast=True)
     inverse = torch.empty_like(order)
@@ -94,13 +96,13 @@ def acceleration(x: Tensor, config: PBFConfig, time: float, force: ForceField | 
 
 
 def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, spheres: Sequence[Sphere],
-            fast: bool) -> Advanced:
+            fast: bool, cache: NeighbourCache | None = None) -> Advanced:
     """Steps 2-6 of the module docstring: from predicted positions p to the step's result."""
     dt = config.dt
     contacts: list[coupling.Contact] = []
     if spheres:
         p, contacts = coupling.push_out(p, spheres, time + dt)
-    neighbours: NeighbourList = fused.neighbours_fused(p, config.h) if fast else neighbours_torch(p, config.h)
+    neighbours = neighbour_list(p, config.h, fast, cache)
     solution = (fused.solve_fused if fast else solve_torch)(p, neighbours, config)
     p, density = solution.positions, solution.density
 
@@ -120,6 +122,15 @@ def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, spheres: Se
         velocities = coupling.slide(velocities, contacts)
     velocities = cap_length(velocities, config.speed_limit)
     return Advanced(p, velocities, density, solution.iterations)
+
+
+def neighbour_list(p: Tensor, h: float, fast: bool, cache: NeighbourCache | None) -> NeighbourList:
+    """Pairs of p closer than h: from the cache when one is given, else built (fused or torch)."""
+    if cache is not None:
+        if cache.h != h:
+            raise PhysicsInputError(f"neighbour_cache was made for h={cache.h}, the config has h={h}")
+        return cache.neighbours(p)
+    return fused.neighbours_fused(p, h) if fast else neighbours_torch(p, h)
 
 
 def cap_length(vectors: Tensor, limit: float) -> Tensor:
