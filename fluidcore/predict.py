@@ -54,6 +54,7 @@ TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newbo
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
 DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for parents that record none
 NO_REFINER = "skipped: no video model weights"
+PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
 BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)  # candidate multiples of the preset buoyancy
 
@@ -79,6 +80,78 @@ class Ball:
     first_frame: int
 
 
+@dataclass(frozen=True)
+class HeightProfile:
+    """The mean appearance of the smoke by height in the last reconstructed frame.
+
+    Smoke thins as it rises, and the reconstruction's image fit keeps each height looking the way
+    the video does: Gaussians born dark and large at the source were lightened and shrunk by the
+    fit as they climbed. A simulation alone carries them up unchanged, so the plume darkens and
+    widens above the source frame after frame. `hold` shifts each band's mean colour and opacity
+    logit back to the profile every frame (a stationarity prior over the short horizons a
+    prediction covers), keeping each Gaussian's difference from its band's mean. Scales are left
+    to the Gaussians: holding them too made the ScalarFlow prediction worse (docs/bench_predict.md).
+    """
+
+    edges: tuple[float, ...]  # band boundaries along `up`; heights outside go to the end bands
+    up: tuple[float, float, float]
+    means: dict[str, tuple[tuple[float, ...], ...]]  # attribute -> per band, per channel
+    counts: tuple[int, ...]  # Gaussians per band; an empty band holds nothing
+
+    @classmethod
+    def observe(cls, visual: Visual, up: Sequence[float], bands: int = PROFILE_BANDS) -> HeightProfile:
+        height = visual.means @ visual.means.new_tensor(up)
+        edges = torch.linspace(float(height.min()), float(height.max()), bands + 1, dtype=torch.float64)
+        band = _band(height, edges)
+        means = {name: _band_means(value, band, bands).tolist() for name, value in _profiled(visual.appearance).items()}
+        if any(not math.isfinite(x) for rows in means.values() for row in rows for x in row):
+            raise FloatingPointError("appearance profile: a band mean is NaN or Inf")
+        counts = tuple(torch.bincount(band, minlength=bands).tolist())
+        rows = {name: tuple(tuple(row) for row in value) for name, value in means.items()}
+        return cls(tuple(edges.tolist()), (float(up[0]), float(up[1]), float(up[2])), rows, counts)
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> HeightProfile:
+        means = {k: tuple(map(tuple, v)) for k, v in data["means"].items()}
+        return cls(tuple(data["edges"]), tuple(data["up"]), means, tuple(data["counts"]))
+
+    def to_json(self) -> dict[str, Any]:
+        means = {k: [list(row) for row in v] for k, v in self.means.items()}
+        return {"edges": list(self.edges), "up": list(self.up), "means": means, "counts": list(self.counts)}
+
+    def hold(self, visual: Visual) -> Visual:
+        """`visual` with each band's mean appearance moved to the profile's."""
+        if len(visual.means) == 0:
+            return visual
+        bands = len(self.edges) - 1
+        band = _band(visual.means @ visual.means.new_tensor(self.up), torch.tensor(self.edges, dtype=torch.float64))
+        present = visual.means.new_tensor(self.counts)[band] > 0
+        held = {}
+        for name, value in _profiled(visual.appearance).items():
+            target = value.new_tensor(self.means[name])
+            shift = (target - _band_means(value, band, bands))[band]
+            held[name] = value + torch.where(present[:, None], shift, torch.zeros_like(shift))
+        a = visual.appearance
+        return Visual(visual.means, Appearance(a.log_scales, a.quats, held["opacity_logits"][:, 0], held["colors"]))
+
+
+def _profiled(appearance: Appearance) -> dict[str, torch.Tensor]:
+    """The attributes a height profile holds, each as (G, channels)."""
+    return {"colors": appearance.colors, "opacity_logits": appearance.opacity_logits[:, None]}
+
+
+def _band(height: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    inner = edges[1:-1].to(height)
+    return torch.bucketize(height, inner)
+
+
+def _band_means(value: torch.Tensor, band: torch.Tensor, bands: int) -> torch.Tensor:
+    """Mean of `value` (G, C) per band; an empty band's mean is 0 (callers never use it)."""
+    sums = value.new_zeros(bands, value.shape[1]).index_add_(0, band, value)
+    counts = torch.bincount(band, minlength=bands).clamp(min=1).to(value)
+    return sums / counts[:, None]
+
+
 class Rollout:
     """Steps a physical state and its visual Gaussians forward together, one frame per call.
 
@@ -96,6 +169,7 @@ class Rollout:
         per_physical: int,
         seed: int,
         ball: Ball | None = None,
+        profile: HeightProfile | None = None,
     ) -> None:
         if len(template) == 0 and per_physical > 0:
             raise PredictError("template: no Gaussians to copy the appearance of newborn smoke from")
@@ -105,6 +179,7 @@ class Rollout:
         self.per_physical = per_physical
         self.seed = seed
         self.ball = ball
+        self.profile = profile
         self._static_spheres = tuple(simulator.spheres)
 
     def advance(self, state: ParticleState, visual: Visual, index: int, t: int) -> Visual:
@@ -127,7 +202,8 @@ class Rollout:
         keep = _inside(means, sim.box.lo, sim.box.hi)
         if not bool(torch.isfinite(means).all()):
             raise FloatingPointError(f"visual Gaussians became NaN or Inf at frame {t}")
-        return Visual(means[keep], _select(appearance, keep))
+        moved = Visual(means[keep], _select(appearance, keep))
+        return moved if self.profile is None else self.profile.hold(moved)
 
     def _spheres(self, index: int) -> tuple[Sphere, ...]:
         if self.ball is None or index < self.ball.first_frame:
@@ -343,10 +419,14 @@ def _write(
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
     its frame `start_frame` (written unchanged first when it lies inside the range)."""
     scene = _continued_scene(parent.scene)
-    buoyancy_scale, calibration = 1.0, {}
+    start = _load_state(parent.read_frame(start_frame), device)
+    buoyancy_scale, calibration, profile = 1.0, {}, None
     if kind != "resimulate" and parent.kind == "reconstruct":
         buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, start_frame, device)
         scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
+        profile = HeightProfile.observe(start[1], scene.up)
+    elif kind != "resimulate" and parent.manifest["settings"].get("appearance_profile"):
+        profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
     params.check_run_scene(scene.to_json(), n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
@@ -366,14 +446,14 @@ def _write(
             "parent_source_rate": parent.scene.source["rate"],
             "buoyancy_scale": buoyancy_scale,
             "buoyancy_calibration_error": calibration,
+            "appearance_profile": None if profile is None else profile.to_json(),
             "wind": None if params.wind is None else params.wind.model_dump(),
             "ball": None if params.ball is None else params.ball.model_dump(),
         },
         parent=Path(parent.path).resolve(),
     )
     run.update(refinement=refinement_status())
-    start = _load_state(parent.read_frame(start_frame), device)
-    rollout = _rollout(scene, start, params, visual_settings, device)
+    rollout = _rollout(scene, start, params, visual_settings, device, profile)
     state, visual = start if run.next_frame() == frame_range[0] else _load_state(run.read_frame(run.frames()[-1]), device)
     report = progress or (lambda fraction, stage: None)
     for t in range(run.next_frame(), frame_range[1]):
@@ -396,7 +476,12 @@ def _continued_scene(scene: Scene) -> Scene:
 
 
 def _rollout(
-    scene: Scene, start: tuple[ParticleState, Visual], params: InteractionParams, visual: Mapping[str, Any], device: str
+    scene: Scene,
+    start: tuple[ParticleState, Visual],
+    params: InteractionParams,
+    visual: Mapping[str, Any],
+    device: str,
+    profile: HeightProfile | None,
 ) -> Rollout:
     """The simulator of the parent's scene with the interventions, ready to continue `start`.
 
@@ -415,6 +500,7 @@ def _rollout(
         per_physical=visual["per_physical"],
         seed=visual["seed"],
         ball=ball,
+        profile=profile,
     )
 
 
