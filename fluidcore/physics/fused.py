@@ -5,7 +5,6 @@ simulation without gradients on CPU, where it is several times faster than eager
 from __future__ import annotations
 
 import ctypes
-import os
 from functools import lru_cache
 
 import torch
@@ -21,13 +20,7 @@ _i64, _f32, _int, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_int, ctypes.c_
 
 @lru_cache(maxsize=None)
 def library() -> ctypes.CDLL | None:
-    """The compiled kernel with its signatures declared, or None when it cannot be built.
-
-    OpenMP threads sleep at barriers instead of spinning (unless the environment says
-    otherwise): the solver meets ~40 barriers per step, and on a machine shared with other
-    processes a spinning thread burns the core its partner needs, halving throughput.
-    """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    """The compiled kernel with its signatures declared, or None when it cannot be built."""
     lib = kernels.load("pbf")
     if lib is None:
         return None
