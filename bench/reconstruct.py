@@ -79,7 +79,9 @@ def command(
         if cameras_path is None:
             raise UserError(f"--scene: {scene} holds no {' or '.join(CAMERA_FILES)}")
         cameras = camera_io.load(cameras_path)
-        truths = {k: v for k, v in _pairs(gt, "--gt", scene).items()}
+        truths = _pairs(gt, "--gt", scene)
+        if any(path is None for path in truths.values()):
+            raise UserError("--gt must look like VIEW=path")
         for name, camera in cameras.items():
             if name not in truths and camera.file_path:
                 truths[name] = scene / camera.file_path
@@ -89,7 +91,7 @@ def command(
             if path is None:
                 raise UserError(f"--input-view {name}: no video (give {name}=path, or --gt {name}=path)")
             inputs[name] = path
-        scored = {name: path for name, path in truths.items() if name not in inputs and path is not None}
+        scored = {name: path for name, path in truths.items() if name not in inputs}
         if not scored:
             raise UserError("no camera besides the input views has ground truth (give --gt VIEW=path)")
         frame_range = pipeline.parse_frames(frames)
