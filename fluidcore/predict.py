@@ -56,7 +56,7 @@ DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for p
 NO_REFINER = "skipped: no video model weights"
 PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
-BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25)  # candidate multiples of the preset buoyancy
+BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)  # candidate multiples of the preset buoyancy
 
 
 class PredictError(ValueError):

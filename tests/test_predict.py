@@ -265,10 +265,10 @@ def test_a_prediction_records_the_inlet_rate_it_used(tmp_path: Path) -> None:
     assert continued.scene.source["rate"] == run.scene.source["rate"]
 
 
-@pytest.mark.parametrize("preset_factor", [1.0, 2.0, 4.0])
+@pytest.mark.parametrize("preset_factor", [0.5, 1.0, 2.0, 4.0])
 def test_the_buoyancy_is_identified_from_the_reconstructed_motion(tmp_path: Path, preset_factor: float) -> None:
-    # A 'reconstruction' that is pure physics under the true alpha, continued under a preset that
-    # overstates the buoyancy: replaying its last frames finds the factor that undoes the preset.
+    # A "reconstruction" that is pure physics under the true alpha, continued under a preset that
+    # misstates the buoyancy: replaying its last frames finds the factor that undoes the preset.
     parent = Run.open(plume_run(tmp_path / "parent", frames=6, warmup=20))
     truth = parent.scene
     preset = replace(truth, physics={**truth.physics, "alpha": truth.physics["alpha"] * preset_factor})
