@@ -67,14 +67,7 @@ def load(name: str) -> ctypes.CDLL | None:
 
     Callers fall back to their torch reference path on None, so a machine without a
     compiler is slower, never wrong.
-
-    OpenMP threads wait passively unless the environment says otherwise: a worker shares its
-    cores with the API, torch's own thread pool and other workers, and spinning threads that
-    lose their core stall every barrier (measured: the 2-thread physics step ran 2x slower with
-    spinning than with passive waiting on a loaded 2-core machine). The OpenMP runtime reads
-    this once, when the first kernel library loads it.
     """
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     try:
         return ctypes.CDLL(str(build(name)))
     except (OSError, RuntimeError) as exc:
