@@ -1,6 +1,6 @@
 """The fused C++/OpenMP CPU path (fluidcore/kernels/pbf.cpp) behind the same interfaces as the
-torch reference: neighbour lists and the density solve. Not differentiable; used for
-simulation without gradients on CPU, where it is several times faster than eager torch."""
+torch reference: neighbour lists, the density solve and velocity interpolation. Not
+differentiable; used without gradients on CPU, where it is several times faster than eager torch."""
 
 from __future__ import annotations
 
