@@ -1,8 +1,8 @@
 """Neighbour lists reused across calls while the particles stay close (a Verlet list with a skin).
 
 An optimiser calls `sim_step` and `incompressibility_loss` hundreds of times on positions that
-move a little per iteration; rebuilding the neighbour list every time is a fifth of the cost of
-a differentiable `sim_step`. A list of all pairs within h + skin of the positions X0 it was built
+move a little per iteration; rebuilding the neighbour list every time costs 10-20 % of a
+differentiable `sim_step`. A list of all pairs within h + skin of the positions X0 it was built
 from still holds every pair within h of positions X as long as no particle moved more than
 skin / 2 from X0 (two particles then approach by at most skin). Each call filters that list
 down to the pairs closer than h, with the same test as a fresh build, so the solver sees exactly
