@@ -54,7 +54,11 @@ TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newbo
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
 DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for parents that record none
 NO_REFINER = "skipped: no video model weights"
-PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
+PROFILE_BANDS = 12
+HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per frame
+# Held attributes are shifted in the space they are drawn in and kept valid there: a mean of
+# opacity logits is dominated by the few (nearly) opaque Gaussians of a band.
+HELD_RANGE = {"colors": (0.0, 1.0), "opacities": (1e-4, 1.0 - 1e-4)}  # height bands of the appearance profile newborn and rising smoke is held to
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
 BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)  # candidate multiples of the preset buoyancy
 
@@ -87,10 +91,11 @@ class HeightProfile:
     Smoke thins as it rises, and the reconstruction's image fit keeps each height looking the way
     the video does: Gaussians born dark and large at the source were lightened and shrunk by the
     fit as they climbed. A simulation alone carries them up unchanged, so the plume darkens and
-    widens above the source frame after frame. `hold` shifts each band's mean colour and opacity
-    logit back to the profile every frame (a stationarity prior over the short horizons a
-    prediction covers), keeping each Gaussian's difference from its band's mean. Scales are left
-    to the Gaussians: holding them too made the ScalarFlow prediction worse (docs/bench_predict.md).
+    widens above the source frame after frame. `hold`, once per frame, undoes HOLD_RATE of each
+    band's departure from the profile's mean colour and opacity (a stationarity prior over the
+    short horizons a prediction covers, relaxed so the handover is gradual), keeping each
+    Gaussian's difference from its band's mean. Scales are left to the Gaussians: holding them
+    too made the ScalarFlow prediction worse (docs/bench_predict.md).
     """
 
     edges: tuple[float, ...]  # band boundaries along `up`; heights outside go to the end bands
@@ -120,7 +125,7 @@ class HeightProfile:
         return {"edges": list(self.edges), "up": list(self.up), "means": means, "counts": list(self.counts)}
 
     def hold(self, visual: Visual) -> Visual:
-        """`visual` with each band's mean appearance moved to the profile's."""
+        """`visual` with each band's mean appearance moved HOLD_RATE of the way to the profile's."""
         if len(visual.means) == 0:
             return visual
         bands = len(self.edges) - 1
@@ -129,15 +134,15 @@ class HeightProfile:
         held = {}
         for name, value in _profiled(visual.appearance).items():
             target = value.new_tensor(self.means[name])
-            shift = (target - _band_means(value, band, bands))[band]
-            held[name] = value + torch.where(present[:, None], shift, torch.zeros_like(shift))
+            shift = HOLD_RATE * (target - _band_means(value, band, bands))[band]
+            held[name] = (value + torch.where(present[:, None], shift, torch.zeros_like(shift))).clamp(*HELD_RANGE[name])
         a = visual.appearance
-        return Visual(visual.means, Appearance(a.log_scales, a.quats, held["opacity_logits"][:, 0], held["colors"]))
+        return Visual(visual.means, Appearance(a.log_scales, a.quats, torch.logit(held["opacities"][:, 0]), held["colors"]))
 
 
 def _profiled(appearance: Appearance) -> dict[str, torch.Tensor]:
     """The attributes a height profile holds, each as (G, channels)."""
-    return {"colors": appearance.colors, "opacity_logits": appearance.opacity_logits[:, None]}
+    return {"colors": appearance.colors, "opacities": torch.sigmoid(appearance.opacity_logits)[:, None]}
 
 
 def _band(height: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:

@@ -296,19 +296,26 @@ def _visual(heights: torch.Tensor, colors: torch.Tensor) -> predict.Visual:
     return predict.Visual(means, appearance)
 
 
-def test_the_height_profile_holds_each_bands_mean_colour_and_keeps_the_spread_within_it() -> None:
+def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spread_within_it() -> None:
     generator = torch.Generator().manual_seed(0)
     heights = torch.rand(400, generator=generator)
     observed = _visual(heights, 0.2 + 0.6 * heights)  # smoke lightens as it rises
     profile = predict.HeightProfile.observe(observed, (0.0, 1.0, 0.0), bands=4)
-    # The simulation carried dark smoke up: every Gaussian 0.3 darker than its height's colour.
-    risen = _visual(heights, 0.6 * heights - 0.1 + 0.01 * torch.randn(400, generator=generator))
+    # The simulation carried dark smoke up: every Gaussian 0.1 darker than its height's colour.
+    risen = _visual(heights, 0.1 + 0.6 * heights + 0.01 * torch.randn(400, generator=generator))
     held = profile.hold(risen)
     band = torch.bucketize(heights, torch.tensor(profile.edges[1:-1], dtype=heights.dtype))
     for b in range(4):
         inside = band == b
-        assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-5)
+        before = risen.appearance.colors[inside].mean() - observed.appearance.colors[inside].mean()
+        after = held.appearance.colors[inside].mean() - observed.appearance.colors[inside].mean()
+        assert before < -0.05 and torch.isclose(after, (1 - predict.HOLD_RATE) * before, atol=1e-5)
         spread = held.appearance.colors[inside, 0] - risen.appearance.colors[inside, 0]
         assert torch.allclose(spread, spread[0].expand_as(spread), atol=1e-6)  # one shift per band
+    for _ in range(60):  # held frame after frame, the band means converge to the profile's
+        held = profile.hold(held)
+    for b in range(4):
+        inside = band == b
+        assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)
     assert torch.equal(held.means, risen.means) and torch.equal(held.appearance.log_scales, risen.appearance.log_scales)
     assert predict.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
