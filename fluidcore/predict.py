@@ -54,11 +54,11 @@ TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newbo
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
 DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for parents that record none
 NO_REFINER = "skipped: no video model weights"
-PROFILE_BANDS = 12
+PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
 HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per frame
 # Held attributes are shifted in the space they are drawn in and kept valid there: a mean of
 # opacity logits is dominated by the few (nearly) opaque Gaussians of a band.
-HELD_RANGE = {"colors": (0.0, 1.0), "opacities": (1e-4, 1.0 - 1e-4)}  # height bands of the appearance profile newborn and rising smoke is held to
+HELD_RANGE = {"colors": (0.0, 1.0), "opacities": (1e-4, 1.0 - 1e-4)}
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
 BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)  # candidate multiples of the preset buoyancy
 
@@ -105,6 +105,8 @@ class HeightProfile:
 
     @classmethod
     def observe(cls, visual: Visual, up: Sequence[float], bands: int = PROFILE_BANDS) -> HeightProfile:
+        if len(visual.means) == 0:
+            raise PredictError("state: the frame to continue has no visual Gaussians to take the look of the smoke from")
         height = visual.means @ visual.means.new_tensor(up)
         edges = torch.linspace(float(height.min()), float(height.max()), bands + 1, dtype=torch.float64)
         band = _band(height, edges)
