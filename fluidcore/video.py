@@ -19,8 +19,6 @@ VideoError with the file name and the reason. No torch here: the API probes uplo
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -28,6 +26,8 @@ from pathlib import Path
 import av
 import numpy as np
 from av.video.reformatter import Interpolation
+
+from fluidcore.files import atomic_output
 
 CRF = 18  # visually lossless for smoke; the shared benchmark files use the same
 GREY_TOLERANCE = 3  # max |R-G|, |G-B| of a grey pixel after 4:2:0 chroma rounding
@@ -223,15 +223,8 @@ def write_mp4(path: str | Path, frames: np.ndarray, fps: float = 30.0) -> Path:
     pad_h, pad_w = video.shape[1] % 2, video.shape[2] % 2
     if pad_h or pad_w:
         video = np.pad(video, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".mp4", dir=path.parent)
-    os.close(handle)
-    try:
-        _encode(Path(temporary), video, fps)
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+    with atomic_output(path, suffix=".mp4") as temporary:
+        _encode(temporary, video, fps)
     return path
 
 
