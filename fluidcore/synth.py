@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fluidcore.cameras import Camera, look_at
+from fluidcore.cameras import Camera, look_at, write_transforms
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
 from fluidcore.render import Gaussians, render
 
-OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 SIM_BOX_HEIGHT = 75.0  # the same units rule as reconstruction (fluidcore.reconstruct.init)
 
 
@@ -152,28 +151,13 @@ def write(scene: SynthScene, out_dir: str | Path) -> Path:
     for t, (p, v) in enumerate(zip(scene.positions, scene.velocities, strict=True)):
         np.savez(out / "truth" / f"frame_{t:06d}.npz", positions=p, velocities=v)
     box = spec.box()
-    transforms = {
-        "camera_model": "PINHOLE",
-        "fps": spec.fps,
+    path = write_transforms(
+        out / "transforms.json",
+        scene.cameras,
+        fps=spec.fps,
         # PINF voxel box: world = V' @ (voxel_scale * s) + t, V' = voxel_matrix rotation with columns 0 and 2 swapped
-        "voxel_scale": list(spec.box_size),
-        "voxel_matrix": [[0, 0, 1, box.lo[0]], [0, 1, 0, box.lo[1]], [1, 0, 0, box.lo[2]], [0, 0, 0, 1]],
-        "frames": [
-            {
-                "camera": name,
-                "file_path": camera.file_path,
-                "fl_x": camera.fx,
-                "fl_y": camera.fy,
-                "cx": camera.cx,
-                "cy": camera.cy,
-                "w": camera.width,
-                "h": camera.height,
-                "transform_matrix": (camera.camera_to_world() @ OPENGL_TO_OPENCV).tolist(),
-            }
-            for name, camera in scene.cameras.items()
-        ],
-    }
-    path = out / "transforms.json"
-    path.write_text(json.dumps(transforms, indent=1))
+        voxel_scale=list(spec.box_size),
+        voxel_matrix=[[0, 0, 1, box.lo[0]], [0, 1, 0, box.lo[1]], [1, 0, 0, box.lo[2]], [0, 0, 0, 1]],
+    )
     (out / "synth.json").write_text(json.dumps({"spec": asdict(spec), "source": asdict(spec.source())}, indent=1))
     return path
