@@ -48,7 +48,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -56,6 +55,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from fluidcore.files import atomic_output
 
 FORMAT = "fluidnexus-run"
 FORMAT_VERSION = 1
@@ -168,7 +169,8 @@ class FrameState:
 
     def save(self, path: Path) -> None:
         """Write atomically: a reader never sees half a file, a crash leaves the old one."""
-        _atomic_write(path, lambda f: np.savez(f, **self._arrays()))
+        with atomic_output(path) as temporary, temporary.open("wb") as file:
+            np.savez(file, **self._arrays())
 
     @classmethod
     def load(cls, path: Path) -> FrameState:
@@ -199,18 +201,6 @@ class FrameState:
         }
         out.update({f"gaussian_{k}": v.astype(np.float32) for k, v in self.gaussians.items()})
         return out
-
-
-def _atomic_write(path: Path, write: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def camera_to_json(camera: Any) -> dict[str, Any]:
@@ -405,7 +395,8 @@ class Run:
 
     # -- writing ------------------------------------------------------------------------
     def write_background(self, images: Mapping[str, np.ndarray]) -> None:
-        _atomic_write(self.path / BACKGROUND, lambda f: np.savez(f, **{k: np.asarray(v, np.float32) for k, v in images.items()}))
+        with atomic_output(self.path / BACKGROUND) as temporary, temporary.open("wb") as file:
+            np.savez(file, **{k: np.asarray(v, np.float32) for k, v in images.items()})
 
     def write_frame(self, t: int, state: FrameState, losses: Mapping[str, float], seconds: float) -> None:
         """Append frame t: the state file first, then the manifest, so a crash in between
@@ -436,4 +427,5 @@ class Run:
 
     def _save_manifest(self) -> None:
         text = json.dumps(self.manifest, indent=1)
-        _atomic_write(self.path / MANIFEST, lambda f: f.write(text.encode()))
+        with atomic_output(self.path / MANIFEST) as temporary:
+            temporary.write_bytes(text.encode())
