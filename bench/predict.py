@@ -37,7 +37,7 @@ if __package__ in (None, ""):  # `python bench/predict.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluidnexus.cli.errors import UserError, echo_json, user_errors  # first: it registers every benchmark
-from bench.reconstruct import CAMERA_FILES, _overrides, _pairs  # noqa: E402, I001 - shared option parsing
+from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
 
 ANCHOR_ROWS = {"all_views": "future_prediction_frames_all_views", "held_out": "future_prediction_frames_novel_views_0134"}
 
@@ -62,24 +62,18 @@ def command(
     """Reconstruct the observed frames, predict the future ones, score them per view and horizon."""
     import torch
 
-    from fluidcore import cameras as camera_io
     from fluidcore import pipeline, predict
     from fluidcore.reconstruct import get
 
     with user_errors(ValueError):
-        if threads is not None:
-            torch.set_num_threads(threads)
-        cameras_path = next((scene / f for f in CAMERA_FILES if (scene / f).is_file()), None)
-        if cameras_path is None:
-            raise UserError(f"--scene: {scene} holds no {' or '.join(CAMERA_FILES)}")
-        cameras = camera_io.load(cameras_path)
-        (name, given), = _pairs([input_view], "--input-view", scene).items()
+        cameras_path, cameras = load_scene(scene, threads)
+        (name, given), = view_paths([input_view], "--input-view", scene).items()
         if name not in cameras:
             raise UserError(f"--input-view: no camera {name!r} in {cameras_path.name} (have {', '.join(cameras)})")
         input_path = given or (scene / cameras[name].file_path if cameras[name].file_path else None)
         if input_path is None:
             raise UserError(f"--input-view {name}: its camera names no video; give {name}=path")
-        truths = {view: path for view, path in _pairs(gt, "--gt", scene).items() if path is not None}
+        truths = {view: path for view, path in view_paths(gt, "--gt", scene).items() if path is not None}
         unknown = sorted(set(truths) - set(cameras))
         if unknown:
             raise UserError(f"--gt: no camera named {', '.join(unknown)}")
@@ -91,7 +85,7 @@ def command(
         folder = out or Path(tempfile.mkdtemp(prefix="bench-predict-"))
         seconds: dict[str, float] = {}
         if reconstruction is None:
-            preset = get(quality).with_overrides(**_overrides(set_))
+            preset = get(quality).with_overrides(**quality_overrides(set_))
             reconstruction = folder / "reconstruct"
             _log(f"reconstructing {name} frames {observed} at quality {preset.name} with {torch.get_num_threads()} threads")
             started = time.perf_counter()

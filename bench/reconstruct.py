@@ -26,32 +26,11 @@ if __package__ in (None, ""):  # `python bench/reconstruct.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fluidnexus.cli.errors import UserError, echo_json, user_errors
-
-CAMERA_FILES = ("transforms.json", "info.json")
+from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
 
 
 def _log(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
-
-
-def _pairs(items: list[str], option: str, base: Path) -> dict[str, Path | None]:
-    out: dict[str, Path | None] = {}
-    for item in items:
-        name, sep, path = item.partition("=")
-        if not name:
-            raise UserError(f"{option} must look like VIEW or VIEW=path, got {item!r}")
-        out[name] = (base / path) if sep else None
-    return out
-
-
-def _overrides(items: list[str]) -> dict[str, object]:
-    values: dict[str, object] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep:
-            raise UserError(f"--set must look like FIELD=VALUE, got {item!r}")
-        values[key] = json.loads(text)
-    return values
 
 
 def command(
@@ -68,25 +47,19 @@ def command(
     """Reconstruct from the input view(s), then PSNR/SSIM on every other camera with ground truth."""
     import torch
 
-    from fluidcore import cameras as camera_io
     from fluidcore import pipeline
     from fluidcore.reconstruct import get
 
     with user_errors(ValueError):
-        if threads is not None:
-            torch.set_num_threads(threads)
-        cameras_path = next((scene / f for f in CAMERA_FILES if (scene / f).is_file()), None)
-        if cameras_path is None:
-            raise UserError(f"--scene: {scene} holds no {' or '.join(CAMERA_FILES)}")
-        cameras = camera_io.load(cameras_path)
-        truths = _pairs(gt, "--gt", scene)
+        cameras_path, cameras = load_scene(scene, threads)
+        truths = view_paths(gt, "--gt", scene)
         if any(path is None for path in truths.values()):
             raise UserError("--gt must look like VIEW=path")
         for name, camera in cameras.items():
             if name not in truths and camera.file_path:
                 truths[name] = scene / camera.file_path
         inputs = {}
-        for name, path in _pairs(input_view, "--input-view", scene).items():
+        for name, path in view_paths(input_view, "--input-view", scene).items():
             path = path or (scene / cameras[name].file_path if name in cameras and cameras[name].file_path else truths.get(name))
             if path is None:
                 raise UserError(f"--input-view {name}: no video (give {name}=path, or --gt {name}=path)")
@@ -95,7 +68,7 @@ def command(
         if not scored:
             raise UserError("no camera besides the input views has ground truth (give --gt VIEW=path)")
         frame_range = pipeline.parse_frames(frames)
-        preset = get(quality).with_overrides(**_overrides(set_))
+        preset = get(quality).with_overrides(**quality_overrides(set_))
         run_dir = out or Path(tempfile.mkdtemp(prefix="bench-reconstruct-"))
         _log(f"reconstructing {sorted(inputs)} frames {frames} at quality {preset.name} with {torch.get_num_threads()} threads")
         started = time.perf_counter()
