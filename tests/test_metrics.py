@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -81,6 +82,17 @@ def test_ssim_tensor_is_differentiable() -> None:
     assert torch.autograd.gradcheck(lambda p: ssim_tensor(p, target), (pred,))
     ssim_tensor(pred, target).backward()
     assert pred.grad is not None and pred.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("check_values", [False, True])
+def test_ssim_tensor_never_converts_a_grad_tensor(check_values: bool) -> None:
+    """float() on a tensor that needs grad warns (and syncs a GPU) on every reconstruction step."""
+    pred, target = (torch.from_numpy(a) for a in _pair((16, 16, 1)))
+    pred.requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ssim_tensor(pred, target, check_values=check_values).backward()
+    assert pred.grad is not None
 
 
 def test_loss_path_tolerates_overshoot_but_the_metric_does_not() -> None:

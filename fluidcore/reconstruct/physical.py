@@ -110,7 +110,7 @@ def fit_positions(
             terms["incomp_next"] = weights.incomp_next * incompressibility_loss(p_next, config)
         total = sum(terms.values())
         if not torch.isfinite(total):
-            raise FloatingPointError(f"position fit: loss became {float(total)} at iteration {k} ({_floats(terms)})")
+            raise FloatingPointError(f"position fit: loss became {float(total.detach())} at iteration {k} ({_floats(terms)})")
         total.backward()
         optimiser.step()
     return p.detach(), _floats(terms)
