@@ -34,7 +34,7 @@ import importlib.util
 import math
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -47,6 +47,7 @@ from fluidcore.physics import ForceField, ParticleState, PBFConfig, Simulator, S
 from fluidcore.physics.coupling import push_out
 from fluidcore.pipeline import Cancelled, Progress, ShouldCancel
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
+from fluidcore.reconstruct.saved import load_frame_state, to_frame_state
 from fluidcore.reconstruct.visual import Appearance
 from fluidcore.runs import FrameState, Run, RunError, Scene
 
@@ -540,31 +541,11 @@ def _as_mapping(value: WindParams | BallParams | Mapping[str, Any] | None) -> Ma
 
 
 def _load_state(saved: FrameState, device: str) -> tuple[ParticleState, Visual]:
-    tensor: Callable[[np.ndarray], torch.Tensor] = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
     if "step" not in saved.extra:
         raise RunError("state: no extra_step (the simulator step count) to continue from")
-    state = ParticleState(
-        tensor(saved.positions), tensor(saved.velocities), tensor(saved.alive), saved.time, int(saved.extra["step"])
-    )
-    g = saved.gaussians
-    appearance = Appearance(tensor(g["log_scales"]), tensor(g["quats"]), tensor(g["opacity_logits"]), tensor(g["colors"]))
-    return state, Visual(tensor(g["means"]), appearance)
+    state, means, appearance = load_frame_state(saved, device)
+    return state, Visual(means, appearance)
 
 
 def _frame_state(state: ParticleState, visual: Visual) -> FrameState:
-    numpy: Callable[[torch.Tensor], np.ndarray] = lambda x: x.detach().cpu().numpy()  # noqa: E731
-    a = visual.appearance
-    return FrameState(
-        positions=numpy(state.positions),
-        velocities=numpy(state.velocities),
-        alive=numpy(state.alive),
-        time=state.time,
-        gaussians={
-            "means": numpy(visual.means),
-            "log_scales": numpy(a.log_scales),
-            "quats": numpy(a.quats),
-            "opacity_logits": numpy(a.opacity_logits),
-            "colors": numpy(a.colors),
-        },
-        extra={"step": np.asarray(state.step, dtype=np.int64)},
-    )
+    return to_frame_state(state, visual.means, visual.appearance)

@@ -34,6 +34,7 @@ from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source, 
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import Quality, render_size
+from fluidcore.reconstruct.saved import load_frame_state, to_frame_state
 from fluidcore.reconstruct.views import ViewTarget, image_loss, symmetry_views
 from fluidcore.reconstruct.visual import Appearance, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
@@ -345,32 +346,11 @@ class Reconstructor:
                 torch.empty(0, channels, device=self.device),
             )
             return _Carry(state, empty, appearance, fresh=True)
-        saved = run.read_frame(done[-1])
-        tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(self.device)  # noqa: E731
-        state = ParticleState(
-            tensor(saved.positions), tensor(saved.velocities), tensor(saved.alive), saved.time, int(saved.extra["step"])
-        )
-        g = saved.gaussians
-        appearance = Appearance(tensor(g["log_scales"]), tensor(g["quats"]), tensor(g["opacity_logits"]), tensor(g["colors"]))
-        return _Carry(state, tensor(g["means"]), appearance, fresh=False)
+        state, means, appearance = load_frame_state(run.read_frame(done[-1]), self.device)
+        return _Carry(state, means, appearance, fresh=False)
 
     def _frame_state(self, carry: _Carry) -> FrameState:
-        s, a = carry.state, carry.appearance
-        numpy = lambda x: x.detach().cpu().numpy()  # noqa: E731
-        return FrameState(
-            positions=numpy(s.positions),
-            velocities=numpy(s.velocities),
-            alive=numpy(s.alive),
-            time=s.time,
-            gaussians={
-                "means": numpy(carry.means),
-                "log_scales": numpy(a.log_scales),
-                "quats": numpy(a.quats),
-                "opacity_logits": numpy(a.opacity_logits),
-                "colors": numpy(a.colors),
-            },
-            extra={"step": np.asarray(s.step, dtype=np.int64)},
-        )
+        return to_frame_state(carry.state, carry.means, carry.appearance)
 
 
 def smooth_velocities(positions: torch.Tensor, raw: torch.Tensor, radius: float) -> torch.Tensor:
