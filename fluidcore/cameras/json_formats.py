@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
 
 from fluidcore.cameras.camera import Camera, CameraError, check_rigid
+from fluidcore.files import atomic_output
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z axes
 DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -213,13 +212,6 @@ def to_transforms(cameras: Mapping[str, Camera], **top_level: Any) -> dict[str, 
 def write_transforms(path: str | Path, cameras: Mapping[str, Camera], **top_level: Any) -> Path:
     """Write `to_transforms(...)` atomically (temporary file, then rename); returns the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".json", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as file:
-            json.dump(to_transforms(cameras, **top_level), file, indent=1)
-        os.replace(temporary, path)
-    finally:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+    with atomic_output(path, suffix=".json") as temporary, temporary.open("w", encoding="utf-8") as file:
+        json.dump(to_transforms(cameras, **top_level), file, indent=1)
     return path
