@@ -32,11 +32,7 @@ from typing import Optional
 
 import typer
 
-# OpenMP threads sleep at barriers instead of spinning: the solver meets ~40 barriers per step,
-# and on a shared machine a spinning thread burns the core its partner needs. libgomp reads this
-# once, when torch loads it, so it must be set before torch is imported (as in any process that
-# runs the simulator on a busy machine).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import fluidcore  # noqa: F401  first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
 
 SIZES = (10_000, 50_000, 200_000)
 ITERATIONS = (1, 2, 5, 10, 20)

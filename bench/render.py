@@ -34,6 +34,8 @@ from typing import Any, Optional
 
 import typer
 
+import fluidcore  # noqa: F401  first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
+
 SIZES = ((270, 480), (540, 960), (1080, 1920))
 COUNTS = (10_000, 100_000)
 CHANNELS = (1, 3)

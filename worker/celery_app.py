@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from celery import Celery
 
+import fluidcore  # noqa: F401  before the tasks import torch: sets OpenMP's wait policy
+
 from api.settings import GPU_QUEUE, Settings
 
 TASK_PREFIX = "fluidnexus."

@@ -7,6 +7,7 @@ bodies only, so `fluidnexus --help` and `fluidnexus serve` start without torch.
 
 from __future__ import annotations
 
+import fluidcore  # noqa: F401  first, before any command imports torch: sets OpenMP's wait policy
 import typer
 
 from fluidnexus.cli import benchmarks, interaction, scenes, service
