@@ -18,6 +18,7 @@ from datetime import timedelta
 from pathlib import Path
 
 from api.settings import Settings
+from fluidcore.files import atomic_output
 
 CHUNK = 1024 * 1024
 
@@ -148,10 +149,8 @@ class LocalStorage(Storage):
         source = self._path(key)
         if not source.is_file():
             raise ObjectNotFound(key)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".part")
-        shutil.copyfile(source, tmp)
-        os.replace(tmp, path)
+        with atomic_output(path, suffix=".part") as tmp:
+            shutil.copyfile(source, tmp)
 
     def stat(self, key: str) -> ObjectInfo:
         path = self._path(key)
@@ -237,11 +236,8 @@ class MinioStorage(Storage):
             self.client.fput_object(self.bucket, key, str(path), content_type)
 
     def get_file(self, key: str, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".part")
-        with _s3_errors(f"get {key}", check_key(key)):
+        with _s3_errors(f"get {key}", check_key(key)), atomic_output(path, suffix=".part") as tmp:
             self.client.fget_object(self.bucket, key, str(tmp))
-        os.replace(tmp, path)
 
     def stat(self, key: str) -> ObjectInfo:
         with _s3_errors(f"stat {key}", check_key(key)):

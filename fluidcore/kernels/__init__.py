@@ -17,10 +17,11 @@ import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import warnings
 from functools import lru_cache
 from pathlib import Path
+
+from fluidcore.files import atomic_output
 
 SOURCE_DIR = Path(__file__).resolve().parent
 BUILD_DIR = SOURCE_DIR / "_build"
@@ -46,15 +47,11 @@ def build(name: str) -> Path:
     compiler = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
     if compiler is None:
         raise RuntimeError("no C++ compiler found (set CXX); fused CPU kernels cannot be built")
-    BUILD_DIR.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=BUILD_DIR, suffix=".so", delete=False) as tmp:
-        tmp_path = Path(tmp.name)
-    cmd = [compiler, *CXX_FLAGS, str(SOURCE_DIR / f"{name}.cpp"), "-o", str(tmp_path)]
-    result = subprocess.run(cmd, capture_output=True, text=True)
-    if result.returncode != 0:
-        tmp_path.unlink(missing_ok=True)
-        raise RuntimeError(f"building kernel {name!r} failed:\n{result.stderr}")
-    tmp_path.replace(target)
+    with atomic_output(target, suffix=".so") as tmp_path:
+        cmd = [compiler, *CXX_FLAGS, str(SOURCE_DIR / f"{name}.cpp"), "-o", str(tmp_path)]
+        result = subprocess.run(cmd, capture_output=True, text=True)
+        if result.returncode != 0:
+            raise RuntimeError(f"building kernel {name!r} failed:\n{result.stderr}")
     for stale in BUILD_DIR.glob(f"{name}-*.so"):
         if stale != target:
             stale.unlink(missing_ok=True)
