@@ -160,3 +160,18 @@ def test_celery_queue_reports_an_unreachable_broker(tmp_path: Path) -> None:
     with pytest.raises(QueueUnavailable, match="did not accept"):
         down.enqueue("some-job", "reconstruct")
     CeleryQueue(Settings(data_dir=tmp_path)).ping()  # the embedded filesystem broker is always there
+
+
+def test_embedded_broker_keeps_its_files_in_the_data_folder(tmp_path: Path) -> None:
+    """kombu's filesystem transport writes its exchange table to ./control unless told where:
+    `fluidnexus serve` must not litter the folder it is started from. A fresh process, because
+    kombu declares an exchange once per process."""
+    started_in = tmp_path / "cwd"
+    started_in.mkdir()
+    send = (
+        "from api.queue import CeleryQueue; from api.settings import Settings; "
+        f"CeleryQueue(Settings(data_dir={str(tmp_path / 'data')!r})).enqueue('some-job', 'reconstruct')"
+    )
+    subprocess.run([sys.executable, "-c", send], cwd=started_in, check=True, timeout=60)
+    assert list(started_in.iterdir()) == []
+    assert list((tmp_path / "data").rglob("*.exchange"))

@@ -36,6 +36,7 @@ def make_celery(settings: Settings) -> Celery:
             "data_folder_out": str(folder),
             "processed_folder": str(folder / "processed"),
             "store_processed": False,
+            "control_folder": str(folder / "control"),  # kombu's default is ./control, wherever serve runs
         }
     app.conf.update(
         broker_transport_options=transport_options,
