@@ -183,7 +183,7 @@ def render_frames(run, camera, frames: Sequence[int] | None = None, device: str 
         tensor = lambda a: torch.from_numpy(np.ascontiguousarray(a)).to(device)  # noqa: E731
         appearance = Appearance(tensor(g["log_scales"]), tensor(g["quats"]), tensor(g["opacity_logits"]), tensor(g["colors"]))
         with torch.no_grad():
-            image = render(appearance.gaussians(tensor(g["means"])), camera, background).image
+            image = render(appearance.gaussians(tensor(g["means"])), camera, background, depth=False).image
         out.append(to_uint8_rgb(image.cpu().numpy()))
     return np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
 

@@ -132,7 +132,7 @@ def generate(spec: SynthSpec) -> SynthScene:
         gaussians = particle_gaussians(state.positions[alive], spec)
         with torch.no_grad():
             for name, camera in cameras.items():
-                image = render(gaussians, camera, 1.0).image
+                image = render(gaussians, camera, 1.0, depth=False).image
                 frames[name].append((image.clamp(0, 1).expand(-1, -1, 3).numpy() * 255 + 0.5).astype(np.uint8))
     videos = {name: np.stack(f) for name, f in frames.items()}
     return SynthScene(spec, cameras, videos, positions, velocities)

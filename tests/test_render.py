@@ -117,6 +117,28 @@ def test_grey_path_equals_rgb_with_equal_channels(backend: str) -> None:
         torch.testing.assert_close(out_rgb.image[..., c], out_grey.image[..., 0], atol=1e-6, rtol=0)
     torch.testing.assert_close(out_rgb.alpha, out_grey.alpha)
 
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_skipping_depth_changes_neither_picture_nor_gradients(backend: str, channels: int) -> None:
+    """depth=False drops one composited channel; what is drawn, and what an image loss
+    sends back to every Gaussian parameter, stays the same."""
+    results = []
+    for depth in (True, False):
+        g = _random_cloud(300, channels, seed=4)
+        params = [t.requires_grad_(True) for t in (g.means, g.log_scales, g.quats, g.opacity_logits, g.colors)]
+        out = render(g, _camera(), background=0.25, backend=backend, depth=depth)
+        (out.image.square().sum() + out.alpha.sum()).backward()
+        results.append((out, [p.grad for p in params]))
+    (with_depth, grads_with), (without, grads_without) = results
+    assert with_depth.depth is not None and without.depth is None
+    assert with_depth.alpha.max() > 0.5
+    torch.testing.assert_close(without.image, with_depth.image, atol=1e-6, rtol=0)
+    torch.testing.assert_close(without.alpha, with_depth.alpha, atol=1e-6, rtol=0)
+    for a, b in zip(grads_without, grads_with):
+        assert bool(a.abs().sum() > 0)
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
+
+
 
 def test_auto_backend_on_cpu_is_the_torch_backend() -> None:
     g = _random_cloud(200, 3)

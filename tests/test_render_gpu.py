@@ -66,6 +66,17 @@ def test_gsplat_on_cuda_matches_torch_on_cpu(channels: int) -> None:
     assert (depth_error > 1e-3).sum() <= FLIPPED_PIXELS
 
 
+@pytest.mark.parametrize("channels", [1, 3])
+def test_gsplat_without_depth_draws_the_same_picture(channels: int) -> None:
+    g, camera = _plume_and_camera(3000, channels)
+    on_cuda = _to(g, "cuda")
+    with_depth = render(on_cuda, camera, backend="gsplat")
+    without = render(on_cuda, camera, backend="gsplat", depth=False)
+    assert without.depth is None and without.image.shape[-1] == channels
+    assert with_depth.alpha.max() > 0.5
+    torch.testing.assert_close(without.image, with_depth.image, atol=1e-5, rtol=0)
+    torch.testing.assert_close(without.alpha, with_depth.alpha, atol=1e-5, rtol=0)
+
 
 def test_auto_uses_gsplat_on_cuda_and_the_torch_backend_runs_there_too() -> None:
     g, camera = _plume_and_camera(1000, 3)

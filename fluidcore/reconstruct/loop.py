@@ -312,7 +312,7 @@ class Reconstructor:
             fraction = stages[min(k * len(stages) // max(iterations, 1), len(stages) - 1)]
             size = (max(8, round(view.camera.width * fraction)), max(8, round(view.camera.height * fraction)))
             camera, target, background = view.at(index, size)
-            image = render(gaussians, camera, background).image
+            image = render(gaussians, camera, background, depth=False).image
             return image_loss(image, target, background, w.l1, w.dssim)
 
         return loss
@@ -323,7 +323,7 @@ class Reconstructor:
         view = self.rec.views[0]
         camera, target, background = view.at(index, (view.camera.width, view.camera.height))
         with torch.no_grad():
-            image = render(appearance.gaussians(means), camera, background).image
+            image = render(appearance.gaussians(means), camera, background, depth=False).image
         mse = float((image - target).pow(2).mean())
         return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 

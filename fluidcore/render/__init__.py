@@ -1,4 +1,4 @@
-"""Differentiable Gaussian splatting: Gaussians + camera -> image, alpha and depth.
+"""Differentiable Gaussian splatting: Gaussians + camera -> image, alpha and (on request) depth.
 
 The pipeline is split the way gsplat splits it, so each stage can be read and tested alone:
 `projection` (3D Gaussians -> screen-space conics, differentiable torch), `tiles` (which
@@ -37,14 +37,18 @@ MIN_ALPHA_FOR_DEPTH = 1e-10  # depth is sum(w z) / alpha; 0 where nothing was dr
 class RenderResult:
     image: torch.Tensor  # (H, W, C) composited over the background
     alpha: torch.Tensor  # (H, W) coverage, 1 - final transmittance
-    depth: torch.Tensor  # (H, W) alpha-weighted camera-space z, 0 where alpha is 0
+    depth: torch.Tensor | None  # (H, W) alpha-weighted camera-space z, 0 where alpha is 0; None unless asked
 
 
-def render(g: Gaussians, camera: Any, background: float | torch.Tensor = 0.0, backend: str = "auto") -> RenderResult:
+def render(
+    g: Gaussians, camera: Any, background: float | torch.Tensor = 0.0, backend: str = "auto", depth: bool = True
+) -> RenderResult:
     """Render Gaussians seen by a `fluidcore.cameras.Camera` (anything with intrinsics(),
     viewmat(), width and height).
 
     `background` is a float, a (C,) colour or an (H, W, C) image (a tensor may require grad).
+    `depth=False` skips the depth map (RenderResult.depth is None): depth is one more composited
+    channel, which a grey image loss would pay for on every iteration without using it.
     Raises RenderError (a ValueError) naming the bad field; never returns NaN.
     """
     g.validate()
@@ -55,28 +59,34 @@ def render(g: Gaussians, camera: Any, background: float | torch.Tensor = 0.0, ba
     bg = _background(background, g.channels, height, width, g.device, g.dtype)
 
     if backend == "gsplat":
-        color, alpha, depth = rasterize_gsplat(g, intrinsics, viewmat, width, height)
+        color, alpha, depth_map = rasterize_gsplat(g, intrinsics, viewmat, width, height, depth)
     else:
-        color, alpha, depth = _rasterize_torch(g, intrinsics, viewmat, width, height, backend == "torch")
+        color, alpha, depth_map = _rasterize_torch(g, intrinsics, viewmat, width, height, backend == "torch", depth)
     image = color + (1.0 - alpha)[..., None] * bg
-    _check_finite(image=image, alpha=alpha, depth=depth)
-    return RenderResult(image=image, alpha=alpha, depth=depth)
+    _check_finite(image=image, alpha=alpha, **({} if depth_map is None else {"depth": depth_map}))
+    return RenderResult(image=image, alpha=alpha, depth=depth_map)
 
 
 def _rasterize_torch(
-    g: Gaussians, intrinsics: torch.Tensor, viewmat: torch.Tensor, width: int, height: int, allow_fused: bool
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(H, W, C) colour over black, (H, W) alpha, (H, W) depth through the torch pipeline.
+    g: Gaussians,
+    intrinsics: torch.Tensor,
+    viewmat: torch.Tensor,
+    width: int,
+    height: int,
+    allow_fused: bool,
+    with_depth: bool,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(H, W, C) colour over black, (H, W) alpha, (H, W) depth or None through the torch pipeline.
 
     Depth rides along as one more composited feature, so the compositor returns sum(w z).
     """
     covariances = covariance_3d(g.scales(), g.unit_quats())
     projected = project(g.means, covariances, g.opacities(), viewmat, intrinsics, width, height)
     bins = bin_gaussians(projected.bboxes, projected.depths, projected.visible, width, height)
-    features = torch.cat([g.colors, projected.depths[:, None]], dim=1)
+    features = torch.cat([g.colors, projected.depths[:, None]], dim=1) if with_depth else g.colors
     composited, transmittance = composite(projected, features, bins, allow_fused and fused_available(features))
     alpha = 1.0 - transmittance
-    depth = composited[..., g.channels] / alpha.clamp(min=MIN_ALPHA_FOR_DEPTH)
+    depth = composited[..., g.channels] / alpha.clamp(min=MIN_ALPHA_FOR_DEPTH) if with_depth else None
     return composited[..., : g.channels], alpha, depth
 
 

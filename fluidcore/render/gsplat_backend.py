@@ -15,9 +15,10 @@ from fluidcore.render.projection import EPS2D, NEAR_PLANE
 
 
 def rasterize_gsplat(
-    g: Gaussians, intrinsics: torch.Tensor, viewmat: torch.Tensor, width: int, height: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(H, W, C) colour composited over black, (H, W) alpha and (H, W) alpha-normalised depth."""
+    g: Gaussians, intrinsics: torch.Tensor, viewmat: torch.Tensor, width: int, height: int, with_depth: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """(H, W, C) colour composited over black, (H, W) alpha and (H, W) alpha-normalised depth
+    (None without `with_depth`)."""
     if g.device.type != "cuda":
         raise RenderError(f"backend 'gsplat' needs CUDA tensors, the Gaussians are on {g.device}")
     if g.dtype != torch.float32:
@@ -36,8 +37,9 @@ def rasterize_gsplat(
         height=height,
         near_plane=NEAR_PLANE,
         eps2d=EPS2D,
-        render_mode="RGB+ED",  # colour channels plus expected depth sum(w z) / sum(w)
+        render_mode="RGB+ED" if with_depth else "RGB",  # "ED": expected depth sum(w z) / sum(w)
         rasterize_mode="classic",
     )
     channels = g.channels
-    return colors[0, ..., :channels], alphas[0, ..., 0], colors[0, ..., channels]
+    depth = colors[0, ..., channels] if with_depth else None
+    return colors[0, ..., :channels], alphas[0, ..., 0], depth
