@@ -9,11 +9,13 @@ with the resolution as it would in a real run.
 
 Each row times `render` (projection + tile binning + compositing, forward) and the backward pass
 of an image loss, and separately the compositing stage alone (forward + backward), which is where
-the channel count matters. The default sweep covers {10k, 100k} Gaussians x {270x480, 540x960,
-1080x1920} x {1, 3} channels on every available backend and device, plus the 20k / 270x480 / 1
-channel target row and the torch-reference compositor at the smallest size (to show what the
-fused kernel buys). `--json` prints one JSON object; with a single configuration its fields are
-also at the top level (`ms_forward_backward`, ...). Progress goes to stderr.
+the channel count matters. Like reconstruction, it renders image and alpha without the depth map
+unless `--depth` asks for it (depth is one more composited channel). The default sweep covers
+{10k, 100k} Gaussians x {270x480, 540x960, 1080x1920} x {1, 3} channels on every available
+backend and device, plus the 20k / 270x480 / 1 channel target row and the torch-reference
+compositor at the smallest size (to show what the fused kernel buys). `--json` prints one JSON
+object; with a single configuration its fields are also at the top level (`ms_forward_backward`,
+...). Progress goes to stderr.
 
 Columns: `coverage` is the fraction of pixels with alpha > 0.01, `pairs` the number of (tile,
 Gaussian) pairs after binning, `ms_*` medians of wall-clock time (`_min`: the fastest run, the
@@ -80,7 +82,9 @@ def plume_camera(width: int, height: int):
     return look_at([0.0, 0.6, distance], [0.0, 0.5 * PLUME_HEIGHT, 0.0], [0.0, 1.0, 0.0], like, "bench")
 
 
-def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, device: str, repeats: int) -> dict[str, Any]:
+def measure(
+    gaussians: int, size: tuple[int, int], channels: int, backend: str, device: str, repeats: int, depth: bool
+) -> dict[str, Any]:
     """Median timings (ms) of one configuration, after one warm-up run."""
     import torch
 
@@ -92,7 +96,7 @@ def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, 
     for i in range(repeats + 1):
         _sync(device)
         start, cpu_start = time.perf_counter(), time.process_time()
-        out = render(g, camera, background=0.0, backend=backend)
+        out = render(g, camera, background=0.0, backend=backend, depth=depth)
         _sync(device)
         middle = time.perf_counter()
         (out.image.mean() + 0.1 * out.alpha.mean()).backward()
@@ -111,6 +115,7 @@ def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, 
         "gaussians": gaussians,
         "size": f"{size[0]}x{size[1]}",
         "channels": channels,
+        "depth": depth,
         "coverage": round(float((out.alpha > 0.01).float().mean()), 3),
         "ms_forward": statistics.median(forward),
         "ms_backward": statistics.median(backward),
@@ -123,11 +128,11 @@ def measure(gaussians: int, size: tuple[int, int], channels: int, backend: str, 
     if backend == "gsplat":  # gsplat's compositor is not separable from its own pipeline
         row.update({"ms_composite": None, "cpu_ms_composite": None, "pairs": None})
     else:
-        row.update(_composite_stage(g, camera, backend, repeats))
+        row.update(_composite_stage(g, camera, backend, repeats, depth))
     return row
 
 
-def _composite_stage(g, camera, backend: str, repeats: int) -> dict[str, Any]:
+def _composite_stage(g, camera, backend: str, repeats: int, depth: bool) -> dict[str, Any]:
     """Forward + backward of the compositor alone, on the projection and bins of the real scene."""
     import torch
 
@@ -141,7 +146,7 @@ def _composite_stage(g, camera, backend: str, repeats: int) -> dict[str, Any]:
         bins = bin_gaussians(p.bboxes, p.depths, p.visible, camera.width, camera.height)
     for tensor in (p.means2d, p.conics, p.opacities):
         tensor.requires_grad_(True)
-    features = torch.cat([g.colors.detach(), p.depths[:, None]], 1).requires_grad_(True)
+    features = (torch.cat([g.colors.detach(), p.depths[:, None]], 1) if depth else g.colors.detach()).requires_grad_(True)
     fused = backend == "torch" and fused_available(features)
     times, cpu = [], []
     for i in range(repeats + 1):
@@ -219,7 +224,7 @@ def _check_choices(channels: Optional[int], backend: Optional[str], device: Opti
 def table(rows: list[dict[str, Any]]) -> str:
     """A markdown table, then the 1-channel / 3-channel cost ratios of the compositing stage
     (in CPU time, which other load on the machine disturbs less than wall time)."""
-    columns = ["backend", "device", "threads", "gaussians", "size", "channels", "coverage", "pairs",
+    columns = ["backend", "device", "threads", "gaussians", "size", "channels", "depth", "coverage", "pairs",
                "ms_forward", "ms_backward", "ms_forward_backward", "ms_forward_backward_min", "cpu_ms_forward_backward",
                "ms_composite", "cpu_ms_composite"]  # fmt: skip
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
@@ -253,6 +258,7 @@ def command(
     device: Optional[str] = typer.Option(None, "--device", help="cpu or cuda (default: cpu, and cuda when present)."),
     repeats: int = typer.Option(3, "--repeats", min=1, help="Timed runs per row (median), after one warm-up."),
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads (default: all cores)."),
+    depth: bool = typer.Option(False, "--depth/--no-depth", help="Also render the depth map (reconstruction does not)."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
     """Time fluidcore.render forward + backward on a smoke plume."""
@@ -264,7 +270,7 @@ def command(
     rows = []
     for n, s, c, b, dev in configurations(gaussians, size, channels, backend, device):
         print(f"render bench: {b} {dev} {n} Gaussians {s[0]}x{s[1]} C={c} ...", file=sys.stderr, flush=True)
-        rows.append(measure(n, s, c, b, dev, repeats))
+        rows.append(measure(n, s, c, b, dev, repeats, depth))
     report: dict[str, Any] = {
         "benchmark": "render",
         "threads": torch.get_num_threads(),

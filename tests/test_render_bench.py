@@ -4,19 +4,23 @@ from __future__ import annotations
 
 import json
 
+import pytest
 from typer.testing import CliRunner
 
 from fluidnexus.cli import app
 
 
-def test_bench_render_json_reports_one_configuration() -> None:
+@pytest.mark.parametrize("depth", [[], ["--depth"]])
+def test_bench_render_json_reports_one_configuration(depth: list[str]) -> None:
     result = CliRunner().invoke(
-        app, ["bench", "render", "--gaussians", "300", "--size", "48x64", "--channels", "1", "--repeats", "1", "--threads", "1", "--json"]
+        app,
+        ["bench", "render", "--gaussians", "300", "--size", "48x64", "--channels", "1", "--repeats", "1", "--threads", "1", "--json", *depth],
     )
     assert result.exit_code == 0, result.output
     report = json.loads(result.stdout)
     assert report["ms_forward_backward"] > 0 and report["ms_composite"] > 0
     assert (report["gaussians"], report["size"], report["channels"], report["threads"]) == (300, "48x64", 1, 1)
+    assert report["depth"] is bool(depth)
     assert report["coverage"] > 0.05  # the plume is in view
     assert len(report["rows"]) == 1
 
