@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Every check this project runs only on a CUDA machine, as one short unattended run: the gpu-marked
+# tests (gsplat against the CPU renderer, CUDA physics) and the GPU benchmark figures (gsplat
+# render sweep, PBF at 50k particles). Made for a lent device machine, whose image has CUDA
+# torch, nvcc and pytest but not gsplat, and which cannot download: gsplat travels as a wheel.
+#
+# Prepare once, on the development machine (the wheel is pure Python; gsplat JIT-builds its CUDA
+# extension on first use):
+#   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux2014_x86_64 -d .whl gsplat==1.5.3
+# Then run `bash bench/gpu_check.sh` there with `.whl` carried; its step limits add up to 570 s,
+# inside one device command's 600. One log (gpu_check.log) and the benchmark JSON files go to
+# $OUT (the device tool's result folder, which returns at most 8 files), else ./gpu_check_out.
+# Each step is time-limited and the run goes on after a failed step, so one broken stage still
+# leaves the others' results; the exit status is the number of failed steps.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+out=${OUT:-gpu_check_out}
+mkdir -p "$out"
+log=$out/gpu_check.log
+failed=0
+exec > >(tee "$log") 2>&1
+
+step() {  # step NAME SECONDS COMMAND...: run with a time limit; its output goes to the log
+    local name=$1 limit=$2
+    shift 2
+    echo "== $name (limit ${limit}s)"
+    local start=$SECONDS
+    timeout "$limit" "$@"
+    local rc=$?
+    echo "== $name: rc=$rc in $((SECONDS - start))s"
+    [ "$rc" -eq 0 ] || failed=$((failed + 1))
+}
+
+python3 -m pip install -q --disable-pip-version-check --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl \
+    || { echo "no gsplat wheel in .whl (see the header of this script)"; exit 1; }
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-$(nproc)}
+if [ -z "${CUDA_HOME:-}" ] && command -v nvcc >/dev/null; then  # torch's JIT builder needs it
+    CUDA_HOME=$(dirname "$(dirname "$(command -v nvcc)")")
+    export CUDA_HOME
+fi
+
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+step kernels 60 python3 -m fluidcore.kernels build  # CPU side of the agreement tests
+# gsplat compiles its CUDA extension on first import of its backend (minutes): once, up front.
+step gsplat_build 240 python3 -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat CUDA build failed'"
+step pytest_gpu 90 python3 -m pytest -p no:cacheprovider -m gpu -q tests/test_render_gpu.py tests/test_physics.py
+step bench_render 90 sh -c "python3 bench/render.py --device cuda --backend gsplat --repeats 20 --json >'$out/bench_render_cuda.json'"
+for scene in calm violent; do
+    step "bench_physics_$scene" 45 sh -c \
+        "python3 bench/physics.py --particles 50000 --scene $scene --device cuda --json >'$out/bench_physics_$scene.json'"
+done
+echo "failed steps: $failed"
+exit "$failed"
