@@ -43,7 +43,7 @@ def cpu_flags(cpuinfo: str | None = None) -> tuple[str, ...]:
     build with the compiler's defaults.
 
     Why: the pixel loops are SIMD loops; 8-wide AVX2 with FMA instead of 4-wide SSE2 takes about
-    28 % off the splatting compositor and 5 % off a PBF step (docs/bench_render.md).
+    a quarter off the splatting compositor and 3-8 % off a PBF step (docs/bench_render.md).
     """
     if cpuinfo is None:
         try:
