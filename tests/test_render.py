@@ -117,6 +117,7 @@ def test_grey_path_equals_rgb_with_equal_channels(backend: str) -> None:
         torch.testing.assert_close(out_rgb.image[..., c], out_grey.image[..., 0], atol=1e-6, rtol=0)
     torch.testing.assert_close(out_rgb.alpha, out_grey.alpha)
 
+
 @pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("backend", CPU_BACKENDS)
 def test_skipping_depth_changes_neither_picture_nor_gradients(backend: str, channels: int) -> None:
@@ -137,7 +138,6 @@ def test_skipping_depth_changes_neither_picture_nor_gradients(backend: str, chan
     for a, b in zip(grads_without, grads_with):
         assert bool(a.abs().sum() > 0)
         torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-4)
-
 
 
 def test_auto_backend_on_cpu_is_the_torch_backend() -> None:

@@ -58,6 +58,7 @@ def cpu_flags(cpuinfo: str | None = None) -> tuple[str, ...]:
 
 @lru_cache(maxsize=None)
 def compiler_flags() -> tuple[str, ...]:
+    """The flags this machine's kernels are built with (read /proc/cpuinfo once per process)."""
     return (*BASE_FLAGS, *cpu_flags())
 
 

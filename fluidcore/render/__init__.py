@@ -63,7 +63,7 @@ def render(
     else:
         color, alpha, depth_map = _rasterize_torch(g, intrinsics, viewmat, width, height, backend == "torch", depth)
     image = color + (1.0 - alpha)[..., None] * bg
-    _check_finite(image=image, alpha=alpha, **({} if depth_map is None else {"depth": depth_map}))
+    _check_finite(image=image, alpha=alpha, depth=depth_map)
     return RenderResult(image=image, alpha=alpha, depth=depth_map)
 
 
@@ -118,7 +118,7 @@ def _background(
     return bg
 
 
-def _check_finite(**outputs: torch.Tensor) -> None:
+def _check_finite(**outputs: torch.Tensor | None) -> None:
     for name, value in outputs.items():
-        if not bool(torch.isfinite(value).all()):
+        if value is not None and not bool(torch.isfinite(value).all()):
             raise RenderError(f"render produced a non-finite {name}; the Gaussians are numerically degenerate")
