@@ -55,7 +55,7 @@ class InteractParams(BaseModel):
 
 
 class ResimulateParams(BaseModel):
-    """`fluidcore.predict.run_resimulate` on the parent run; it takes no parameters."""
+    """`fluidcore.predict.job.run_resimulate` on the parent run; it takes no parameters."""
 
     model_config = _STRICT
 

@@ -45,7 +45,7 @@ def _callbacks(inputs: RunInputs) -> dict[str, Any]:
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    from fluidcore.pipeline import render_artifacts
+    from fluidcore.artifacts import render_artifacts
 
     inputs.progress(1.0, "render")  # the run itself is complete; rendering fills the rest
     return list(render_artifacts(inputs.run_dir, inputs.render_dir))
@@ -55,7 +55,7 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
     """Run a fluidcore job, then render it; fluidcore's Cancelled becomes JobCancelled."""
 
     def runner(inputs: RunInputs) -> list[Path]:
-        from fluidcore.pipeline import Cancelled
+        from fluidcore.jobs import Cancelled
 
         try:
             run(inputs)
@@ -70,7 +70,8 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
 
 @_translating_cancel
 def reconstruct(inputs: RunInputs) -> None:
-    from fluidcore.pipeline import run_reconstruct
+    from fluidcore.reconstruct.job import run_reconstruct
+    from fluidcore.reconstruct.presets import DEFAULT_QUALITY
 
     frames = inputs.params.get("frames")
     assert inputs.cameras_path is not None and inputs.videos is not None
@@ -78,7 +79,7 @@ def reconstruct(inputs: RunInputs) -> None:
         inputs.cameras_path,
         dict(inputs.videos),
         inputs.run_dir,
-        quality=inputs.params.get("quality", "preview"),
+        quality=inputs.params.get("quality", DEFAULT_QUALITY),
         frames=tuple(frames) if frames is not None else None,
         **_callbacks(inputs),
     )
@@ -86,7 +87,7 @@ def reconstruct(inputs: RunInputs) -> None:
 
 @_translating_cancel
 def predict(inputs: RunInputs) -> None:
-    from fluidcore.predict import run_predict
+    from fluidcore.predict.job import run_predict
 
     run_predict(inputs.parent_run, inputs.run_dir, frames=inputs.params["frames"], **_callbacks(inputs))
 
@@ -94,7 +95,7 @@ def predict(inputs: RunInputs) -> None:
 @_translating_cancel
 def interact(inputs: RunInputs) -> None:
     from fluidcore.interaction import BallParams, WindParams
-    from fluidcore.predict import run_interact
+    from fluidcore.predict.job import run_interact
 
     wind, ball = inputs.params.get("wind"), inputs.params.get("ball")
     run_interact(
@@ -109,7 +110,7 @@ def interact(inputs: RunInputs) -> None:
 
 @_translating_cancel
 def resimulate(inputs: RunInputs) -> None:
-    from fluidcore.predict import run_resimulate
+    from fluidcore.predict.job import run_resimulate
 
     run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
 

@@ -74,23 +74,23 @@ def _run(task: Task, job_id: str) -> str | None:
 
 @app.task(name=f"{TASK_PREFIX}reconstruct", bind=True)
 def reconstruct(self: Task, job_id: str) -> str | None:
-    """Fit particles to a scene's videos (fluidcore.pipeline.run_reconstruct), then render."""
+    """Fit particles to a scene's videos (fluidcore.reconstruct.job.run_reconstruct), then render."""
     return _run(self, job_id)
 
 
 @app.task(name=f"{TASK_PREFIX}predict", bind=True)
 def predict(self: Task, job_id: str) -> str | None:
-    """Continue a reconstruction into new frames (fluidcore.predict.run_predict), then render."""
+    """Continue a reconstruction into new frames (fluidcore.predict.job.run_predict), then render."""
     return _run(self, job_id)
 
 
 @app.task(name=f"{TASK_PREFIX}interact", bind=True)
 def interact(self: Task, job_id: str) -> str | None:
-    """Continue a reconstruction under wind and/or a ball (fluidcore.predict.run_interact), then render."""
+    """Continue a reconstruction under wind and/or a ball (fluidcore.predict.job.run_interact), then render."""
     return _run(self, job_id)
 
 
 @app.task(name=f"{TASK_PREFIX}resimulate", bind=True)
 def resimulate(self: Task, job_id: str) -> str | None:
-    """Re-simulate a reconstruction (fluidcore.predict.run_resimulate), then render."""
+    """Re-simulate a reconstruction (fluidcore.predict.job.run_resimulate), then render."""
     return _run(self, job_id)

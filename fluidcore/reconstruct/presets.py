@@ -121,6 +121,10 @@ PRESETS: dict[str, Quality] = {
 }
 
 
+DEFAULT_QUALITY = "preview"  # what a job runs at when nobody says: the CLI, the API and the benchmarks alike
+QUALITY_CHOICES = " | ".join(PRESETS)  # for help texts
+
+
 def get(name: str) -> Quality:
     """The preset called `name`, or a PresetError naming the choices."""
     try:

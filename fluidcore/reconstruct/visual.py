@@ -43,6 +43,10 @@ class Appearance:
             torch.cat([self.colors, other.colors]),
         )
 
+    def select(self, rows: torch.Tensor) -> Appearance:
+        """The Gaussians picked by `rows` (a boolean mask or indices, repeats allowed)."""
+        return Appearance(self.log_scales[rows], self.quats[rows], self.opacity_logits[rows], self.colors[rows])
+
     def gaussians(self, means: torch.Tensor) -> Gaussians:
         return Gaussians(means, self.log_scales, self.quats, self.opacity_logits, self.colors.clamp(0.0, 1.0))
 
