@@ -4,6 +4,7 @@ reproducible, resumable, continuable and finite over long horizons."""
 from __future__ import annotations
 
 import json
+import shutil
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -323,3 +324,31 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)
     assert torch.equal(held.means, risen.means) and torch.equal(held.appearance.log_scales, risen.appearance.log_scales)
     assert priors.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
+
+
+def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: Path) -> None:
+    """reconstruct -> predict -> predict, moved as one folder (another work dir, another worker):
+    the parents are found relative to each run, an interrupted link resumes, and the chain grows."""
+    first = tmp_path / "here"
+    shutil.copytree(parent, first / "reconstruct")
+    job.run_predict(first / "reconstruct", first / "p1", frames=2)
+    with pytest.raises(Cancelled):
+        job.run_predict(first / "p1", first / "p2", frames=3, should_cancel=iter([False, True]).__next__)
+    moved = tmp_path / "elsewhere" / "chain"
+    shutil.move(first, moved)
+    job.run_predict(moved / "p1", moved / "p2", frames=3)  # resumes: same run, its parent found again
+    grown = Run.open(job.run_predict(moved / "p2", moved / "p3", frames=2))
+    assert grown.parent.parent.parent.path.resolve() == (moved / "reconstruct").resolve()
+    assert len(artifacts.render_frames(grown, grown.cameras()["view_00"])) == 2
+    uninterrupted = tmp_path / "whole"
+    job.run_predict(parent, uninterrupted / "p1", frames=2)
+    job.run_predict(uninterrupted / "p1", uninterrupted / "p2", frames=3)
+    assert_same_states(Run.open(moved / "p2"), Run.open(uninterrupted / "p2"))
+
+
+def test_a_parent_recorded_by_absolute_path_is_still_read(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=1))
+    manifest = json.loads((run.path / "manifest.json").read_text())
+    manifest["parent"] = str(parent.resolve())  # as runs were written before parents became relative
+    (run.path / "manifest.json").write_text(json.dumps(manifest))
+    assert Run.open(run.path).parent.path == parent.resolve()

@@ -34,9 +34,6 @@ from fluidcore.predict.rollout import Rollout, continued_scene, source_template
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
 
-DEFAULT_VISUAL = {"velocity_radius": 2.0, "per_physical": 2, "seed": 0}  # for parents that record none
-
-
 def run_predict(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
@@ -201,13 +198,9 @@ def _rollout(
 
 
 def _visual_settings(parent: Run) -> dict[str, Any]:
-    """How visual Gaussians move and are born in the parent: a prediction must continue alike."""
-    settings = parent.manifest.get("settings", {})
-    if "visual" in settings:
-        return dict(settings["visual"])
-    quality = settings.get("quality", {})
-    return {
-        "velocity_radius": float(quality.get("velocity_radius", DEFAULT_VISUAL["velocity_radius"])),
-        "per_physical": int(quality.get("visual_per_physical", DEFAULT_VISUAL["per_physical"])),
-        "seed": int(quality.get("seed", DEFAULT_VISUAL["seed"])),
-    }
+    """How visual Gaussians move and are born in the parent (a reconstruction records them from
+    its quality preset, a prediction passes them on): a continuation must move them alike."""
+    visual = parent.manifest.get("settings", {}).get("visual")
+    if not isinstance(visual, Mapping) or set(visual) != {"velocity_radius", "per_physical", "seed"}:
+        raise JobInputError(f"run: {parent.path} records no settings.visual (written by an older version?); reconstruct again")
+    return dict(visual)

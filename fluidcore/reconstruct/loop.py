@@ -81,6 +81,7 @@ class Reconstruction:
     def settings(self) -> dict:
         return {
             "quality": self.quality.to_json(),
+            "visual": self.quality.visual_settings(),
             "physics_preset": self.physics_preset,
             "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
         }
