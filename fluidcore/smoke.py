@@ -1,4 +1,5 @@
-"""The two-layer smoke state: physical particles and the visual Gaussians that ride on them.
+"""The two-layer smoke state: physical particles and the visual Gaussians that ride on them,
+with `Appearance`, the visual layer's per-Gaussian parameters.
 
 Reconstruction (Algorithm S1) and prediction (S2) carry a `SmokeState` from frame to frame; a
 run folder stores it as a numpy `fluidcore.runs.FrameState` (torch-free, so the API and the
@@ -15,8 +16,39 @@ import numpy as np
 import torch
 
 from fluidcore.physics import ParticleState
-from fluidcore.reconstruct.visual import Appearance
+from fluidcore.render import Gaussians
 from fluidcore.runs import FrameState, RunError
+
+
+@dataclass
+class Appearance:
+    """Per-Gaussian appearance parameters in the renderer's unconstrained form."""
+
+    log_scales: torch.Tensor  # (G, 3)
+    quats: torch.Tensor  # (G, 4)
+    opacity_logits: torch.Tensor  # (G,)
+    colors: torch.Tensor  # (G, C), clamped to [0, 1] when drawn
+
+    def __len__(self) -> int:
+        return int(self.log_scales.shape[0])
+
+    def detach(self) -> Appearance:
+        return Appearance(*(t.detach().clone() for t in (self.log_scales, self.quats, self.opacity_logits, self.colors)))
+
+    def cat(self, other: Appearance) -> Appearance:
+        return Appearance(
+            torch.cat([self.log_scales, other.log_scales]),
+            torch.cat([self.quats, other.quats]),
+            torch.cat([self.opacity_logits, other.opacity_logits]),
+            torch.cat([self.colors, other.colors]),
+        )
+
+    def select(self, rows: torch.Tensor) -> Appearance:
+        """The Gaussians picked by `rows` (a boolean mask or indices, repeats allowed)."""
+        return Appearance(self.log_scales[rows], self.quats[rows], self.opacity_logits[rows], self.colors[rows])
+
+    def gaussians(self, means: torch.Tensor) -> Gaussians:
+        return Gaussians(means, self.log_scales, self.quats, self.opacity_logits, self.colors.clamp(0.0, 1.0))
 
 
 @dataclass

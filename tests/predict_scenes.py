@@ -13,9 +13,8 @@ from pathlib import Path
 import torch
 
 from fluidcore.physics import ParticleState, Simulator
-from fluidcore.reconstruct.visual import Appearance
 from fluidcore.runs import FrameState, Run, Scene
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.synth import SynthSpec, particle_gaussians
 
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)

@@ -97,9 +97,8 @@ def test_the_smoke_state_round_trips_through_a_run_file(tmp_path: Path) -> None:
     import torch
 
     from fluidcore.physics import ParticleState
-    from fluidcore.reconstruct.visual import Appearance
     from fluidcore.runs import FrameState
-    from fluidcore.smoke import SmokeState
+    from fluidcore.smoke import Appearance, SmokeState
 
     g = torch.Generator().manual_seed(0)
     particles = ParticleState.from_positions(torch.rand(5, 3, generator=g), torch.randn(5, 3, generator=g), time=0.5)

@@ -20,9 +20,8 @@ from fluidcore.interaction import WindParams
 from fluidcore.jobs import Cancelled, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
-from fluidcore.reconstruct.visual import Appearance
-from fluidcore.smoke import SmokeState
 from fluidcore.runs import Run, RunError
+from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
 

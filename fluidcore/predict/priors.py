@@ -20,8 +20,7 @@ from typing import Any
 import torch
 
 from fluidcore.jobs import JobInputError
-from fluidcore.reconstruct.visual import Appearance
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState
 
 NO_REFINER = "skipped: no video model weights"
 PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to

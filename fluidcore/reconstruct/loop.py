@@ -35,7 +35,7 @@ from fluidcore.reconstruct import init
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import Quality, render_size
 from fluidcore.reconstruct.views import ViewTarget, image_loss, symmetry_views
-from fluidcore.reconstruct.visual import Appearance, fit_appearance, spawn
+from fluidcore.reconstruct.visual import fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
