@@ -1,5 +1,5 @@
-"""fluidcore.pipeline as the worker calls it: progress, cancel then resume, only the named videos
-read, and the rendered artifacts of a run."""
+"""fluidcore.reconstruct.job.run_reconstruct and fluidcore.artifacts as the worker calls them:
+progress, cancel then resume, only the named videos read, and the rendered artifacts of a run."""
 
 from __future__ import annotations
 
