@@ -138,7 +138,8 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     spec = synth.SynthSpec(frames=3, width=24, height=32, views=2)
     cameras = synth.write(synth.generate(spec), tmp_path / "scene")
     quality = get("preview").with_overrides(position_iterations=2, appearance_iterations=1, first_frame_factor=1)
-    parent = reconstruct_job.run_reconstruct(cameras, {"view_00": tmp_path / "scene/videos/view_00.mp4"}, tmp_path / "rec", quality=quality)
+    inputs = {"view_00": tmp_path / "scene/videos/view_00.mp4"}
+    parent = reconstruct_job.run_reconstruct(cameras, inputs, tmp_path / "rec", quality=quality)
     calm = Run.open(run_predict(parent, tmp_path / "calm", frames=8))
     windy = Run.open(run_interact(parent, tmp_path / "windy", frames=8, wind=WindParams(direction=(0, 0, 1), strength=0.5)))
     assert calm.frames() == windy.frames() == list(range(3, 11))

@@ -85,7 +85,8 @@ class HeightProfile:
             shift = HOLD_RATE * (target - _band_means(value, band, bands))[band]
             held[name] = (value + torch.where(present[:, None], shift, torch.zeros_like(shift))).clamp(*HELD_RANGE[name])
         a = visual.appearance
-        return visual.with_visual(visual.means, Appearance(a.log_scales, a.quats, torch.logit(held["opacities"][:, 0]), held["colors"]))
+        opacity_logits = torch.logit(held["opacities"][:, 0])
+        return visual.with_visual(visual.means, Appearance(a.log_scales, a.quats, opacity_logits, held["colors"]))
 
 
 def _profiled(appearance: Appearance) -> dict[str, torch.Tensor]:
