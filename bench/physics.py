@@ -82,7 +82,7 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     box = Box((-3 * radius, -radius, -3 * radius), (3 * radius, height, 3 * radius))
     violent = scene == "violent"
     wind = WindParams(direction=(1.0, 0.0, 0.0), strength=3.0, growth=2.0 / height)
-    force = wind_force(wind, 0.0, config.dt) if violent else None
+    force = wind_force(wind, blowing=lambda time: True) if violent else None
     spheres = [Sphere((0.0, 0.3 * height, 0.0), 0.5 * radius, velocity=(0.0, 0.3, 0.0))] if violent else []
     sim = Simulator(config, box, spheres=spheres, force=force, device=device, backend=backend)
     jet = radius / 3.0 if violent else radius

@@ -149,3 +149,20 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     assert 0.3 * free < shift < free
     video = artifacts.render_frames(windy, windy.cameras()["view_01"])
     assert video.shape[0] == 8
+
+
+def test_the_wind_blows_in_exactly_the_frames_its_window_names() -> None:
+    """Frames become seconds in one place (predict.interventions) and the window is
+    WindParams.active's, whatever float error the simulator's accumulated time carries."""
+    from fluidcore.interaction import InteractionParams
+    from fluidcore.physics import PRESETS, Source
+    from fluidcore.predict.interventions import interventions
+
+    wind = WindParams(direction=(1, 0, 0), strength=0.5, start_frame=2, end_frame=4)
+    config, start = PRESETS["scalarflow"], 1.0
+    force = interventions(InteractionParams(wind=wind), config, Source((0, 0, 0), 0.1, 1), (0, 1, 0), start).force
+    p = torch.zeros(1, 3)
+    for frame in range(-1, 7):
+        for error in (-1e-9, 1e-9):
+            blows = bool(force(p, start + frame * config.dt + error).any())
+            assert blows == wind.active(frame), (frame, error)

@@ -22,24 +22,22 @@ MAX_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float3
 
 
 def wind_force(
-    wind: WindParams, start_time: float, dt: float, base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
+    wind: WindParams, blowing: Callable[[float], bool], base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
 ) -> ForceField:
-    """The force field of `wind` (strength * direction * exp(growth * height above `base_height`,
-    height along `up`), whose frame 0 is the step starting at `start_time`.
+    """The force field of `wind`: strength * direction * exp(growth * height above `base_height`),
+    height along `up`, in every step whose start time `blowing(time)` accepts.
 
     `wind` is the validated edge type (fluidcore.interaction.WindParams: unit direction, finite
-    bounded strength and growth, a frame window), so nothing is checked again here. The step
-    starting at time `s` belongs to frame round((s - start_time) / dt), and the wind blows in
-    it when `wind.active(frame)`: the one definition of its window, and rounding keeps a step
-    in its frame despite accumulated float error in the simulator's time. The exponent is
-    capped at MAX_EXPONENT so a large growth far above the source stays finite; the
-    simulator's speed limit bounds the result.
+    bounded strength and growth), so nothing is checked again here; when it blows is the
+    caller's clock (`fluidcore.predict.interventions` derives it from the wind's frame window).
+    The exponent is capped at MAX_EXPONENT so a large growth far above the source stays finite;
+    the simulator's speed limit bounds the result.
     """
     norm = math.sqrt(sum(c * c for c in up))
     up_unit = tuple(c / norm for c in up)
 
     def force(positions: Tensor, time: float) -> Tensor:
-        if not wind.active(math.floor((time - start_time) / dt + 0.5)):
+        if not blowing(time):
             return torch.zeros_like(positions)
         height = positions @ positions.new_tensor(up_unit)
         gain = torch.exp(torch.clamp(wind.growth * (height - base_height), max=MAX_EXPONENT))

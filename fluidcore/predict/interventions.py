@@ -9,6 +9,7 @@ a moving `Sphere` that enters the scene on its start frame.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -43,10 +44,18 @@ def interventions(
     """
     force = None
     if params.wind is not None:
+        wind = params.wind
         base_height = float(np.dot(source.center, up))
-        force = wind_force(params.wind, start_time, config.dt, base_height, tuple(up))
+        blowing = lambda time: wind.active(frame_at(time, start_time, config.dt))  # noqa: E731
+        force = wind_force(wind, blowing, base_height, tuple(up))
     ball = None if params.ball is None else ball_sphere(params.ball, start_time, config.dt)
     return Interventions(force, ball)
+
+
+def frame_at(time: float, start_time: float, dt: float) -> int:
+    """The new frame whose step starts at `time` (frame f starts at start_time + f dt). Rounding,
+    not flooring, keeps a step in its frame despite float error accumulated in the simulator's time."""
+    return math.floor((time - start_time) / dt + 0.5)
 
 
 def ball_sphere(ball: BallParams, start_time: float, dt: float) -> Ball:
