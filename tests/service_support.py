@@ -70,7 +70,7 @@ def sqlite_url(folder: Path) -> str:
 @contextmanager
 def migrated_postgres() -> Iterator[str]:
     """One migrated PostgreSQL database for a whole test module (see `empty_tables`)."""
-    from api.database import migrate
+    from service.database import migrate
 
     with postgres_database() as url:
         migrate(url)
@@ -81,7 +81,7 @@ def empty_tables(url: str) -> str:
     """Delete every row, children first, so tests sharing a migrated database start clean."""
     from sqlalchemy import create_engine
 
-    from api.models import Base
+    from service.models import Base
 
     engine = create_engine(url)
     with engine.begin() as connection:
@@ -155,7 +155,7 @@ class RecordingQueue:
         self.fail = fail
 
     def enqueue(self, job_id: str, job_type: str) -> str:
-        from api.queue import QueueUnavailable
+        from service.queue import QueueUnavailable
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")
@@ -163,7 +163,7 @@ class RecordingQueue:
         return f"task-{len(self.sent)}"
 
     def ping(self) -> None:
-        from api.queue import QueueUnavailable
+        from service.queue import QueueUnavailable
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from api.database import make_engine, make_sessionmaker, migrate, session_scope
-from api.models import Artifact, Job, JobState, Scene, utcnow
-from api.settings import Settings
-from api.storage import LocalStorage, Storage, StorageError, run_prefix
+from service.database import make_engine, make_sessionmaker, migrate, session_scope
+from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.settings import Settings
+from service.storage import LocalStorage, Storage, StorageError, run_prefix
 from worker.execution import RUN_SHARE, JobBusy, JobExecutor
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
@@ -237,7 +237,7 @@ def test_s3_storage_round_trip(tmp_path: Path) -> None:
     """The same executor against the S3 backend (moto's server), SQLite database."""
     from moto.server import ThreadedMotoServer
 
-    from api.storage import MinioStorage
+    from service.storage import MinioStorage
     from service_support import free_port
 
     port = free_port()
