@@ -132,7 +132,7 @@ def load_runners(spec: str | None) -> Mapping[str, Runner]:
     if spec is not None:
         module_name, _, attribute = spec.partition(":")
         runners = getattr(importlib.import_module(module_name), attribute)
-    missing = set(JobType) - set(runners)
+    missing = sorted(job_type.value for job_type in set(JobType) - set(runners))
     if missing:
-        raise ValueError(f"runners {spec or 'FLUIDCORE_RUNNERS'}: no runner for {sorted(missing)}")
+        raise ValueError(f"runners {spec or 'FLUIDCORE_RUNNERS'}: no runner for {missing}")
     return runners
