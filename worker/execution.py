@@ -170,9 +170,9 @@ class JobExecutor:
     def _fetch_inputs(self, claim: Claim) -> dict[str, object]:
         """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder.
 
-        A run names its parent by path (rendering looks up the chain for the background), so
-        every ancestor is fetched to the same place in the work dir it was written from; workers
-        share one work-dir layout, so those paths hold on every machine.
+        Rendering follows a run's chain of parents to the background, so every ancestor is fetched
+        too, each to WORK/jobs/<its id>/run as when it ran: a run names its parent relative to
+        itself ("../../<parent id>/run"), so the chain resolves under any work dir, on any worker.
         """
         if claim.scene_id is not None:
             return self._fetch_scene(claim.scene_id)
