@@ -37,6 +37,7 @@ DERIVED = """
 import json
 import service
 from api.app import create_app
+from service.celery_app import TASK_PREFIX
 from service.job_types import JobType
 from worker import runners, tasks
 schema = create_app().openapi()["paths"]["/v1/jobs"]["post"]["requestBody"]["content"]["application/json"]["schema"]
@@ -49,7 +50,7 @@ print(json.dumps({
     "service": service.__file__,
     "job_types": [t.value for t in JobType],
     "schema": sorted(schema["discriminator"]["mapping"]),
-    "tasks": sorted(name for name in tasks.app.tasks if name.startswith("fluidnexus.")),
+    "tasks": sorted(name for name in tasks.app.tasks if name.startswith(TASK_PREFIX)),
     "runner_error": runner_error,
 }))
 """
