@@ -10,9 +10,9 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from service.job_types import JobType
+from service.models import JobState
 
 T = TypeVar("T")
-JobStateName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
 def job_request_model(job_type: JobType) -> type[BaseModel]:
@@ -78,7 +78,7 @@ class JobLinks(BaseModel):
 class JobOut(BaseModel):
     id: str
     type: JobType
-    state: JobStateName
+    state: JobState
     stage: str
     progress: float = Field(ge=0.0, le=1.0)
     scene_id: str | None

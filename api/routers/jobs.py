@@ -14,7 +14,7 @@ from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.routers.scenes import owned_scene
-from api.schemas import JobLinks, JobOut, JobRequest, JobStateName, JobTimings, Page
+from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
 from service.queue import QueueUnavailable
@@ -78,7 +78,7 @@ def create_job(
 def list_jobs(
     owner: OwnerDep,
     session: SessionDep,
-    state: JobStateName | None = None,
+    state: JobState | None = None,
     type: JobType | None = None,
     scene_id: str | None = None,
     parent_job_id: str | None = None,
