@@ -151,9 +151,9 @@ def _check_video(filename: str, info: VideoInfo, camera: Camera, settings: Setti
             f"video: {filename} is {info.width}x{info.height}, more than {settings.max_video_pixels} pixels"
         )
     try:
-        check_video_size(camera, info.width, info.height)
+        check_video_size(camera, filename, info.width, info.height)
     except CameraError as exc:
-        raise UploadRejected(f"video: {filename}: {exc}") from None
+        raise UploadRejected(str(exc)) from None
 
 
 def store_scene(storage: Storage, prefix: str, scene: ValidatedScene) -> dict[str, str]:

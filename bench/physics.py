@@ -62,6 +62,7 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     """Simulator and state of the benchmark plume with n particles, plus a re-seeding function."""
     import torch
 
+    from fluidcore.interaction import WindParams
     from fluidcore.physics import Box, ParticleState, Simulator, Source, Sphere, wind_force
     from fluidcore.physics.source import emit
 
@@ -80,7 +81,8 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     state = ParticleState.from_positions(positions.to(device), velocities.to(device))
     box = Box((-3 * radius, -radius, -3 * radius), (3 * radius, height, 3 * radius))
     violent = scene == "violent"
-    force = wind_force((1.0, 0.0, 0.0), 3.0, growth=2.0 / height) if violent else None
+    wind = WindParams(direction=(1.0, 0.0, 0.0), strength=3.0, growth=2.0 / height)
+    force = wind_force(wind, 0.0, config.dt) if violent else None
     spheres = [Sphere((0.0, 0.3 * height, 0.0), 0.5 * radius, velocity=(0.0, 0.3, 0.0))] if violent else []
     sim = Simulator(config, box, spheres=spheres, force=force, device=device, backend=backend)
     jet = radius / 3.0 if violent else radius

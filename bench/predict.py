@@ -3,9 +3,9 @@
     python bench/predict.py --scene ../shared/realdata/scalarflow --input-view view_02 \
         --observed 0:90 --future 90:120 --gt view_00=gt/nvs_view_00.mp4 ... [--json]
 
-1. Reconstruct the observed window from the input view only (`fluidcore.pipeline.run_reconstruct`;
+1. Reconstruct the observed window from the input view only (`fluidcore.reconstruct.job.run_reconstruct`;
    `--reconstruction RUN` reuses a finished one of exactly that window and view).
-2. Predict the future window from the last reconstructed frame (`fluidcore.predict.run_predict`)
+2. Predict the future window from the last reconstructed frame (`fluidcore.predict.job.run_predict`)
    and re-simulate the observed window from the first (`run_resimulate`).
 3. Score every camera with ground truth (held-out views from `--gt`, paths relative to --scene;
    the input view against its own video's future frames, which never reach step 1): PSNR and
@@ -38,6 +38,7 @@ if __package__ in (None, ""):  # `python bench/predict.py`
 
 from fluidnexus.cli.errors import UserError, echo_json, user_errors  # first: it registers every benchmark
 from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
 
 ANCHOR_ROWS = {"all_views": "future_prediction_frames_all_views", "held_out": "future_prediction_frames_novel_views_0134"}
 
@@ -52,7 +53,7 @@ def command(
     observed: str = typer.Option(..., "--observed", help="A:B, the observed (reconstructed) frames."),
     future: str = typer.Option(..., "--future", help="B:C, the frames to predict and score."),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
-    quality: str = typer.Option("preview", "--quality", help="Reconstruction quality: preview | standard | paper."),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
     reconstruction: Path | None = typer.Option(None, "--reconstruction", help="Reuse this finished reconstruction run."),
     out: Path | None = typer.Option(None, "--out", help="Keep the runs here (default: a temporary folder)."),
@@ -62,8 +63,10 @@ def command(
     """Reconstruct the observed frames, predict the future ones, score them per view and horizon."""
     import torch
 
-    from fluidcore import pipeline, predict
+    from fluidcore.jobs import parse_frames
+    from fluidcore.predict.job import run_predict, run_resimulate
     from fluidcore.reconstruct import get
+    from fluidcore.reconstruct.job import run_reconstruct
 
     with user_errors(ValueError):
         cameras_path, cameras = load_scene(scene, threads)
@@ -78,7 +81,7 @@ def command(
         if unknown:
             raise UserError(f"--gt: no camera named {', '.join(unknown)}")
         truths.setdefault(name, input_path)
-        window, horizon = pipeline.parse_frames(observed), pipeline.parse_frames(future)
+        window, horizon = parse_frames(observed), parse_frames(future)
         if horizon[0] != window[1]:
             raise UserError(f"--future must start where --observed ends ({window[1]}), got {future}")
 
@@ -89,18 +92,18 @@ def command(
             reconstruction = folder / "reconstruct"
             _log(f"reconstructing {name} frames {observed} at quality {preset.name} with {torch.get_num_threads()} threads")
             started = time.perf_counter()
-            pipeline.run_reconstruct(cameras_path, {name: input_path}, reconstruction, quality=preset, frames=window,
-                                     progress_bar=not json_out)
+            run_reconstruct(cameras_path, {name: input_path}, reconstruction, quality=preset, frames=window,
+                            progress_bar=not json_out)
             seconds["reconstruct"] = time.perf_counter() - started
         _check_reconstruction(reconstruction, name, window)
 
         n_future = horizon[1] - horizon[0]
         _log(f"predicting {n_future} frames")
         started = time.perf_counter()
-        predicted = predict.run_predict(reconstruction, folder / "predict", frames=n_future)
+        predicted = run_predict(reconstruction, folder / "predict", frames=n_future)
         seconds["predict"] = time.perf_counter() - started
         started = time.perf_counter()
-        resimulated = predict.run_resimulate(reconstruction, folder / "resimulate")
+        resimulated = run_resimulate(reconstruction, folder / "resimulate")
         seconds["resimulate"] = time.perf_counter() - started
 
         views, render_seconds = _score(cameras, truths, name, input_path, reconstruction, predicted, resimulated, window, horizon)
@@ -146,7 +149,8 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
     PSNR/SSIM over the observed window. Returns (views, seconds spent rendering the future)."""
     import numpy as np
 
-    from fluidcore import pipeline, video
+    from fluidcore import video
+    from fluidcore.artifacts import render_frames, to_uint8_rgb
     from fluidcore.reconstruct.init import resize_image
     from fluidcore.runs import Run
 
@@ -159,16 +163,16 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
         size = (camera.width, camera.height)
         truth = video.read_frames(path, horizon[0], horizon[1], size=size)
         started = time.perf_counter()
-        pred = pipeline.render_frames(pred_run, camera)
+        pred = render_frames(pred_run, camera)
         render_seconds += time.perf_counter() - started
-        freeze = pipeline.render_frames(recon, camera, [window[1] - 1])
+        freeze = render_frames(recon, camera, [window[1] - 1])
         copy = resize_image(last_input.astype(np.float32) / 255.0, *size)
         scores = {
             "prediction": _per_frame(pred, truth),
-            "copy_input": _per_frame(np.broadcast_to(pipeline.to_uint8_rgb(copy), truth.shape), truth),
+            "copy_input": _per_frame(np.broadcast_to(to_uint8_rgb(copy), truth.shape), truth),
             "freeze": _per_frame(np.broadcast_to(freeze, truth.shape), truth),
         }
-        resim = _per_frame(pipeline.render_frames(resim_run, camera), video.read_frames(path, window[0], window[1], size=size))
+        resim = _per_frame(render_frames(resim_run, camera), video.read_frames(path, window[0], window[1], size=size))
         views[name] = {
             "role": "input" if name == input_view else "held-out",
             **{f"{k}_psnr": float(np.mean(v["psnr"])) for k, v in scores.items()},

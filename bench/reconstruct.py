@@ -27,6 +27,7 @@ if __package__ in (None, ""):  # `python bench/reconstruct.py`
 
 from fluidnexus.cli.errors import UserError, echo_json, user_errors
 from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
 
 
 def _log(message: str) -> None:
@@ -37,7 +38,7 @@ def command(
     scene: Path = typer.Option(..., "--scene", exists=True, file_okay=False, help="Scene folder with transforms.json."),
     input_view: list[str] = typer.Option(..., "--input-view", help="NAME[=path]; repeat for several input views."),
     frames: str = typer.Option("0:10", "--frames", help="START:END (end exclusive)."),
-    quality: str = typer.Option("preview", "--quality", help="preview | standard | paper"),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
     out: Path | None = typer.Option(None, "--out", help="Keep the run folder here (default: a temporary folder)."),
@@ -47,8 +48,9 @@ def command(
     """Reconstruct from the input view(s), then PSNR/SSIM on every other camera with ground truth."""
     import torch
 
-    from fluidcore import pipeline
+    from fluidcore.jobs import parse_frames
     from fluidcore.reconstruct import get
+    from fluidcore.reconstruct.job import run_reconstruct
 
     with user_errors(ValueError):
         cameras_path, cameras = load_scene(scene, threads)
@@ -67,12 +69,12 @@ def command(
         scored = {name: path for name, path in truths.items() if name not in inputs}
         if not scored:
             raise UserError("no camera besides the input views has ground truth (give --gt VIEW=path)")
-        frame_range = pipeline.parse_frames(frames)
+        frame_range = parse_frames(frames)
         preset = get(quality).with_overrides(**quality_overrides(set_))
         run_dir = out or Path(tempfile.mkdtemp(prefix="bench-reconstruct-"))
         _log(f"reconstructing {sorted(inputs)} frames {frames} at quality {preset.name} with {torch.get_num_threads()} threads")
         started = time.perf_counter()
-        pipeline.run_reconstruct(cameras_path, inputs, run_dir, quality=preset, frames=frame_range, progress_bar=not json_out)
+        run_reconstruct(cameras_path, inputs, run_dir, quality=preset, frames=frame_range, progress_bar=not json_out)
         seconds = time.perf_counter() - started
         result = _score(run_dir, cameras, scored, inputs, frame_range)
         result["anchors_same_frames"] = _anchors(scene / "anchors.json", sorted(inputs), sorted(scored), frame_range)
@@ -100,7 +102,8 @@ def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[s
     import numpy as np
     import torch
 
-    from fluidcore import metrics, pipeline, video
+    from fluidcore import metrics, video
+    from fluidcore.artifacts import render_frames, to_uint8_rgb
     from fluidcore.runs import Run
 
     run = Run.open(run_dir)
@@ -108,8 +111,8 @@ def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[s
     for name, path in sorted({**scored, **inputs}.items()):
         camera = cameras[name]
         truth = video.read_frames(path, frame_range[0], frame_range[1], size=(camera.width, camera.height))
-        pred = pipeline.render_frames(run, camera, run.frames())
-        blank = np.broadcast_to(pipeline.to_uint8_rgb(np.asarray(run.background_color, np.float32)[None, None]), truth.shape)
+        pred = render_frames(run, camera, run.frames())
+        blank = np.broadcast_to(to_uint8_rgb(np.asarray(run.background_color, np.float32)[None, None]), truth.shape)
         as_float = lambda a: torch.from_numpy(np.ascontiguousarray(a)).float() / 255.0  # noqa: E731
         t, p, b = as_float(truth), as_float(pred), as_float(blank)
         views[name] = {

@@ -6,9 +6,10 @@ counted from the first new (predicted) frame.
 
 Validation happens in two stages because the scene is not known when a request arrives:
 the models themselves reject what is wrong in any scene (NaN, a zero direction, a negative
-radius, a strength no smoke survives), and `check_scene` rejects what is wrong in the run's
-scene (a ball outside the scene box, a wind too strong for the simulator to resolve, an
-intervention that starts after the last predicted frame).
+radius, a strength no smoke survives), and `InteractionParams.check_scene`, the one scene
+check, rejects what is wrong in the run's scene (a ball outside the scene box, a wind too
+strong for the simulator to resolve, an intervention that starts after the last predicted
+frame). The validated models are what the physics receives (`fluidcore.predict.interventions`).
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ class WindParams(BaseModel):
         return self
 
     def active(self, frame: int) -> bool:
-        """Whether the wind blows during new frame `frame`."""
+        """Whether the wind blows during new frame `frame`: the one definition of its window
+        (`fluidcore.physics.forces.wind_force` asks it for every step)."""
         return frame >= self.start_frame and (self.end_frame is None or frame < self.end_frame)
 
     def peak_acceleration(self, lo: Vec3, hi: Vec3, base_height: float, up: Vec3 = (0.0, 1.0, 0.0)) -> float:
@@ -106,23 +108,26 @@ class InteractionParams(BaseModel):
     wind: WindParams | None = None
     ball: BallParams | None = None
 
-    def check_scene(
-        self,
-        *,
-        lo: Vec3,
-        hi: Vec3,
-        base_height: float,
-        dt: float,
-        speed_limit: float,
-        frames: int,
-        up: Vec3 = (0.0, 1.0, 0.0),
-    ) -> None:
-        """Reject parameters that are valid in general but meaningless in this run's scene.
+    def check_scene(self, scene: Mapping[str, Any], frames: int) -> None:
+        """Reject parameters that are valid in general but meaningless in this run's scene (the
+        "scene" entry of a run manifest, fluidcore.runs, read as plain JSON so the API can refuse
+        a job before queueing it, without torch; the prediction job asks the same before it
+        writes anything).
 
         A wind is absurd when, at its peak inside the box, it alone would take a particle at
         rest past the simulator's speed limit within one step (a * dt > speed_limit, one kernel
         radius per step): from there on the speed clamp, not the wind, decides the motion.
         """
+        try:
+            physics, source = scene["physics"], scene["source"]
+            lo, hi, up = tuple(scene["box"]["lo"]), tuple(scene["box"]["hi"]), tuple(scene["up"])
+            dt, h = float(physics["dt"]), float(physics["h"])
+            center = source["center"]
+        except (KeyError, TypeError) as exc:
+            raise InteractionError(f"run scene: malformed ({exc!r} missing)") from None
+        # PBFConfig.speed_limit: max_speed when set, else one kernel radius per step.
+        speed_limit = float(physics.get("max_speed") or h / dt)
+        base_height = sum(u * c for u, c in zip(up, center))
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)
@@ -136,21 +141,6 @@ class InteractionParams(BaseModel):
         if self.ball is not None:
             _check_start(self.ball.start_frame, frames, "ball")
             self.ball.check_in_box(lo, hi)
-
-    def check_run_scene(self, scene: Mapping[str, Any], frames: int) -> None:
-        """`check_scene` against a run manifest's "scene" entry (fluidcore.runs), read as plain
-        JSON so the API can refuse a job before queueing it, without importing torch."""
-        try:
-            physics, source = scene["physics"], scene["source"]
-            lo, hi, up = tuple(scene["box"]["lo"]), tuple(scene["box"]["hi"]), tuple(scene["up"])
-            dt, h = float(physics["dt"]), float(physics["h"])
-            center = source["center"]
-        except (KeyError, TypeError) as exc:
-            raise InteractionError(f"run scene: malformed ({exc!r} missing)") from None
-        # PBFConfig.speed_limit: max_speed when set, else one kernel radius per step.
-        speed_limit = float(physics.get("max_speed") or h / dt)
-        base_height = sum(u * c for u, c in zip(up, center))
-        self.check_scene(lo=lo, hi=hi, base_height=base_height, dt=dt, speed_limit=speed_limit, frames=frames, up=up)
 
 
 def parse_interaction(wind: str | Mapping[str, Any] | None, ball: str | Mapping[str, Any] | None) -> InteractionParams:

@@ -16,7 +16,9 @@ Layout (format version 1)::
 
     format, format_version   "fluidnexus-run", 1
     kind                     "reconstruct" | "predict" | "interact" | "resimulate" | ...
-    parent                   path of the run this one continues, or null
+    parent                   the run this one continues, as a path relative to this run folder (so a
+                             chain of runs moves as one: another work dir, another worker), or null;
+                             an absolute path (written before this rule) is still read
     created, versions        UTC ISO time; {"fluidnexus", "torch", "numpy", "python"}
     cameras                  {name: {fx, fy, cx, cy, width, height, world_to_camera (4x4), file_path}}
     input_views              camera names whose video was fed in
@@ -203,6 +205,11 @@ class FrameState:
         return out
 
 
+def _relative(target: str | os.PathLike[str], start: Path) -> str:
+    """`target` as a POSIX path relative to the folder `start` (both resolved first)."""
+    return Path(os.path.relpath(Path(target).resolve(), Path(start).resolve())).as_posix()
+
+
 def camera_to_json(camera: Any) -> dict[str, Any]:
     return {
         "fx": float(camera.fx),
@@ -296,7 +303,7 @@ class Run:
             raise RunError(f"frame_range: {frame_range} is empty")
         identity = {
             "kind": kind,
-            "parent": None if parent is None else str(parent),
+            "parent": None if parent is None else _relative(parent, path),
             "cameras": {name: camera_to_json(cam) for name, cam in cameras.items()},
             "input_views": list(input_views),
             "frame_range": [int(frame_range[0]), int(frame_range[1])],
@@ -350,7 +357,7 @@ class Run:
     @property
     def parent(self) -> Run | None:
         parent = self.manifest.get("parent")
-        return None if parent is None else Run.open(parent)
+        return None if parent is None else Run.open(self.path / parent)  # an absolute path stays itself
 
     @property
     def background_color(self) -> list[float]:

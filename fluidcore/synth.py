@@ -76,8 +76,8 @@ class SynthSpec:
 
     def source(self) -> Source:
         config = self.config()
-        rise = abs(config.alpha) * 9.8 / config.length_scale / config.drag
-        return Source((0.0, 1.5 * self.source_radius, 0.0), self.source_radius, self.particles_per_step, (0.0, rise, 0.0), self.seed)
+        velocity = (0.0, config.terminal_speed, 0.0)
+        return Source((0.0, 1.5 * self.source_radius, 0.0), self.source_radius, self.particles_per_step, velocity, self.seed)
 
     def cameras(self) -> dict[str, Camera]:
         """`views` cameras on a half circle (-90..+90 degrees) around the plume, view_00..."""

@@ -15,14 +15,11 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from fluidcore.interaction import BallParams, WindParams
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, PRESETS
 
 _STRICT = ConfigDict(extra="forbid")
 
-# The reconstruction presets of `fluidcore.reconstruct.presets`, and the one a request gets by
-# default. Written out because that module still pulls torch in through its package; once its
-# package face is torch-free these become its PRESETS names and its declared default.
-QualityName = Literal["preview", "standard", "paper"]
-DEFAULT_QUALITY: QualityName = "preview"
+QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
 
 StartsFrom = Literal["scene", "parent"]
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.runs import FrameState, Run, Scene
+from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.synth import SynthSpec, particle_gaussians
 
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
@@ -34,20 +34,8 @@ def simulator_of(spec: SynthSpec = SPEC) -> Simulator:
 def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
     """The state as a reconstruction would store it: one visual Gaussian per live particle."""
     g = particle_gaussians(state.positions[state.alive], spec)
-    return FrameState(
-        positions=state.positions.numpy().copy(),
-        velocities=state.velocities.numpy().copy(),
-        alive=state.alive.numpy().copy(),
-        time=state.time,
-        gaussians={
-            "means": g.means.numpy().copy(),
-            "log_scales": g.log_scales.numpy(),
-            "quats": g.quats.numpy(),
-            "opacity_logits": g.opacity_logits.numpy(),
-            "colors": g.colors.numpy(),
-        },
-        extra={"step": np.asarray(state.step, dtype=np.int64)},
-    )
+    appearance = Appearance(g.log_scales, g.quats, g.opacity_logits, g.colors)
+    return SmokeState(state.clone(), g.means.clone(), appearance).to_frame()
 
 
 def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC) -> Path:
@@ -67,7 +55,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         channels=1,
         background_color=[1.0],
         scene=scene_of(spec),
-        settings={"quality": {"velocity_radius": 2.0, "visual_per_physical": 1, "seed": 0}},
+        settings={"visual": {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}},
     )
     for t in range(frames):
         if t > 0:

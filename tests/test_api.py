@@ -189,7 +189,7 @@ def test_video_matched_by_file_path_base_name(sqlite_service: Service, tmp_path:
     [
         ("unknown_camera", 422, "known cameras: cam0, cam1"),
         ("not_a_video", 422, "video: cam1.mp4"),
-        ("wrong_size", 422, "do not match the video"),
+        ("wrong_size", 422, "video: cam1.mp4 is 40x24 but camera"),
         ("too_long", 422, "longer than the limit"),
         ("bad_cameras", 422, "cameras:"),
         ("duplicate_camera", 422, "both for camera 'cam0'"),

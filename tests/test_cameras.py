@@ -174,9 +174,9 @@ def test_camera_rejects_invalid_fields(change: dict, field: str) -> None:
 
 def test_check_video_size() -> None:
     camera = _camera(width=64, height=48)
-    check_video_size(camera, 64, 48)
-    with pytest.raises(CameraError, match=r"width/height 64x48 .*\(128x96\)"):
-        check_video_size(camera, 128, 96)
+    check_video_size(camera, "a.mp4", 64, 48)
+    with pytest.raises(CameraError, match=r"video: a.mp4 is 128x96 but camera .* is 64x48"):
+        check_video_size(camera, "a.mp4", 128, 96)
 
 
 # --- nerfstudio transforms.json -----------------------------------------------------------------------

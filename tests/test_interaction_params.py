@@ -10,8 +10,19 @@ import pytest
 
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
 
-# speed limit 60 units/s at dt 1/30: the scene resolves winds up to 1800 units/s^2.
-BOX = dict(lo=(-1.0, 0.0, -1.0), hi=(1.0, 2.0, 1.0), base_height=0.0, dt=1 / 30, speed_limit=60.0, frames=30)
+FRAMES = 30
+LO, HI = (-1.0, 0.0, -1.0), (1.0, 2.0, 1.0)
+
+
+def scene(hi: tuple[float, float, float] = HI) -> dict:
+    """A run manifest's "scene" entry: speed limit 60 units/s at dt 1/30 (winds up to 1800 units/s^2),
+    source at height 0."""
+    return {
+        "box": {"lo": list(LO), "hi": list(hi)},
+        "up": [0.0, 1.0, 0.0],
+        "physics": {"dt": 1 / 30, "h": 1.0, "max_speed": 60.0},
+        "source": {"center": [0.0, 0.0, 0.0]},
+    }
 
 
 def test_wind_direction_is_normalised_and_window_is_exclusive() -> None:
@@ -60,23 +71,23 @@ def test_both_at_once_and_from_dicts() -> None:
 def test_ball_outside_the_scene_box_is_refused() -> None:
     params = InteractionParams(ball=BallParams(center=(0.0, 3.0, 0.0), radius=0.1))
     with pytest.raises(InteractionError, match="ball.center .* outside the scene box"):
-        params.check_scene(**BOX)
-    InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=0.1)).check_scene(**BOX)
+        params.check_scene(scene(), FRAMES)
+    InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=0.1)).check_scene(scene(), FRAMES)
 
 
 def test_ball_larger_than_the_scene_is_refused() -> None:
     with pytest.raises(InteractionError, match="ball.radius"):
-        InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=5.0)).check_scene(**BOX)
+        InteractionParams(ball=BallParams(center=(0.0, 1.0, 0.0), radius=5.0)).check_scene(scene(), FRAMES)
 
 
 def test_wind_beyond_what_the_simulator_resolves_is_absurd_for_this_scene() -> None:
     calm = WindParams(direction=(1, 0, 0), strength=100.0)
-    InteractionParams(wind=calm).check_scene(**BOX)
+    InteractionParams(wind=calm).check_scene(scene(), FRAMES)
     # The same strength is absurd once it grows tenfold per unit of height over a 2-unit box.
     growing = WindParams(direction=(1, 0, 0), strength=100.0, growth=math.log(10.0))
-    assert growing.peak_acceleration(BOX["lo"], BOX["hi"], 0.0) == pytest.approx(100.0 * 100.0)
+    assert growing.peak_acceleration(LO, HI, 0.0) == pytest.approx(100.0 * 100.0)
     with pytest.raises(InteractionError, match="wind.strength"):
-        InteractionParams(wind=growing).check_scene(**BOX)
+        InteractionParams(wind=growing).check_scene(scene(), FRAMES)
 
 
 def test_wind_peak_is_at_the_bottom_when_it_decays_with_height() -> None:
@@ -86,10 +97,9 @@ def test_wind_peak_is_at_the_bottom_when_it_decays_with_height() -> None:
 
 def test_overflowing_growth_is_refused_not_inf() -> None:
     wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=50.0)
-    box = dict(BOX, hi=(1.0, 20.0, 1.0))
-    assert wind.peak_acceleration(box["lo"], box["hi"], 0.0) == math.inf
+    assert wind.peak_acceleration(LO, (1.0, 20.0, 1.0), 0.0) == math.inf
     with pytest.raises(InteractionError, match="wind.strength"):
-        InteractionParams(wind=wind).check_scene(**box)
+        InteractionParams(wind=wind).check_scene(scene(hi=(1.0, 20.0, 1.0)), FRAMES)
 
 
 @pytest.mark.parametrize("which", ["wind", "ball"])
@@ -99,7 +109,7 @@ def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
         {"center": [0, 1, 0], "radius": 0.1, "start_frame": 30} if which == "ball" else None,
     )
     with pytest.raises(InteractionError, match=f"{which}.start_frame"):
-        params.check_scene(**BOX)
+        params.check_scene(scene(), FRAMES)
 
 
 def test_parameters_import_without_torch() -> None:
@@ -108,16 +118,16 @@ def test_parameters_import_without_torch() -> None:
 
 
 def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
-    scene = {
+    manifest_scene = {
         "box": {"lo": [-1.0, 0.0, -1.0], "hi": [1.0, 2.0, 1.0]},
         "up": [0.0, 1.0, 0.0],
         "physics": {"dt": 1 / 30, "h": 1.0, "max_speed": None},  # h / dt = 30 units/s: winds up to 900 units/s^2
         "source": {"center": [0.0, 0.5, 0.0]},
     }
-    InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=850.0)).check_run_scene(scene, frames=10)
+    InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=850.0)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="wind.strength"):
-        InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=950.0)).check_run_scene(scene, frames=10)
+        InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=950.0)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="ball.center"):
-        InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_run_scene(scene, frames=10)
+        InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="run scene: malformed"):
-        InteractionParams().check_run_scene({"box": {}}, frames=10)
+        InteractionParams().check_scene({"box": {}}, frames=10)

@@ -9,6 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from fluidcore.interaction import WindParams
 from fluidcore.physics import (
     PRESETS,
     Box,
@@ -187,18 +188,21 @@ def test_drag_relaxes_towards_the_environment_velocity() -> None:
 
 
 def test_wind_force_grows_with_height_inside_its_window() -> None:
-    wind = wind_force((2.0, 0.0, 0.0), strength=0.5, growth=3.0, base_height=0.1, start_time=1.0, end_time=2.0)
+    params = WindParams(direction=(2.0, 0.0, 0.0), strength=0.5, growth=3.0, start_frame=2, end_frame=4)
+    wind = wind_force(params, start_time=1.0, dt=0.5, base_height=0.1)  # frame f = the step starting at 1 + f / 2 s
     p = torch.tensor([[0.0, 0.1, 0.0], [0.0, 0.6, 0.0]])
-    assert torch.equal(wind(p, 0.5), torch.zeros(2, 3))
-    assert torch.equal(wind(p, 2.0), torch.zeros(2, 3))
-    f = wind(p, 1.5)
+    # the force blows exactly in the frames WindParams.active names, despite float error in the time
+    for frame in range(-1, 7):
+        blows = bool(wind(p, 1.0 + 0.5 * frame + 1e-9 * (-1) ** frame).any())
+        assert blows == params.active(frame), frame
+    f = wind(p, 2.0)
     assert f[0].tolist() == pytest.approx([0.5, 0.0, 0.0])
     assert f[1, 0].item() == pytest.approx(0.5 * math.exp(1.5), rel=1e-5)
 
 
 def test_wind_pushes_the_smoke() -> None:
     x, v = random_block(200, 8.0, CFG.h), torch.zeros(200, 3)
-    pushed, _ = sim_step(x, v, CFG, force=wind_force((1, 0, 0), 1.0))
+    pushed, _ = sim_step(x, v, CFG, force=wind_force(WindParams(direction=(1, 0, 0), strength=1.0), 0.0, CFG.dt))
     calm, _ = sim_step(x, v, CFG)
     assert bool((pushed[:, 0] > calm[:, 0]).all())
 

@@ -8,6 +8,7 @@ from dataclasses import replace
 import pytest
 import torch
 
+from fluidcore.interaction import WindParams
 from fluidcore.physics import (
     PRESETS,
     Box,
@@ -106,7 +107,7 @@ def test_time_step_ten_times_too_large(backend: str) -> None:
 
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_wind_of_strength_1e3(backend: str) -> None:
-    wind = wind_force((1.0, 0.0, 0.0), 1.0e3, growth=10.0, base_height=0.03)
+    wind = wind_force(WindParams(direction=(1.0, 0.0, 0.0), strength=1.0e3, growth=10.0), 0.0, CFG.dt, base_height=0.03)
     sim = Simulator(CFG, BOX, SOURCE, force=wind, backend=backend)
     state = sim.new_state()
     stats = run(sim, state, 40)

@@ -4,6 +4,7 @@ reproducible, resumable, continuable and finite over long horizons."""
 from __future__ import annotations
 
 import json
+import shutil
 import math
 from dataclasses import replace
 from pathlib import Path
@@ -14,11 +15,13 @@ import torch
 from predict_scenes import SPEC, horizontal_distance, live, plume_run
 from typer.testing import CliRunner
 
-from fluidcore import pipeline, predict
-from fluidcore.physics import Simulator
-from fluidcore.pipeline import Cancelled
-from fluidcore.reconstruct.visual import Appearance
+from fluidcore import artifacts
+from fluidcore.interaction import WindParams
+from fluidcore.jobs import Cancelled, JobInputError
+from fluidcore.physics import ParticleState, Simulator
+from fluidcore.predict import identification, job, priors, rollout
 from fluidcore.runs import Run, RunError
+from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
 
@@ -46,11 +49,12 @@ def assert_same_states(a: Run, b: Run) -> None:
 
 
 def test_prediction_continues_after_the_last_frame_and_records_its_parent(parent: Path, tmp_path: Path) -> None:
-    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert run.kind == "predict" and run.manifest["complete"]
     assert run.frames() == list(range(3, 3 + FRAMES))
-    assert Path(run.manifest["parent"]) == parent.resolve() and run.parent is not None
-    assert run.manifest["refinement"] == predict.NO_REFINER
+    assert not Path(run.manifest["parent"]).is_absolute()  # relative to the run folder: a chain moves as one
+    assert run.parent is not None and run.parent.path.resolve() == parent.resolve()
+    assert run.manifest["refinement"] == priors.NO_REFINER
     first = run.read_frame(3)
     last_parent = Run.open(parent).read_frame(2)
     assert first.time == pytest.approx(last_parent.time + 1 / 30)
@@ -60,9 +64,9 @@ def test_prediction_continues_after_the_last_frame_and_records_its_parent(parent
 
 
 def test_rendering_a_prediction_gives_its_new_frames(parent: Path, tmp_path: Path) -> None:
-    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     camera = run.cameras()["view_01"]
-    video = pipeline.render_frames(run, camera)
+    video = artifacts.render_frames(run, camera)
     assert video.shape == (FRAMES, camera.height, camera.width, 3)
     assert video.min() < 200  # smoke is visible on the white background
 
@@ -84,20 +88,20 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
     monkeypatch.setattr(Simulator, "step", counting_step)
     monkeypatch.setattr(render_module, "render", counting_render)
     reconstruction = Run.open(parent)
-    predict.calibrate_buoyancy(reconstruction, reconstruction.scene, reconstruction.frames()[-1], "cpu")
+    identification.calibrate_buoyancy(reconstruction, reconstruction.scene, reconstruction.frames()[-1], "cpu")
     once = calls["step"]  # the one-off identification of the buoyancy, not a per-frame cost
-    assert 0 < once <= len(predict.BUOYANCY_SCALES) * predict.CALIBRATION_FRAMES
+    assert 0 < once <= len(identification.BUOYANCY_SCALES) * identification.CALIBRATION_FRAMES
     calls["step"] = 0
-    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=FRAMES))
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert calls == {"step": once + FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
     for camera in run.cameras().values():
-        pipeline.render_frames(run, camera)
+        artifacts.render_frames(run, camera)
     assert calls == {"step": once + FRAMES, "render": FRAMES * len(run.cameras())}
 
 
 def test_prediction_without_forces_is_deterministic(parent: Path, tmp_path: Path) -> None:
-    a = Run.open(predict.run_predict(parent, tmp_path / "a", frames=FRAMES))
-    b = Run.open(predict.run_predict(parent, tmp_path / "b", frames=FRAMES))
+    a = Run.open(job.run_predict(parent, tmp_path / "a", frames=FRAMES))
+    b = Run.open(job.run_predict(parent, tmp_path / "b", frames=FRAMES))
     assert_same_states(a, b)
 
 
@@ -110,30 +114,30 @@ def test_a_cancelled_prediction_resumes_to_the_same_result(parent: Path, tmp_pat
         return len(asked) > 3
 
     with pytest.raises(Cancelled, match="resumes from frame 6"):
-        predict.run_predict(parent, tmp_path / "resumed", frames=FRAMES, should_cancel=cancel_after_three)
+        job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, should_cancel=cancel_after_three)
     assert Run.open(tmp_path / "resumed").frames() == [3, 4, 5]
-    predict.run_predict(parent, tmp_path / "resumed", frames=FRAMES, progress=lambda f, stage: reported.append(f))
+    job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, progress=lambda f, stage: reported.append(f))
     assert reported == pytest.approx([(k + 1) / FRAMES for k in range(3, FRAMES)])
-    whole = Run.open(predict.run_predict(parent, tmp_path / "whole", frames=FRAMES))
+    whole = Run.open(job.run_predict(parent, tmp_path / "whole", frames=FRAMES))
     assert_same_states(Run.open(tmp_path / "resumed"), whole)
 
 
 def test_another_run_in_the_same_folder_is_refused(parent: Path, tmp_path: Path) -> None:
-    predict.run_predict(parent, tmp_path / "out", frames=2)
+    job.run_predict(parent, tmp_path / "out", frames=2)
     with pytest.raises(RunError, match="different run"):
-        predict.run_interact(parent, tmp_path / "out", frames=2, wind={"direction": [1, 0, 0], "strength": 0.1})
+        job.run_interact(parent, tmp_path / "out", frames=2, wind=WindParams(direction=(1, 0, 0), strength=0.1))
 
 
 @pytest.mark.parametrize("frames", [0, -3, 2.5, True])
 def test_a_bad_horizon_is_refused(parent: Path, tmp_path: Path, frames: object) -> None:
-    with pytest.raises(predict.PredictError, match="frames"):
-        predict.run_predict(parent, tmp_path / "out", frames=frames)  # type: ignore[arg-type]
+    with pytest.raises(JobInputError, match="frames"):
+        job.run_predict(parent, tmp_path / "out", frames=frames)  # type: ignore[arg-type]
 
 
 def test_a_prediction_can_be_continued_by_another(parent: Path, tmp_path: Path) -> None:
-    first = predict.run_predict(parent, tmp_path / "first", frames=3)
-    second = Run.open(predict.run_predict(first, tmp_path / "second", frames=3))
-    whole = Run.open(predict.run_predict(parent, tmp_path / "whole", frames=6))
+    first = job.run_predict(parent, tmp_path / "first", frames=3)
+    second = Run.open(job.run_predict(first, tmp_path / "second", frames=3))
+    whole = Run.open(job.run_predict(parent, tmp_path / "whole", frames=6))
     assert second.frames() == whole.frames()[3:]
     for t in second.frames():
         np.testing.assert_array_equal(live(second.read_frame(t)), live(whole.read_frame(t)))
@@ -147,7 +151,7 @@ def test_newborn_smoke_looks_like_the_reconstructed_smoke_at_the_source(parent: 
         recoloured, kind="reconstruct", cameras=source.cameras(), input_views=["view_00"], frame_range=(0, 1),
         fps=30.0, channels=1, background_color=[1.0], scene=source.scene, settings=source.manifest["settings"],
     ).write_frame(0, _recoloured(source.read_frame(2), source.scene.source["center"]), {}, 0.0)
-    run = Run.open(predict.run_predict(recoloured, tmp_path / "pred", frames=1))
+    run = Run.open(job.run_predict(recoloured, tmp_path / "pred", frames=1))
     colors = run.read_frame(1).gaussians["colors"]
     born = run.scene.source["rate"] * run.manifest["settings"]["visual"]["per_physical"]
     # Births are appended last. The height profile then nudges every band's mean colour back to
@@ -159,14 +163,14 @@ def test_newborn_smoke_looks_like_the_reconstructed_smoke_at_the_source(parent: 
 def _recoloured(saved, center):  # noqa: ANN001, ANN202
     """The frame with every Gaussian grey 0.25 except those nearest the source, grey 0.9."""
     means = saved.gaussians["means"]
-    near = np.argsort(np.linalg.norm(means - np.asarray(center), axis=1))[: predict.TEMPLATE_SIZE]
+    near = np.argsort(np.linalg.norm(means - np.asarray(center), axis=1))[: rollout.TEMPLATE_SIZE]
     colors = np.full_like(saved.gaussians["colors"], 0.25)
     colors[near] = 0.9
     return replace(saved, gaussians={**saved.gaussians, "colors": colors})
 
 
 def test_resimulating_a_pure_physics_run_reproduces_it(parent: Path, tmp_path: Path) -> None:
-    run = Run.open(predict.run_resimulate(parent, tmp_path / "resim"))
+    run = Run.open(job.run_resimulate(parent, tmp_path / "resim"))
     original = Run.open(parent)
     assert run.kind == "resimulate" and run.frames() == original.frames()
     first = run.read_frame(0)
@@ -179,7 +183,7 @@ def test_resimulating_a_pure_physics_run_reproduces_it(parent: Path, tmp_path: P
 
 def test_a_300_frame_horizon_stays_finite_and_bounded(tmp_path: Path) -> None:
     parent = plume_run(tmp_path / "parent", frames=1, warmup=10, spec=replace(SPEC, particles_per_step=4))
-    run = Run.open(predict.run_predict(parent, tmp_path / "long", frames=300))
+    run = Run.open(job.run_predict(parent, tmp_path / "long", frames=300))
     counts = []
     for t in run.frames()[::25] + run.frames()[-1:]:
         saved = run.read_frame(t)  # loading checks every array is finite
@@ -237,13 +241,13 @@ def test_an_overfilled_source_is_capped_to_what_its_inlet_carries_at_rest_densit
     config, source = SPEC.config(), SPEC.source()
     speed = max(math.hypot(*source.velocity), math.hypot(*config.body_acceleration) / config.drag)
     capacity = 8 * config.rho0 / config.h**3 * math.pi * source.radius**2 * speed * config.dt
-    assert predict.inlet_source(source, config) == source  # the test plume seeds below capacity
+    assert rollout.inlet_source(source, config) == source  # the test plume seeds below capacity
     flooded = replace(source, rate=round(4 * capacity))
-    assert predict.inlet_source(flooded, config).rate == round(capacity)
+    assert rollout.inlet_source(flooded, config).rate == round(capacity)
     # Physically: the flooded inlet piles particles up and pushes them sideways; the capped one
     # keeps the plume's base as narrow as an inlet at rest density allows.
     widths = []
-    for seeded in (flooded, predict.inlet_source(flooded, config)):
+    for seeded in (flooded, rollout.inlet_source(flooded, config)):
         simulator = Simulator(config, SPEC.box(), seeded)
         state = simulator.new_state()
         for _ in range(30):
@@ -258,10 +262,10 @@ def test_a_prediction_records_the_inlet_rate_it_used(tmp_path: Path) -> None:
     config, source = SPEC.config(), SPEC.source()
     flooded = replace(SPEC, particles_per_step=10 * source.rate)
     parent = plume_run(tmp_path / "parent", frames=1, warmup=2, spec=flooded)
-    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=2))
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=2))
     assert run.manifest["settings"]["parent_source_rate"] == 10 * source.rate
-    assert run.scene.source["rate"] == predict.inlet_source(flooded.source(), config).rate < 10 * source.rate
-    continued = Run.open(predict.run_predict(run.path, tmp_path / "again", frames=1))
+    assert run.scene.source["rate"] == rollout.inlet_source(flooded.source(), config).rate < 10 * source.rate
+    continued = Run.open(job.run_predict(run.path, tmp_path / "again", frames=1))
     assert continued.scene.source["rate"] == run.scene.source["rate"]
 
 
@@ -272,35 +276,35 @@ def test_the_buoyancy_is_identified_from_the_reconstructed_motion(tmp_path: Path
     parent = Run.open(plume_run(tmp_path / "parent", frames=6, warmup=20))
     truth = parent.scene
     preset = replace(truth, physics={**truth.physics, "alpha": truth.physics["alpha"] * preset_factor})
-    scale, errors = predict.calibrate_buoyancy(parent, preset, parent.frames()[-1], "cpu")
+    scale, errors = identification.calibrate_buoyancy(parent, preset, parent.frames()[-1], "cpu")
     assert scale == 1.0 / preset_factor
     assert errors[f"{scale:g}"] < min(e for k, e in errors.items() if k != f"{scale:g}")
 
 
 def test_a_prediction_from_a_reconstruction_records_its_calibration_and_profile(parent: Path, tmp_path: Path) -> None:
-    run = Run.open(predict.run_predict(parent, tmp_path / "pred", frames=2))
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=2))
     settings = run.manifest["settings"]
     assert settings["buoyancy_scale"] == 1.0  # the test plume is pure physics under its own alpha
     assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]
-    assert set(settings["buoyancy_calibration_error"]) == {f"{s:g}" for s in predict.BUOYANCY_SCALES}
-    chained = Run.open(predict.run_predict(run.path, tmp_path / "again", frames=1))
+    assert set(settings["buoyancy_calibration_error"]) == {f"{s:g}" for s in identification.BUOYANCY_SCALES}
+    chained = Run.open(job.run_predict(run.path, tmp_path / "again", frames=1))
     assert chained.manifest["settings"]["buoyancy_calibration_error"] == {}  # physics is not re-identified on itself
     assert chained.manifest["settings"]["appearance_profile"] == settings["appearance_profile"] is not None
 
 
-def _visual(heights: torch.Tensor, colors: torch.Tensor) -> predict.Visual:
+def _visual(heights: torch.Tensor, colors: torch.Tensor) -> SmokeState:
     n = len(heights)
     means = torch.stack([torch.zeros(n), heights, torch.zeros(n)], dim=1)
     appearance = Appearance(torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
                             torch.zeros(n), colors[:, None])
-    return predict.Visual(means, appearance)
+    return SmokeState(ParticleState.empty(), means, appearance)
 
 
 def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spread_within_it() -> None:
     generator = torch.Generator().manual_seed(0)
     heights = torch.rand(400, generator=generator)
     observed = _visual(heights, 0.2 + 0.6 * heights)  # smoke lightens as it rises
-    profile = predict.HeightProfile.observe(observed, (0.0, 1.0, 0.0), bands=4)
+    profile = priors.HeightProfile.observe(observed, (0.0, 1.0, 0.0), bands=4)
     # The simulation carried dark smoke up: every Gaussian 0.1 darker than its height's colour.
     risen = _visual(heights, 0.1 + 0.6 * heights + 0.01 * torch.randn(400, generator=generator))
     held = profile.hold(risen)
@@ -309,7 +313,7 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         inside = band == b
         before = risen.appearance.colors[inside].mean() - observed.appearance.colors[inside].mean()
         after = held.appearance.colors[inside].mean() - observed.appearance.colors[inside].mean()
-        assert before < -0.05 and torch.isclose(after, (1 - predict.HOLD_RATE) * before, atol=1e-5)
+        assert before < -0.05 and torch.isclose(after, (1 - priors.HOLD_RATE) * before, atol=1e-5)
         spread = held.appearance.colors[inside, 0] - risen.appearance.colors[inside, 0]
         assert torch.allclose(spread, spread[0].expand_as(spread), atol=1e-6)  # one shift per band
     for _ in range(60):  # held frame after frame, the band means converge to the profile's
@@ -318,4 +322,32 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         inside = band == b
         assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)
     assert torch.equal(held.means, risen.means) and torch.equal(held.appearance.log_scales, risen.appearance.log_scales)
-    assert predict.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
+    assert priors.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
+
+
+def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: Path) -> None:
+    """reconstruct -> predict -> predict, moved as one folder (another work dir, another worker):
+    the parents are found relative to each run, an interrupted link resumes, and the chain grows."""
+    first = tmp_path / "here"
+    shutil.copytree(parent, first / "reconstruct")
+    job.run_predict(first / "reconstruct", first / "p1", frames=2)
+    with pytest.raises(Cancelled):
+        job.run_predict(first / "p1", first / "p2", frames=3, should_cancel=iter([False, True]).__next__)
+    moved = tmp_path / "elsewhere" / "chain"
+    shutil.move(first, moved)
+    job.run_predict(moved / "p1", moved / "p2", frames=3)  # resumes: same run, its parent found again
+    grown = Run.open(job.run_predict(moved / "p2", moved / "p3", frames=2))
+    assert grown.parent.parent.parent.path.resolve() == (moved / "reconstruct").resolve()
+    assert len(artifacts.render_frames(grown, grown.cameras()["view_00"])) == 2
+    uninterrupted = tmp_path / "whole"
+    job.run_predict(parent, uninterrupted / "p1", frames=2)
+    job.run_predict(uninterrupted / "p1", uninterrupted / "p2", frames=3)
+    assert_same_states(Run.open(moved / "p2"), Run.open(uninterrupted / "p2"))
+
+
+def test_a_parent_recorded_by_absolute_path_is_still_read(parent: Path, tmp_path: Path) -> None:
+    run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=1))
+    manifest = json.loads((run.path / "manifest.json").read_text())
+    manifest["parent"] = str(parent.resolve())  # as runs were written before parents became relative
+    (run.path / "manifest.json").write_text(json.dumps(manifest))
+    assert Run.open(run.path).parent.path == parent.resolve()

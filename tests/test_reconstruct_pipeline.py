@@ -1,5 +1,5 @@
-"""fluidcore.pipeline as the worker calls it: progress, cancel then resume, only the named videos
-read, and the rendered artifacts of a run."""
+"""fluidcore.reconstruct.job.run_reconstruct and fluidcore.artifacts as the worker calls them:
+progress, cancel then resume, only the named videos read, and the rendered artifacts of a run."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import json
 
 import pytest
 
-from fluidcore import pipeline, synth, video
+from fluidcore import artifacts, jobs, synth, video
+from fluidcore.reconstruct import job as reconstruct_job
 from fluidcore.reconstruct import get
 from fluidcore.runs import Run
 
@@ -26,8 +27,8 @@ def scene(tmp_path_factory):
 def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
     seen: list[tuple[float, str]] = []
     answers = iter([False, True])
-    with pytest.raises(pipeline.Cancelled, match="resumes from frame 1"):
-        pipeline.run_reconstruct(
+    with pytest.raises(jobs.Cancelled, match="resumes from frame 1"):
+        reconstruct_job.run_reconstruct(
             scene / "transforms.json",
             {"view_01": scene / "videos" / "view_01.mp4"},
             tmp_path / "run",
@@ -37,7 +38,7 @@ def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
         )
     assert Run.open(tmp_path / "run").frames() == [0]
     assert seen[0] == (0.0, "prepare") and seen[-1] == (pytest.approx(1 / 3), "reconstruct")
-    pipeline.run_reconstruct(
+    reconstruct_job.run_reconstruct(
         scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "run", quality=QUICK
     )
     run = Run.open(tmp_path / "run")
@@ -46,23 +47,23 @@ def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
 
 
 def test_render_artifacts_one_video_per_camera_and_an_orbit(scene, tmp_path):
-    pipeline.run_reconstruct(
+    reconstruct_job.run_reconstruct(
         scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "run",
         quality=QUICK, frames=(0, 2),
     )
-    files = pipeline.render_artifacts(tmp_path / "run", tmp_path / "out")
+    files = artifacts.render_artifacts(tmp_path / "run", tmp_path / "out")
     assert sorted(f.name for f in files) == ["orbit.mp4", "view_00.mp4", "view_01.mp4", "view_02.mp4"]
     assert video.probe(tmp_path / "out" / "view_00.mp4").n_frames == 2
-    assert video.probe(tmp_path / "out" / "orbit.mp4").n_frames == pipeline.ORBIT_FRAMES
+    assert video.probe(tmp_path / "out" / "orbit.mp4").n_frames == artifacts.ORBIT_FRAMES
 
 
 def test_bad_requests_are_refused_before_any_work(scene, tmp_path):
-    with pytest.raises(pipeline.PipelineError, match="frames"):
-        pipeline.run_reconstruct(
+    with pytest.raises(jobs.JobInputError, match="frames"):
+        reconstruct_job.run_reconstruct(
             scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "a", frames=(0, 99)
         )
-    with pytest.raises(pipeline.PipelineError, match="videos"):
-        pipeline.run_reconstruct(scene / "transforms.json", {}, tmp_path / "b")
-    with pytest.raises(pipeline.PipelineError, match="START:END"):
-        pipeline.parse_frames("5")
+    with pytest.raises(jobs.JobInputError, match="videos"):
+        reconstruct_job.run_reconstruct(scene / "transforms.json", {}, tmp_path / "b")
+    with pytest.raises(jobs.JobInputError, match="START:END"):
+        jobs.parse_frames("5")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

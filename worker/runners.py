@@ -48,7 +48,7 @@ def _callbacks(inputs: RunInputs) -> dict[str, Any]:
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    from fluidcore.pipeline import render_artifacts
+    from fluidcore.artifacts import render_artifacts
 
     inputs.progress(1.0, "render")  # the run itself is complete; rendering fills the rest
     return list(render_artifacts(inputs.run_dir, inputs.render_dir))
@@ -58,7 +58,7 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
     """Run a fluidcore job, then render it; fluidcore's Cancelled becomes JobCancelled."""
 
     def runner(inputs: RunInputs) -> list[Path]:
-        from fluidcore.pipeline import Cancelled
+        from fluidcore.jobs import Cancelled
 
         try:
             run(inputs)
@@ -73,7 +73,7 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
 
 @_translating_cancel
 def reconstruct(inputs: RunInputs) -> None:
-    from fluidcore.pipeline import run_reconstruct
+    from fluidcore.reconstruct.job import run_reconstruct
 
     params = ReconstructParams.model_validate(inputs.params)
     assert inputs.cameras_path is not None and inputs.videos is not None
@@ -89,7 +89,7 @@ def reconstruct(inputs: RunInputs) -> None:
 
 @_translating_cancel
 def predict(inputs: RunInputs) -> None:
-    from fluidcore.predict import run_predict
+    from fluidcore.predict.job import run_predict
 
     params = PredictParams.model_validate(inputs.params)
     run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, **_callbacks(inputs))
@@ -97,7 +97,7 @@ def predict(inputs: RunInputs) -> None:
 
 @_translating_cancel
 def interact(inputs: RunInputs) -> None:
-    from fluidcore.predict import run_interact
+    from fluidcore.predict.job import run_interact
 
     params = InteractParams.model_validate(inputs.params)
     run_interact(
@@ -112,7 +112,7 @@ def interact(inputs: RunInputs) -> None:
 
 @_translating_cancel
 def resimulate(inputs: RunInputs) -> None:
-    from fluidcore.predict import run_resimulate
+    from fluidcore.predict.job import run_resimulate
 
     run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
 

@@ -191,7 +191,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
     except ObjectNotFound:
         raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
     try:
-        InteractionParams(wind=params.wind, ball=params.ball).check_run_scene(manifest.get("scene") or {}, params.frames)
+        InteractionParams(wind=params.wind, ball=params.ball).check_scene(manifest.get("scene") or {}, params.frames)
     except InteractionError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params: {exc}") from None
 

@@ -61,17 +61,20 @@ def _load_folder(folder: Path) -> dict[str, Camera]:
     )
 
 
-def check_video_size(camera: Camera, width: int, height: int) -> None:
-    """Raise CameraError unless the video's frames are exactly the camera's size.
+def check_video_size(camera: Camera, video: str, width: int, height: int) -> None:
+    """Raise CameraError unless the frames of `video` (a file name, for the message) are exactly
+    the camera's size. The one rule for "this video fits this camera", applied by the API to
+    uploads and by the reconstruction job to the CLI's videos, with the same message.
 
     The intrinsics are in pixels of one particular frame size; a video at another size would
-    put every projected point in the wrong place. When the video is a resized copy, the caller
+    put every projected point in the wrong place, and a resized copy of the right aspect ratio
+    cannot be told from a different camera. A caller that knows the video is a resized copy
     can deliberately use `camera.scaled(width, height)` instead.
     """
     if (width, height) != (camera.width, camera.height):
         raise CameraError(
-            f"camera {camera.name!r}: width/height {camera.width}x{camera.height} do not match the video "
-            f"({width}x{height}); calibrate at the video's size or resize the video"
+            f"video: {video} is {width}x{height} but camera {camera.name!r} is {camera.width}x{camera.height} "
+            "(its intrinsics are in pixels of that size); calibrate at the video's size or resize the video"
         )
 
 

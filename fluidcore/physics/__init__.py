@@ -10,18 +10,27 @@ Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
 (`fluidcore/kernels/pbf.cpp`) that `Simulator` uses on CPU when no gradient is needed.
 """
 
+from fluidcore.lazy import lazy_exports
 from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
-from fluidcore.physics.forces import ForceField, wind_force
-from fluidcore.physics.functional import (
-    density,
-    density_residual,
-    incompressibility_loss,
-    interpolate_velocity,
-    sim_step,
-)
-from fluidcore.physics.simulator import Simulator, StepStats
-from fluidcore.physics.state import ParticleState
-from fluidcore.physics.verlet import NeighbourCache
+
+# Everything below needs torch; it loads on first use, so torch-free callers (the API reading a
+# preset or a scene) can import this package and `fluidcore.physics.config`.
+_LAZY = {
+    "ForceField": "forces",
+    "wind_force": "forces",
+    "density": "functional",
+    "density_residual": "functional",
+    "incompressibility_loss": "functional",
+    "interpolate_velocity": "functional",
+    "sim_step": "functional",
+    "Simulator": "simulator",
+    "StepStats": "simulator",
+    "ParticleState": "state",
+    "NeighbourCache": "verlet",
+}
+
+
+__getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
     "PRESETS", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",

@@ -110,6 +110,15 @@ class PBFConfig:
         return (self.gravity[0] * s, self.gravity[1] * s, self.gravity[2] * s)
 
     @property
+    def terminal_speed(self) -> float:
+        """Speed (world units / s) at which drag balances buoyancy in sparse smoke: |alpha g| / k.
+        What a source's particles are launched at, so they leave the inlet as they would rise.
+        Infinite without drag."""
+        if self.drag == 0.0:
+            return math.inf
+        return math.hypot(*self.body_acceleration) / self.drag
+
+    @property
     def speed_limit(self) -> float:
         """Largest particle speed (world units / s): a particle never moves more than this * dt per step."""
         return self.max_speed if self.max_speed is not None else self.h / self.dt

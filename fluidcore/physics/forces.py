@@ -5,44 +5,45 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import PBFConfig, PhysicsInputError, Vec3, _finite, _vec3
+from fluidcore.physics.config import PBFConfig, Vec3
 from fluidcore.physics.sph import differences, pair_geometry, poly6, spiky_gradient
+
+if TYPE_CHECKING:  # the edge type is only read here; physics imports nothing from the edge
+    from fluidcore.interaction import WindParams
 
 ForceField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> force (N, 3)
 
 MAX_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float32 after scaling
 
 
-def wind_force(direction: Vec3, strength: float, growth: float = 0.0, base_height: float = 0.0,
-               start_time: float = 0.0, end_time: float | None = None, up: Vec3 = (0.0, 1.0, 0.0)) -> ForceField:
-    """Wind: strength * direction * exp(growth * (height - base_height)) between start and end time.
+def wind_force(
+    wind: WindParams, start_time: float, dt: float, base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
+) -> ForceField:
+    """The force field of `wind` (strength * direction * exp(growth * height above `base_height`,
+    height along `up`), whose frame 0 is the step starting at `start_time`.
 
-    Height is measured along `up`; the direction is normalised. Before `start_time` (and from
-    `end_time` on) the field is zero. The exponent is capped at MAX_EXPONENT so a large growth
-    far above the source stays finite; the simulator's speed limit bounds the result.
+    `wind` is the validated edge type (fluidcore.interaction.WindParams: unit direction, finite
+    bounded strength and growth, a frame window), so nothing is checked again here. The step
+    starting at time `s` belongs to frame round((s - start_time) / dt), and the wind blows in
+    it when `wind.active(frame)`: the one definition of its window, and rounding keeps a step
+    in its frame despite accumulated float error in the simulator's time. The exponent is
+    capped at MAX_EXPONENT so a large growth far above the source stays finite; the
+    simulator's speed limit bounds the result.
     """
-    d, u = _vec3(direction, "direction"), _vec3(up, "up")
-    strength = _finite(strength, "strength", non_negative=True)
-    growth, base_height = _finite(growth, "growth"), _finite(base_height, "base_height")
-    start_time = _finite(start_time, "start_time")
-    if end_time is not None and _finite(end_time, "end_time") <= start_time:
-        raise PhysicsInputError(f"end_time ({end_time}) must be after start_time ({start_time})")
-    d_norm, u_norm = math.sqrt(sum(c * c for c in d)), math.sqrt(sum(c * c for c in u))
-    if d_norm < 1e-12 or u_norm < 1e-12:
-        raise PhysicsInputError("direction and up must be non-zero vectors")
-    unit = tuple(c / d_norm for c in d)
-    up_unit = tuple(c / u_norm for c in u)
+    norm = math.sqrt(sum(c * c for c in up))
+    up_unit = tuple(c / norm for c in up)
 
     def force(positions: Tensor, time: float) -> Tensor:
-        if time < start_time or (end_time is not None and time >= end_time):
+        if not wind.active(math.floor((time - start_time) / dt + 0.5)):
             return torch.zeros_like(positions)
         height = positions @ positions.new_tensor(up_unit)
-        gain = torch.exp(torch.clamp(growth * (height - base_height), max=MAX_EXPONENT))
-        return (strength * gain)[:, None] * positions.new_tensor(unit)
+        gain = torch.exp(torch.clamp(wind.growth * (height - base_height), max=MAX_EXPONENT))
+        return (wind.strength * gain)[:, None] * positions.new_tensor(wind.direction)
 
     return force
 

@@ -60,6 +60,12 @@ class ParticleState:
     def clone(self) -> ParticleState:
         return ParticleState(self.positions.clone(), self.velocities.clone(), self.alive.clone(), self.time, self.step)
 
+    def padded(self, capacity: int) -> ParticleState:
+        """This state with empty slots appended up to `capacity`: a state from before a step, laid
+        out slot for slot like the state after it (a step may have grown the capacity)."""
+        grow = lambda t: pad_slots(t, capacity)  # noqa: E731
+        return ParticleState(grow(self.positions), grow(self.velocities), grow(self.alive), self.time, self.step)
+
     def to(self, device: torch.device | str) -> ParticleState:
         return ParticleState(self.positions.to(device), self.velocities.to(device), self.alive.to(device),
                              self.time, self.step)
@@ -81,7 +87,12 @@ class ParticleState:
         return slots
 
     def _grow(self, capacity: int) -> None:
-        extra = capacity - self.capacity
-        self.positions = torch.cat([self.positions, self.positions.new_zeros(extra, 3)])
-        self.velocities = torch.cat([self.velocities, self.velocities.new_zeros(extra, 3)])
-        self.alive = torch.cat([self.alive, self.alive.new_zeros(extra)])
+        self.positions = pad_slots(self.positions, capacity)
+        self.velocities = pad_slots(self.velocities, capacity)
+        self.alive = pad_slots(self.alive, capacity)
+
+
+def pad_slots(tensor: Tensor, capacity: int) -> Tensor:
+    """A per-slot tensor grown to `capacity` rows with empty slots (zeros / False)."""
+    extra = capacity - tensor.shape[0]
+    return tensor if extra <= 0 else torch.cat([tensor, tensor.new_zeros((extra, *tensor.shape[1:]))])

@@ -1,17 +1,32 @@
 """Reconstruction (the paper's Algorithm S1): physical particles and visual Gaussians per frame
 from one video or a few calibrated ones.
 
+    job       `run_reconstruct`: the job the CLI, the worker and the benchmark run
     init      background, smoke masks, source and length scale estimated from the input videos
     views     fitting targets: input views and pseudo-views (plume symmetry; generated views later)
     physical  the position fit of one frame (L_sim + L_incomp + image loss through advection)
     visual    visual Gaussians: birth, advection, appearance fit with temporal regularisation
     loop      `prepare` and `Reconstructor`: the per-frame driver with checkpoint / resume
-    presets   quality presets (preview, standard, paper)
+    presets   quality presets (preview, standard, paper) and the default; torch-free
 
-`fluidcore.pipeline.run_reconstruct` wraps this for the CLI and the worker.
+Only the presets load with the package; the rest (torch) on first use (`fluidcore.lazy`).
 """
 
-from fluidcore.reconstruct.loop import Reconstruction, ReconstructionError, Reconstructor, prepare
-from fluidcore.reconstruct.presets import PRESETS, Quality, get
+from fluidcore.lazy import lazy_exports
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, PRESETS, Quality, get
 
-__all__ = ["PRESETS", "Quality", "Reconstruction", "ReconstructionError", "Reconstructor", "get", "prepare"]
+__getattr__ = lazy_exports(
+    __name__,
+    {
+        "Reconstruction": "loop",
+        "ReconstructionError": "loop",
+        "Reconstructor": "loop",
+        "prepare": "loop",
+        "run_reconstruct": "job",
+    },
+)
+
+__all__ = [
+    "DEFAULT_QUALITY", "PRESETS", "Quality", "Reconstruction", "ReconstructionError", "Reconstructor", "get", "prepare",
+    "run_reconstruct",
+]

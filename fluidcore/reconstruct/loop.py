@@ -30,15 +30,15 @@ import torch
 
 from fluidcore.cameras import Camera
 from fluidcore.physics import PRESETS as PHYSICS_PRESETS
-from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source, interpolate_velocity
+from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import Quality, render_size
-from fluidcore.reconstruct.saved import load_frame_state, to_frame_state
 from fluidcore.reconstruct.views import ViewTarget, image_loss, symmetry_views
-from fluidcore.reconstruct.visual import Appearance, fit_appearance, spawn
+from fluidcore.reconstruct.visual import fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import FrameState, Run, Scene
+from fluidcore.runs import Run, Scene
+from fluidcore.smoke import SmokeState
 
 STABILIZATION_STEPS = 20
 KERNEL_RADIUS_SIM = 2.0  # the release's kernel radius (0.02 world = 2 simulation units)
@@ -81,6 +81,7 @@ class Reconstruction:
     def settings(self) -> dict:
         return {
             "quality": self.quality.to_json(),
+            "visual": self.quality.visual_settings(),
             "physics_preset": self.physics_preset,
             "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
         }
@@ -149,12 +150,11 @@ def prepare(
     scale = init.length_scale(box, up_v)
     base = PHYSICS_PRESETS[physics_preset]
     config = replace(base, length_scale=scale, h=KERNEL_RADIUS_SIM / scale, gravity=tuple(-9.8 * up_v), dt=1.0 / fps)
-    rise = abs(config.alpha) * 9.8 / scale / max(config.drag, 1e-6)  # buoyancy-drag terminal speed
     src = Source(
         center=tuple(map(float, center)),
         radius=max(radius, 0.5 * config.h),
         rate=quality.particles_per_frame,
-        velocity=tuple(map(float, rise * up_v)),
+        velocity=tuple(map(float, config.terminal_speed * up_v)),
         seed=quality.seed,
     )
     pseudo = []
@@ -192,16 +192,6 @@ def _smoke_color(targets: Sequence[ViewTarget], masks: Mapping[str, np.ndarray],
     return np.clip(background + 2.0 * (smoke.mean(0) - background), 0.0, 1.0).astype(np.float32)
 
 
-@dataclass
-class _Carry:
-    """What frame t needs from frame t-1."""
-
-    state: ParticleState
-    means: torch.Tensor  # (G, 3) visual Gaussians
-    appearance: Appearance
-    fresh: bool  # no frame fitted yet (frame 0 of a new run)
-
-
 class Reconstructor:
     """Runs a prepared reconstruction into a run folder, one checkpointed frame at a time."""
 
@@ -232,35 +222,35 @@ class Reconstructor:
         """Fit every frame not yet in `out_dir`; `on_frame(t, losses)` after each checkpoint.
         `should_stop()` is asked between frames; when it says so the run stops (resumable)."""
         run = self.open_run(out_dir)
-        carry = self._resume(run)
+        smoke = self._resume(run)
         for t in range(run.next_frame(), self.rec.frame_range[1]):
             if should_stop is not None and should_stop():
                 break
             start = time.perf_counter()
-            carry, losses = self.frame(t, carry)
-            run.write_frame(t, self._frame_state(carry), losses, time.perf_counter() - start)
+            smoke, losses = self.frame(t, smoke, first=t == self.rec.frame_range[0])
+            run.write_frame(t, smoke.to_frame(), losses, time.perf_counter() - start)
             if on_frame is not None:
                 on_frame(t, losses)
         return run
 
     # -- one frame ----------------------------------------------------------------------
-    def frame(self, t: int, carry: _Carry) -> tuple[_Carry, dict[str, float]]:
+    def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
+        """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
         rec, q, config = self.rec, self.rec.quality, self.rec.config
         index = t - rec.frame_range[0]
         seed = q.seed * 1_000_003 + t
         generator = torch.Generator().manual_seed(seed)
         chooser = random.Random(seed)
-        prev = carry.state
-        state = prev.clone()
-        if carry.fresh:  # frame 0: the stabilised particles are the prediction, all of them new
-            born_mask = state.alive.clone()
-        else:
+        state = carry.particles.clone()
+        if not first:
             self.simulator.step(state)
-            born_mask = state.alive & ~_pad(prev.alive, state.capacity)
+        prev = carry.particles.padded(state.capacity)
+        # frame 0: the stabilised particles are the prediction, all of them new
+        born_mask = state.alive.clone() if first else state.alive & ~prev.alive
         slots = torch.nonzero(state.alive).flatten()
         p_sim, v_sim = state.positions[slots], state.velocities[slots]
         born = born_mask[slots]
-        p_prev = torch.where(born[:, None], p_sim - config.dt * v_sim, _pad(prev.positions, state.capacity)[slots])
+        p_prev = torch.where(born[:, None], p_sim - config.dt * v_sim, prev.positions[slots])
         owner, offsets, new_appearance = spawn(
             torch.nonzero(born).flatten(),
             q.visual_per_physical,
@@ -274,7 +264,6 @@ class Reconstructor:
             p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), q.velocity_radius * config.h
         )
         appearance = carry.appearance.cat(new_appearance)
-        first = carry.fresh
         iterations = q.position_iterations * (q.first_frame_factor if first else 1)
         loss_fn = self._image_loss(index, iterations, chooser)
         p, terms = fit_positions(
@@ -292,13 +281,12 @@ class Reconstructor:
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
         )
-        keep = self._inside(means)
         state.positions[slots] = p
         state.velocities[slots] = velocities
         losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance)}
-        kept = Appearance(appearance.log_scales[keep], appearance.quats[keep], appearance.opacity_logits[keep], appearance.colors[keep])
-        losses.update({"particles": float(state.n_alive), "gaussians": float(int(keep.sum()))})
-        return _Carry(state, means[keep], kept, fresh=False), losses
+        smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
+        losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
+        return smoke, losses
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""
@@ -327,30 +315,15 @@ class Reconstructor:
         mse = float((image - target).pow(2).mean())
         return 10.0 * math.log10(1.0 / max(mse, 1e-12))
 
-    def _inside(self, means: torch.Tensor) -> torch.Tensor:
-        lo, hi = means.new_tensor(self.rec.box.lo), means.new_tensor(self.rec.box.hi)
-        return ((means >= lo) & (means <= hi)).all(dim=1)
-
     # -- checkpoints ---------------------------------------------------------------------
-    def _resume(self, run: Run) -> _Carry:
+    def _resume(self, run: Run) -> SmokeState:
+        """The state after the run's last written frame, or the stabilised source before frame 0."""
         done = run.frames()
-        if not done:
-            state = self.simulator.new_state()
-            self.simulator.stabilize(state, STABILIZATION_STEPS)
-            empty = torch.empty(0, 3, device=self.device)
-            channels = self.rec.channels
-            appearance = Appearance(
-                torch.empty(0, 3, device=self.device),
-                torch.empty(0, 4, device=self.device),
-                torch.empty(0, device=self.device),
-                torch.empty(0, channels, device=self.device),
-            )
-            return _Carry(state, empty, appearance, fresh=True)
-        state, means, appearance = load_frame_state(run.read_frame(done[-1]), self.device)
-        return _Carry(state, means, appearance, fresh=False)
-
-    def _frame_state(self, carry: _Carry) -> FrameState:
-        return to_frame_state(carry.state, carry.means, carry.appearance)
+        if done:
+            return SmokeState.from_frame(run.read_frame(done[-1]), self.device)
+        state = self.simulator.new_state()
+        self.simulator.stabilize(state, STABILIZATION_STEPS)
+        return SmokeState.start(state, self.rec.channels)
 
 
 def smooth_velocities(positions: torch.Tensor, raw: torch.Tensor, radius: float) -> torch.Tensor:
@@ -364,10 +337,3 @@ def smooth_velocities(positions: torch.Tensor, raw: torch.Tensor, radius: float)
     """
     return interpolate_velocity(positions, positions, raw, radius)
 
-
-def _pad(tensor: torch.Tensor, capacity: int) -> torch.Tensor:
-    """A state's per-slot tensor grown (with zeros / False) to the capacity a step may have added."""
-    extra = capacity - tensor.shape[0]
-    if extra <= 0:
-        return tensor
-    return torch.cat([tensor, tensor.new_zeros((extra, *tensor.shape[1:]))])

@@ -24,8 +24,8 @@ from fluidcore.physics import PBFConfig, incompressibility_loss, sim_step
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.sph import poly6
 from fluidcore.reconstruct.presets import LossWeights
-from fluidcore.reconstruct.visual import Appearance
 from fluidcore.render import Gaussians
+from fluidcore.smoke import Appearance
 
 
 class FixedInterpolation:

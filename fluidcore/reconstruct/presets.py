@@ -68,6 +68,11 @@ class Quality:
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
 
+    def visual_settings(self) -> dict[str, Any]:
+        """How the visual Gaussians move and are born: recorded in a reconstruction's manifest
+        ("visual") so a prediction continues them alike without reading the preset back."""
+        return {"velocity_radius": self.velocity_radius, "per_physical": self.visual_per_physical, "seed": self.seed}
+
     def with_overrides(self, **overrides: Any) -> Quality:
         unknown = set(overrides) - set(self.__dataclass_fields__)
         if unknown:
@@ -119,6 +124,10 @@ PRESETS: dict[str, Quality] = {
         symmetry_weight=0.5,
     ),
 }
+
+
+DEFAULT_QUALITY = "preview"  # what a job runs at when nobody says: the CLI, the API and the benchmarks alike
+QUALITY_CHOICES = " | ".join(PRESETS)  # for help texts
 
 
 def get(name: str) -> Quality:

@@ -12,39 +12,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 
 from fluidcore.reconstruct.presets import LossWeights
 from fluidcore.render import Gaussians
-
-
-@dataclass
-class Appearance:
-    """Per-Gaussian appearance parameters in the renderer's unconstrained form."""
-
-    log_scales: torch.Tensor  # (G, 3)
-    quats: torch.Tensor  # (G, 4)
-    opacity_logits: torch.Tensor  # (G,)
-    colors: torch.Tensor  # (G, C), clamped to [0, 1] when drawn
-
-    def __len__(self) -> int:
-        return int(self.log_scales.shape[0])
-
-    def detach(self) -> Appearance:
-        return Appearance(*(t.detach().clone() for t in (self.log_scales, self.quats, self.opacity_logits, self.colors)))
-
-    def cat(self, other: Appearance) -> Appearance:
-        return Appearance(
-            torch.cat([self.log_scales, other.log_scales]),
-            torch.cat([self.quats, other.quats]),
-            torch.cat([self.opacity_logits, other.opacity_logits]),
-            torch.cat([self.colors, other.colors]),
-        )
-
-    def gaussians(self, means: torch.Tensor) -> Gaussians:
-        return Gaussians(means, self.log_scales, self.quats, self.opacity_logits, self.colors.clamp(0.0, 1.0))
+from fluidcore.smoke import Appearance
 
 
 def spawn(

@@ -33,19 +33,19 @@ def predict(
     device: str = DEVICE_OPT,
 ) -> None:
     """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2)."""
-    from fluidcore import predict as predict_module
+    from fluidcore.predict.job import run_predict
 
     with user_errors(ValueError):
-        path = predict_module.run_predict(run, out, frames=frames, device=device, progress=_ProgressBar())
+        path = run_predict(run, out, frames=frames, device=device, progress=_ProgressBar())
     typer.echo(str(path))
 
 
 def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT) -> None:
     """Re-run the simulator from the reconstructed first frame over the observed window."""
-    from fluidcore import predict as predict_module
+    from fluidcore.predict.job import run_resimulate
 
     with user_errors(ValueError):
-        path = predict_module.run_resimulate(run, out, device=device, progress=_ProgressBar())
+        path = run_resimulate(run, out, device=device, progress=_ProgressBar())
     typer.echo(str(path))
 
 
@@ -69,10 +69,10 @@ def interact(
     from fluidcore.interaction import parse_interaction
 
     with user_errors(ValueError):
-        params = parse_interaction(wind, ball)  # bad JSON fails here, before torch is imported
-        from fluidcore import predict as predict_module
+        params = parse_interaction(wind, ball)  # the edge: bad JSON or values fail here, before torch loads
+        from fluidcore.predict.job import run_interact
 
-        path = predict_module.run_interact(
+        path = run_interact(
             run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_ProgressBar()
         )
     typer.echo(str(path))

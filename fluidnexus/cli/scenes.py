@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES
 from fluidnexus.cli.errors import UserError, user_errors
 
 RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")
@@ -66,18 +67,19 @@ def reconstruct(
     cameras: Path = typer.Option(..., "--cameras", exists=True, help="transforms.json, info.json or a COLMAP model."),
     video: list[str] = typer.Option(..., "--video", help="VIEW=path.mp4; repeat for several input views."),
     frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
-    quality: str = typer.Option("preview", "--quality", help="preview | standard | paper"),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
 ) -> None:
     """Reconstruct physical particles and visual Gaussians from one video or a few (Algorithm S1)."""
-    from fluidcore import pipeline
+    from fluidcore.jobs import parse_frames
+    from fluidcore.reconstruct.job import run_reconstruct
 
     with user_errors(ValueError):
         _set_threads(threads)
-        path = pipeline.run_reconstruct(
-            cameras, _parse_videos(video), out, quality=quality, frames=pipeline.parse_frames(frames),
+        path = run_reconstruct(
+            cameras, _parse_videos(video), out, quality=quality, frames=parse_frames(frames),
             device=device, progress_bar=True,
         )
     typer.echo(str(path))
@@ -96,7 +98,8 @@ def render(
     import numpy as np
 
     from fluidcore import cameras as camera_io
-    from fluidcore import pipeline
+    from fluidcore.artifacts import orbit_cameras, render_frames
+    from fluidcore.jobs import parse_frames
     from fluidcore.runs import Run
     from fluidcore.video import write_mp4
 
@@ -106,16 +109,16 @@ def render(
         if camera is None:
             raise UserError("--camera NAME is required (or --camera orbit)")
         the_run = Run.open(run)
-        selected = _select_frames(the_run.frames(), pipeline.parse_frames(frames))
+        selected = _select_frames(the_run.frames(), parse_frames(frames))
         if camera == "orbit" and cameras is None:
             video = np.concatenate(
-                [pipeline.render_frames(the_run, cam, [t], device) for cam, t in zip(pipeline.orbit_cameras(the_run, len(selected)), selected)]
+                [render_frames(the_run, cam, [t], device) for cam, t in zip(orbit_cameras(the_run, len(selected)), selected)]
             )
         else:
             available = camera_io.load(cameras) if cameras is not None else the_run.cameras()
             if camera not in available:
                 raise UserError(f"--camera: no camera {camera!r}; have {', '.join(available)} (or 'orbit')")
-            video = pipeline.render_frames(the_run, available[camera], selected, device)
+            video = render_frames(the_run, available[camera], selected, device)
         if out is not None:
             write_mp4(out, video, fps=the_run.fps)
             typer.echo(str(out))

@@ -1,0 +1,100 @@
+"""Rendering a run's artifacts: any run folder (reconstruct, predict, interact, resimulate) to
+images and videos. The CLI's `render`, the worker's runners and the benchmarks all render here.
+
+    render_frames     uint8 frames of a run from one camera (the run's own, or any other)
+    render_orbit      one turn around the scene while the run plays
+    render_artifacts  one MP4 per camera plus `orbit.mp4`: what a finished job publishes
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from fluidcore.jobs import JobInputError
+
+ORBIT_FRAMES = 120  # a full turn lasts at least this many frames (4 s at 30 fps)
+
+
+def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
+    """What empty space looks like from `camera` in `run`: the static background image of that
+    camera when the run (or its parent) estimated one, otherwise the background colour."""
+    from fluidcore.reconstruct.init import resize_image
+
+    current = run
+    while current is not None:
+        images = current.background_images()
+        if camera.name in images:
+            return resize_image(images[camera.name], camera.width, camera.height)
+        current = current.parent
+    return run.background_color
+
+
+def render_frames(run, camera, frames: Sequence[int] | None = None, device: str = "cpu") -> np.ndarray:  # noqa: ANN001
+    """uint8 (T, H, W, 3) renders of `frames` (default: all) of a run from `camera`."""
+    import torch
+
+    from fluidcore.render import render
+    from fluidcore.smoke import visual_layer
+
+    frames = run.frames() if frames is None else list(frames)
+    background = torch.as_tensor(np.asarray(run_background(run, camera), dtype=np.float32), device=device)
+    out = []
+    for t in frames:
+        means, appearance = visual_layer(run.read_frame(t), device)
+        with torch.no_grad():
+            image = render(appearance.gaussians(means), camera, background, depth=False).image
+        out.append(to_uint8_rgb(image.cpu().numpy()))
+    return np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
+
+
+def to_uint8_rgb(image: np.ndarray) -> np.ndarray:
+    """(..., C) float in [0, 1], C = 1 or 3 -> (..., 3) uint8."""
+    image = np.repeat(image, 3, axis=-1) if image.shape[-1] == 1 else image
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def orbit_cameras(run, n: int) -> list:  # noqa: ANN001
+    """`n` cameras on a turn around the scene box's vertical axis, at the first input camera's
+    distance and height, starting from it."""
+    from fluidcore.cameras import orbit
+
+    scene = run.scene
+    cameras = run.cameras()
+    like = cameras[run.manifest["input_views"][0]] if run.manifest.get("input_views") else next(iter(cameras.values()))
+    center = 0.5 * (np.asarray(scene.box_lo) + np.asarray(scene.box_hi))
+    up = np.asarray(scene.up)
+    offset = like.center() - center
+    height = float(offset @ up)
+    radius = float(np.linalg.norm(offset - height * up))
+    return orbit(center, radius, height, n, like, up=up)
+
+
+def render_orbit(run, device: str = "cpu") -> np.ndarray:  # noqa: ANN001
+    """One full turn around the scene while the run plays (frames repeat when the run is short)."""
+    frames = run.frames()
+    n = max(len(frames), ORBIT_FRAMES)
+    cameras = orbit_cameras(run, n)
+    return np.concatenate([render_frames(run, cam, [frames[i * len(frames) // n]], device) for i, cam in enumerate(cameras)])
+
+
+def render_artifacts(
+    run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cameras: Mapping[str, object] | None = None
+) -> list[Path]:
+    """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files."""
+    from fluidcore.runs import Run
+    from fluidcore.video import write_mp4
+
+    run = Run.open(run_dir)
+    if not run.frames():
+        raise JobInputError(f"run: {run_dir} has no finished frames to render")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, camera in (cameras or run.cameras()).items():
+        written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera), fps=run.fps))
+    written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
+    return written

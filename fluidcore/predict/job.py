@@ -1,0 +1,206 @@
+"""The prediction jobs (Algorithm S2): a run continued by physics, written as a new run.
+
+    run_predict     from the last frame of a run, simulate N more frames (the source keeps seeding)
+    run_interact    the same under a wind and/or with a ball in the way (fluidcore.interaction)
+    run_resimulate  from the FIRST frame of a run, simulate its whole window again (the paper's
+                    re-simulation task: how much of the reconstruction the physics alone explains)
+
+Each continues the parent's scene and physics, except that the source seeds no faster than its
+inlet carries particles away at rest density (`rollout.inlet_source`) and, when the parent is a
+reconstruction, the buoyancy is scaled to the one under which physics best replays the
+reconstruction's last frames (`identification.calibrate_buoyancy`) and the appearance height
+profile of its last frame is held (`priors.HeightProfile`); the manifest records all three.
+Each writes an ordinary run folder (fluidcore.runs) with the parent recorded relative to it, so
+rendering is `fluidcore.artifacts`, and a stopped job resumes from its last written frame with
+identical results. Progress, cancellation and input errors follow `fluidcore.jobs`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Mapping
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams
+from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
+from fluidcore.physics import Simulator
+from fluidcore.predict.identification import calibrate_buoyancy
+from fluidcore.predict.interventions import interventions
+from fluidcore.predict.priors import HeightProfile, refinement_status
+from fluidcore.predict.rollout import Rollout, continued_scene, source_template
+from fluidcore.runs import Run, Scene
+from fluidcore.smoke import SmokeState
+
+def run_predict(
+    parent_run: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    frames: int,
+    device: str = "cpu",
+    progress: Progress | None = None,
+    should_cancel: ShouldCancel | None = None,
+) -> Path:
+    """Simulate `frames` frames after the parent's last frame (no interventions)."""
+    return _continue(parent_run, out_dir, "predict", frames, InteractionParams(), device, progress, should_cancel)
+
+
+def run_interact(
+    parent_run: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    frames: int,
+    wind: WindParams | None = None,
+    ball: BallParams | None = None,
+    device: str = "cpu",
+    progress: Progress | None = None,
+    should_cancel: ShouldCancel | None = None,
+) -> Path:
+    """Like `run_predict`, under a wind and/or with a ball (frames counted from the first new one).
+
+    `wind` and `ball` are the validated edge types; the run's scene checks them before anything
+    is written (`InteractionParams.check_scene`)."""
+    params = InteractionParams(wind=wind, ball=ball)
+    if params.wind is None and params.ball is None:
+        raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
+    return _continue(parent_run, out_dir, "interact", frames, params, device, progress, should_cancel)
+
+
+def run_resimulate(
+    parent_run: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    device: str = "cpu",
+    progress: Progress | None = None,
+    should_cancel: ShouldCancel | None = None,
+) -> Path:
+    """Simulate the parent's window again from its first frame: frame 0 is the reconstructed
+    initial state itself, every later frame is physics only."""
+    parent = _open_parent(parent_run)
+    first, stop = parent.frames()[0], parent.frames()[-1] + 1
+    return _write(parent, out_dir, "resimulate", first, (first, stop), InteractionParams(), device, progress, should_cancel)
+
+
+def _continue(
+    parent_run: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    kind: str,
+    frames: int,
+    params: InteractionParams,
+    device: str,
+    progress: Progress | None,
+    should_cancel: ShouldCancel | None,
+) -> Path:
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise JobInputError(f"frames must be a whole number >= 1, got {frames!r}")
+    parent = _open_parent(parent_run)
+    last = parent.frames()[-1]
+    return _write(parent, out_dir, kind, last, (last + 1, last + 1 + frames), params, device, progress, should_cancel)
+
+
+def _open_parent(path: str | os.PathLike[str]) -> Run:
+    parent = Run.open(path)
+    if not parent.frames():
+        raise JobInputError(f"run: {path} has no finished frame to start from")
+    return parent
+
+
+def _write(
+    parent: Run,
+    out_dir: str | os.PathLike[str],
+    kind: str,
+    start_frame: int,
+    frame_range: tuple[int, int],
+    params: InteractionParams,
+    device: str,
+    progress: Progress | None,
+    should_cancel: ShouldCancel | None,
+) -> Path:
+    """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
+    its frame `start_frame` (written unchanged first when it lies inside the range)."""
+    scene = continued_scene(parent.scene)
+    start = SmokeState.from_frame(parent.read_frame(start_frame), device)
+    buoyancy_scale, calibration, profile = 1.0, {}, None
+    if kind != "resimulate" and parent.kind == "reconstruct":
+        buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, start_frame, device)
+        scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
+        profile = HeightProfile.observe(start, scene.up)
+    elif kind != "resimulate" and parent.manifest["settings"].get("appearance_profile"):
+        profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
+    n_frames = frame_range[1] - frame_range[0]
+    params.check_scene(scene.to_json(), n_frames)  # before anything is written
+    visual_settings = _visual_settings(parent)
+    run = Run.create(
+        out_dir,
+        kind=kind,
+        cameras=parent.cameras(),
+        input_views=parent.manifest["input_views"],
+        frame_range=frame_range,
+        fps=parent.fps,
+        channels=parent.channels,
+        background_color=parent.background_color,
+        scene=scene,
+        settings={
+            "start_frame": start_frame,
+            "visual": visual_settings,
+            "parent_source_rate": parent.scene.source["rate"],
+            "buoyancy_scale": buoyancy_scale,
+            "buoyancy_calibration_error": calibration,
+            "appearance_profile": None if profile is None else profile.to_json(),
+            "wind": None if params.wind is None else params.wind.model_dump(),
+            "ball": None if params.ball is None else params.ball.model_dump(),
+        },
+        parent=parent.path,
+    )
+    run.update(refinement=refinement_status())
+    rollout = _rollout(scene, start, params, visual_settings, device, profile)
+    smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
+    report = progress or no_progress
+    for t in range(run.next_frame(), frame_range[1]):
+        if should_cancel is not None and should_cancel():
+            raise Cancelled(f"{kind} cancelled; {out_dir} resumes from frame {t}")
+        began = time.perf_counter()
+        stats: dict[str, float] = {}
+        if t > start_frame:
+            smoke = rollout.advance(smoke, t - start_frame - 1, t)
+            stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means))}
+        run.write_frame(t, smoke.to_frame(), stats, time.perf_counter() - began)
+        report((t + 1 - frame_range[0]) / n_frames, kind)
+    return Path(out_dir)
+
+
+def _rollout(
+    scene: Scene,
+    start: SmokeState,
+    params: InteractionParams,
+    visual: Mapping[str, Any],
+    device: str,
+    profile: HeightProfile | None,
+) -> Rollout:
+    """The simulator of the parent's scene with the interventions, ready to continue `start`.
+
+    New frame 0 is the step that begins at the start state's time; the interventions' frame
+    numbers are counted from there.
+    """
+    config, box, source = scene.simulator_parts()
+    applied = interventions(params, config, source, scene.up, start.particles.time)
+    return Rollout(
+        Simulator(config, box, source, force=applied.force, device=device),
+        source_template(start, source.center),
+        velocity_radius=visual["velocity_radius"] * config.h,
+        per_physical=visual["per_physical"],
+        seed=visual["seed"],
+        ball=applied.ball,
+        profile=profile,
+    )
+
+
+def _visual_settings(parent: Run) -> dict[str, Any]:
+    """How visual Gaussians move and are born in the parent (a reconstruction records them from
+    its quality preset, a prediction passes them on): a continuation must move them alike."""
+    visual = parent.manifest.get("settings", {}).get("visual")
+    if not isinstance(visual, Mapping) or set(visual) != {"velocity_radius", "per_physical", "seed"}:
+        raise JobInputError(f"run: {parent.path} records no settings.visual (written by an older version?); reconstruct again")
+    return dict(visual)

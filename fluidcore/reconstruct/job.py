@@ -1,0 +1,122 @@
+"""The reconstruction job (Algorithm S1) as the CLI, the worker and the benchmark run it.
+
+`run_reconstruct` reads the cameras and ONLY the videos it is handed (a `file_path` in the
+cameras file never pulls in another view), checks each video fits its camera
+(`fluidcore.cameras.check_video_size`, the rule the API applies to uploads), reconstructs frame
+by frame into a run folder and resumes when that folder already holds the same run. Progress,
+cancellation and input errors follow `fluidcore.jobs`.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, Quality
+
+
+def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
+    from fluidcore.cameras import frusta_box, scene_box
+
+    box = scene_box(cameras_path)
+    return box if box is not None else frusta_box(cameras)
+
+
+def _frame_range(infos: Mapping[str, object], frames: tuple[int, int] | None) -> tuple[int, int]:
+    available = min(info.n_frames for info in infos.values())
+    if frames is None:
+        return 0, available
+    if frames[1] > available:
+        raise JobInputError(f"frames: {frames[0]}:{frames[1]} asked, but the shortest input video has {available} frames")
+    return frames
+
+
+def run_reconstruct(
+    cameras_path: str | os.PathLike[str],
+    videos: Mapping[str, str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    *,
+    quality: str | Quality = DEFAULT_QUALITY,
+    frames: tuple[int, int] | None = None,
+    device: str = "cpu",
+    progress: Progress | None = None,
+    should_cancel: ShouldCancel | None = None,
+    source: tuple[Sequence[float], float] | None = None,
+    progress_bar: bool = False,
+) -> Path:
+    """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
+
+    `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
+    uses). Returns the run folder. `progress_bar` draws a tqdm bar on stderr (the CLI's).
+    """
+    from fluidcore import cameras as camera_io
+    from fluidcore import video
+    from fluidcore.reconstruct.loop import Reconstructor, prepare
+    from fluidcore.reconstruct.presets import get, render_size
+
+    preset = quality if isinstance(quality, Quality) else get(quality)
+    cameras_path = Path(cameras_path)
+    cameras = camera_io.load(cameras_path)
+    if not videos:
+        raise JobInputError("videos: give at least one VIEW=path.mp4")
+    unknown = sorted(set(videos) - set(cameras))
+    if unknown:
+        raise JobInputError(f"videos: no camera named {', '.join(unknown)} in {cameras_path.name} (have {', '.join(cameras)})")
+    infos = {name: video.probe(path) for name, path in videos.items()}
+    for name, info in infos.items():
+        try:
+            camera_io.check_video_size(cameras[name], Path(videos[name]).name, info.width, info.height)
+        except camera_io.CameraError as exc:
+            raise JobInputError(str(exc)) from None
+    frame_range = _frame_range(infos, frames)
+    fps = infos[next(iter(videos))].fps
+    decoded = {
+        name: video.read_frames(
+            path, frame_range[0], frame_range[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side)
+        )
+        for name, path in videos.items()
+    }
+    report = progress or no_progress
+    report(0.0, "prepare")
+    rec = prepare(
+        cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=_box(cameras_path, cameras),
+        source=source, device=device,
+    )
+    del decoded
+    reconstructor = Reconstructor(rec, device=device)
+    run = reconstructor.open_run(out_dir)
+    total = frame_range[1] - frame_range[0]
+    bar = _bar(total, len(run.frames()), progress_bar)
+    cancelled = False
+
+    def on_frame(t: int, losses: Mapping[str, float]) -> None:
+        done = t + 1 - frame_range[0]
+        report(done / total, "reconstruct")
+        if bar is not None:
+            bar.set_postfix(psnr=f"{losses['input_psnr']:.1f}", refresh=False)
+            bar.update(1)
+
+    def should_stop() -> bool:
+        nonlocal cancelled
+        cancelled = bool(should_cancel and should_cancel())
+        return cancelled
+
+    run = reconstructor.run(out_dir, on_frame=on_frame, should_stop=should_stop)
+    if bar is not None:
+        bar.close()
+    if cancelled:
+        raise Cancelled(f"reconstruction cancelled; {out_dir} resumes from frame {run.next_frame()}")
+    return Path(out_dir)
+
+
+def _bar(total: int, done: int, enabled: bool):  # noqa: ANN202 - tqdm or None
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=done, unit="frame", desc="reconstruct", file=sys.stderr, dynamic_ncols=True)

@@ -1,0 +1,122 @@
+"""Each concept has one home: these tests fail when a second copy of a rule grows back, or when
+a torch-free caller (the API) can no longer read what it needs without loading torch."""
+
+from __future__ import annotations
+
+import inspect
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from service_support import write_transforms, write_video
+from typer.testing import CliRunner
+
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY
+
+TORCH_FREE = (
+    "fluidcore.reconstruct.presets",
+    "fluidcore.reconstruct",
+    "fluidcore.physics.config",
+    "fluidcore.physics",
+    "fluidcore.predict",
+    "fluidcore.interaction",
+    "fluidcore.jobs",
+    "fluidcore.runs",
+    "fluidcore.artifacts",
+    "fluidcore.cameras",
+)
+
+
+def test_package_faces_import_without_torch() -> None:
+    """What the API reads (presets, physics configuration, interaction models, run manifests)
+    loads in a fresh interpreter without torch; the torch-backed names still resolve on use."""
+    code = (
+        "import sys\n"
+        f"for name in {TORCH_FREE!r}: __import__(name)\n"
+        "from fluidcore.reconstruct import DEFAULT_QUALITY, PRESETS\n"
+        "from fluidcore.physics import PRESETS as PHYSICS, PBFConfig\n"
+        "from fluidcore.interaction import InteractionParams\n"
+        "assert PHYSICS['scalarflow'].terminal_speed > 0 and DEFAULT_QUALITY in PRESETS\n"
+        "loaded = [m for m in ('torch', 'worker', 'api') if m in sys.modules]\n"
+        "assert not loaded, loaded\n"
+        "import fluidcore.physics, fluidcore.predict\n"
+        "assert fluidcore.physics.Simulator and fluidcore.predict.run_predict and 'torch' in sys.modules\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+
+
+def test_the_quality_default_is_the_presets_everywhere() -> None:
+    from fluidnexus.cli.scenes import reconstruct as cli_reconstruct  # first: the CLI registers the benchmarks
+
+    from bench.predict import command as bench_predict  # noqa: I001
+    from bench.reconstruct import command as bench_reconstruct
+    from fluidcore.reconstruct import PRESETS
+    from fluidcore.reconstruct.job import run_reconstruct
+    from service.job_types import ReconstructParams
+
+    assert DEFAULT_QUALITY in PRESETS
+    assert inspect.signature(run_reconstruct).parameters["quality"].default == DEFAULT_QUALITY
+    assert ReconstructParams().quality == DEFAULT_QUALITY  # what the API queues when a request says nothing
+    for command in (cli_reconstruct, bench_reconstruct, bench_predict):
+        assert inspect.signature(command).parameters["quality"].default.default == DEFAULT_QUALITY, command
+
+
+def test_the_terminal_rise_speed_is_the_physics_configs() -> None:
+    from fluidcore.physics import PRESETS
+    from fluidcore.synth import SynthSpec
+
+    config = PRESETS["scalarflow"]
+    assert config.terminal_speed == pytest.approx(abs(config.alpha) * 9.8 / config.length_scale / config.drag)
+    spec = SynthSpec()
+    assert spec.source().velocity == (0.0, spec.config().terminal_speed, 0.0)
+
+
+def test_a_video_that_does_not_fit_its_camera_is_refused_alike_by_the_cli_and_the_api(tmp_path: Path) -> None:
+    """Same bad input, both call sites, one message: a 64x48 video for a 32x24 camera (the same
+    aspect ratio, which the CLI used to accept by rescaling the camera)."""
+    from service.settings import Settings
+    from api.uploads import UploadRejected, validate_scene
+    from fluidnexus.cli import app
+
+    write_transforms(tmp_path / "transforms.json", ["cam0"], width=32, height=24)
+    video = write_video(tmp_path / "cam0.mp4", width=64, height=48)
+    with pytest.raises(UploadRejected) as refused:
+        validate_scene(tmp_path, "transforms.json", {"cam0.mp4": video.stat().st_size}, Settings())
+    message = str(refused.value)
+    assert message.startswith("video: cam0.mp4 is 64x48 but camera 'cam0' is 32x24"), message
+    result = CliRunner().invoke(
+        app, ["reconstruct", "--cameras", str(tmp_path / "transforms.json"), "--video", f"cam0={video}",
+              "--out", str(tmp_path / "run")],
+    )
+    assert result.exit_code == 2 and f"error: {message}" in " ".join(result.output.split()), result.output
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_smoke_state_round_trips_through_a_run_file(tmp_path: Path) -> None:
+    """The one conversion between the live two-layer state and a run's frame file is exact."""
+    import torch
+
+    from fluidcore.physics import ParticleState
+    from fluidcore.runs import FrameState
+    from fluidcore.smoke import Appearance, SmokeState
+
+    g = torch.Generator().manual_seed(0)
+    particles = ParticleState.from_positions(torch.rand(5, 3, generator=g), torch.randn(5, 3, generator=g), time=0.5)
+    particles.alive[2], particles.step = False, 7
+    appearance = Appearance(torch.randn(4, 3, generator=g), torch.randn(4, 4, generator=g),
+                            torch.randn(4, generator=g), torch.rand(4, 1, generator=g))
+    smoke = SmokeState(particles, torch.rand(4, 3, generator=g), appearance)
+    smoke.to_frame().save(tmp_path / "frame.npz")
+    back = SmokeState.from_frame(FrameState.load(tmp_path / "frame.npz"), "cpu")
+    assert (back.particles.time, back.particles.step) == (0.5, 7)
+    for name in ("positions", "velocities", "alive"):
+        assert torch.equal(getattr(back.particles, name), getattr(particles, name)), name
+    assert torch.equal(back.means, smoke.means)
+    for name in ("log_scales", "quats", "opacity_logits", "colors"):
+        assert torch.equal(getattr(back.appearance, name), getattr(appearance, name)), name
+    cropped = smoke.cropped((0.0, 0.0, 0.0), (0.5, 1.0, 1.0))
+    inside = smoke.means[:, 0] <= 0.5
+    assert torch.equal(cropped.means, smoke.means[inside])
+    assert torch.equal(cropped.appearance.colors, appearance.colors[inside])
