@@ -1,7 +1,8 @@
 # Two images from one file:
-#   target `api`    - the FastAPI service (never imports torch; CPU wheels keep it small)
+#   target `api`    - the FastAPI service (never imports torch or `worker`; CPU wheels keep it small)
 #   target `worker` - Celery GPU worker: CUDA toolkit for gsplat's kernels, CUDA torch,
-#                     g++ for fluidcore's fused CPU kernels
+#                     g++ for fluidcore's fused CPU kernels (no `api` package)
+# Both carry `service`, the core they share (settings, database, storage, job types, queue).
 # Build: docker compose build   (or docker build --target worker -t fluidnexus-worker .)
 
 ARG PYTHON_IMAGE=python:3.11-slim-bookworm
@@ -13,8 +14,8 @@ WORKDIR /app
 COPY pyproject.toml constraints.txt README.md alembic.ini ./
 COPY fluidcore fluidcore
 COPY fluidnexus fluidnexus
+COPY service service
 COPY api api
-COPY worker worker
 COPY bench bench
 COPY migrations migrations
 COPY web web
@@ -38,7 +39,7 @@ WORKDIR /app
 COPY pyproject.toml constraints.txt README.md alembic.ini ./
 COPY fluidcore fluidcore
 COPY fluidnexus fluidnexus
-COPY api api
+COPY service service
 COPY worker worker
 COPY bench bench
 COPY migrations migrations

@@ -1,1 +1,1 @@
-"""FastAPI service: jobs, scenes, artifacts. Never imports torch."""
+"""FastAPI service: scenes, jobs, artifacts. Imports `service` (the core), never `worker` or torch."""

@@ -12,12 +12,12 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from api.database import make_engine, make_sessionmaker, migrate
-from api.queue import CeleryQueue, JobQueue
 from api.routers import artifacts, health, jobs, scenes
-from api.settings import Settings, get_settings
-from api.storage import StorageError, make_storage
 from api.uploads import UploadRejected
+from service.database import make_engine, make_sessionmaker, migrate
+from service.queue import CeleryQueue, JobQueue
+from service.settings import Settings, get_settings
+from service.storage import StorageError, make_storage
 
 
 def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:

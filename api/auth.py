@@ -10,7 +10,7 @@ import secrets
 
 from sqlalchemy.orm import Session
 
-from api.models import ApiKey, utcnow
+from service.models import ApiKey, utcnow
 
 PREFIX = "fnx"
 OWNER_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._@-]{0,127}$")

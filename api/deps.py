@@ -14,9 +14,9 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api.auth import owner_for_key
-from api.queue import JobQueue
-from api.settings import Settings
-from api.storage import Storage
+from service.queue import JobQueue
+from service.settings import Settings
+from service.storage import Storage
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `fluidnexus keys create`")
 

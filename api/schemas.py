@@ -1,96 +1,35 @@
-"""Request and response bodies. Job parameters are typed per job type, so a bad request is a 422
-naming the field before anything is queued."""
+"""Request and response bodies. Job requests are derived from `service.job_types.JobType`: one
+model per type, `{"type", "scene_id" | "parent_job_id", "params"}`, with the type's own parameter
+model, so a bad request is a 422 naming the field before anything is queued."""
 
 from __future__ import annotations
 
 from datetime import datetime
-from typing import Annotated, Any, Generic, Literal, TypeVar
+from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from fluidcore.interaction import BallParams, WindParams
+from service.job_types import JobType
+from service.models import JobState
 
 T = TypeVar("T")
-Quality = Literal["preview", "standard", "paper"]
-JobTypeName = Literal["reconstruct", "predict", "interact", "resimulate"]
-JobStateName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-
-_STRICT = ConfigDict(extra="forbid")
 
 
-class ReconstructParams(BaseModel):
-    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted."""
-
-    model_config = _STRICT
-    quality: Quality = "preview"
-    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
-
-    @model_validator(mode="after")
-    def _ordered(self) -> ReconstructParams:
-        if self.frames is not None and self.frames[1] <= self.frames[0]:
-            raise ValueError(f"frames: end ({self.frames[1]}) must be greater than start ({self.frames[0]})")
-        return self
-
-
-class PredictParams(BaseModel):
-    """`frames`: how many new frames to predict after the parent run's last frame."""
-
-    model_config = _STRICT
-    frames: int = Field(default=30, ge=1)
+def job_request_model(job_type: JobType) -> type[BaseModel]:
+    """`ReconstructRequest`, `PredictRequest`, ...: the body that creates a job of this type.
+    `params` may be left out when the type's parameters all have defaults."""
+    default = job_type.default_params()
+    return create_model(
+        f"{job_type.value.capitalize()}Request",
+        __config__=ConfigDict(extra="forbid"),
+        type=(Literal[job_type.value], ...),
+        **{job_type.input_field: (str, ...)},
+        params=(job_type.params, ... if default is None else default),
+    )
 
 
-class InteractParams(BaseModel):
-    """A counterfactual continuation of the parent run: wind, a ball, or both, for `frames` new frames."""
-
-    model_config = _STRICT
-    frames: int = Field(default=30, ge=1)
-    wind: WindParams | None = None
-    ball: BallParams | None = None
-
-    @model_validator(mode="after")
-    def _something(self) -> InteractParams:
-        if self.wind is None and self.ball is None:
-            raise ValueError("interact needs wind, ball or both")
-        return self
-
-
-class ResimulateParams(BaseModel):
-    """`fluidcore.predict.job.run_resimulate` on the parent run; it takes no parameters."""
-
-    model_config = _STRICT
-
-
-class ReconstructRequest(BaseModel):
-    model_config = _STRICT
-    type: Literal["reconstruct"]
-    scene_id: str
-    params: ReconstructParams = ReconstructParams()
-
-
-class PredictRequest(BaseModel):
-    model_config = _STRICT
-    type: Literal["predict"]
-    parent_job_id: str
-    params: PredictParams = PredictParams()
-
-
-class InteractRequest(BaseModel):
-    model_config = _STRICT
-    type: Literal["interact"]
-    parent_job_id: str
-    params: InteractParams
-
-
-class ResimulateRequest(BaseModel):
-    model_config = _STRICT
-    type: Literal["resimulate"]
-    parent_job_id: str
-    params: ResimulateParams = ResimulateParams()
-
-
-JobRequest = Annotated[
-    ReconstructRequest | PredictRequest | InteractRequest | ResimulateRequest, Field(discriminator="type")
-]
+JOB_REQUESTS: dict[JobType, type[BaseModel]] = {job_type: job_request_model(job_type) for job_type in JobType}
+JobRequest = Annotated[Union[tuple(JOB_REQUESTS.values())], Field(discriminator="type")]  # noqa: UP007
 
 
 class Page(BaseModel, Generic[T]):
@@ -138,8 +77,8 @@ class JobLinks(BaseModel):
 
 class JobOut(BaseModel):
     id: str
-    type: JobTypeName
-    state: JobStateName
+    type: JobType
+    state: JobState
     stage: str
     progress: float = Field(ge=0.0, le=1.0)
     scene_id: str | None

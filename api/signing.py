@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from urllib.parse import urlencode
 
-from api.settings import Settings
+from service.settings import Settings
 
 KEY_FILE = "signing.key"
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, BinaryIO
 
-from api.settings import Settings
-from api.storage import Storage
+from service.settings import Settings
+from service.storage import Storage
 
 if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
     from fluidcore.cameras import Camera

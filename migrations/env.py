@@ -1,4 +1,4 @@
-"""Alembic environment: the URL is set by `api.database.migrate`, or read from the service settings
+"""Alembic environment: the URL is set by `service.database.migrate`, or read from the service settings
 when the `alembic` command is run by hand."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 from logging.config import fileConfig
 
 from alembic import context
-from api.database import make_engine
-from api.models import Base
-from api.settings import Settings
+from service.database import make_engine
+from service.models import Base
+from service.settings import Settings
 
 config = context.config
 url = config.get_main_option("sqlalchemy.url") or Settings().resolved_database_url()

@@ -70,7 +70,7 @@ def sqlite_url(folder: Path) -> str:
 @contextmanager
 def migrated_postgres() -> Iterator[str]:
     """One migrated PostgreSQL database for a whole test module (see `empty_tables`)."""
-    from api.database import migrate
+    from service.database import migrate
 
     with postgres_database() as url:
         migrate(url)
@@ -81,7 +81,7 @@ def empty_tables(url: str) -> str:
     """Delete every row, children first, so tests sharing a migrated database start clean."""
     from sqlalchemy import create_engine
 
-    from api.models import Base
+    from service.models import Base
 
     engine = create_engine(url)
     with engine.begin() as connection:
@@ -155,7 +155,7 @@ class RecordingQueue:
         self.fail = fail
 
     def enqueue(self, job_id: str, job_type: str) -> str:
-        from api.queue import QueueUnavailable
+        from service.queue import QueueUnavailable
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")
@@ -163,7 +163,7 @@ class RecordingQueue:
         return f"task-{len(self.sent)}"
 
     def ping(self) -> None:
-        from api.queue import QueueUnavailable
+        from service.queue import QueueUnavailable
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")
@@ -178,10 +178,12 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     folder plus a manifest, resume from the frames already there, should_cancel between frames,
     progress per frame; then one MP4 per camera and an orbit video.
 
-    It appends each frame it computes to `<work dir>/computed-<job id>.txt` (outside the job's
-    folder, which the worker removes when the job ends), so tests can tell a resumed run from a
-    restarted one. `params["crash_after"]`
-    raises SimulatedCrash after that many frames; FAKE_FRAME_SECONDS slows each frame down.
+    Like `fluidcore.runs.Run`, its manifest names the parent run relative to the run folder, and
+    resuming refuses a folder whose manifest names another parent. It appends each frame it
+    computes to `<work dir>/computed-<job id>.txt` (outside the job's folder, which the worker
+    removes when the job ends), so tests can tell a resumed run from a restarted one.
+    `params["crash_after"]` raises SimulatedCrash after that many frames; FAKE_FRAME_SECONDS slows
+    each frame down.
     """
     import os
     import time
@@ -195,6 +197,10 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     states = inputs.run_dir / "states"
     states.mkdir(parents=True, exist_ok=True)
     computed = inputs.run_dir.parents[2] / f"computed-{inputs.job_id}.txt"  # run_dir = WORK/jobs/ID/run
+    parent = os.path.relpath(inputs.parent_run, inputs.run_dir) if inputs.parent_run else None
+    manifest_path = inputs.run_dir / "manifest.json"
+    if manifest_path.exists() and json.loads(manifest_path.read_text())["parent"] != parent:
+        raise ValueError(f"out: {inputs.run_dir} already holds a run with another parent")
     crash_after = params.get("crash_after")
     done = 0
     for t in range(n_frames):
@@ -205,9 +211,8 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
             raise JobCancelled(f"cancelled before frame {t}")
         time.sleep(float(os.environ.get("FAKE_FRAME_SECONDS", "0")))
         np.savez(state, positions=np.full((3, 3), t, dtype=np.float32))
-        manifest = {"kind": inputs.job_type, "frames": [{"t": i} for i in range(t + 1)],
-                    "parent": str(inputs.parent_run) if inputs.parent_run else None}
-        (inputs.run_dir / "manifest.json").write_text(json.dumps(manifest))
+        manifest = {"kind": inputs.job_type, "frames": [{"t": i} for i in range(t + 1)], "parent": parent}
+        manifest_path.write_text(json.dumps(manifest))
         with computed.open("a") as log:
             log.write(f"{t}\n")
         inputs.progress((t + 1) / n_frames, "fit")

@@ -15,9 +15,9 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import create_key
-from api.database import session_scope
-from api.models import Artifact, Job, JobState, Scene
-from api.settings import Settings
+from service.database import session_scope
+from service.models import Artifact, Job, JobState, Scene
+from service.settings import Settings
 from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -98,8 +98,8 @@ import sys
 from fastapi.testclient import TestClient
 from api.app import create_app
 from api.auth import create_key
-from api.database import session_scope
-from api.settings import Settings
+from service.database import session_scope
+from service.settings import Settings
 from service_support import RecordingQueue, upload_parts
 from pathlib import Path
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from api.settings import Settings
+from service.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,9 +9,9 @@ from fastapi.testclient import TestClient
 from typer.testing import CliRunner
 
 from api.app import create_app
-from api.database import make_engine, make_sessionmaker, session_scope
-from api.models import ApiKey
-from api.settings import Settings
+from service.database import make_engine, make_sessionmaker, session_scope
+from service.models import ApiKey
+from service.settings import Settings
 from fluidnexus.cli import app as cli
 from service_support import RecordingQueue
 

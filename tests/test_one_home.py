@@ -54,9 +54,11 @@ def test_the_quality_default_is_the_presets_everywhere() -> None:
     from bench.reconstruct import command as bench_reconstruct
     from fluidcore.reconstruct import PRESETS
     from fluidcore.reconstruct.job import run_reconstruct
+    from service.job_types import ReconstructParams
 
     assert DEFAULT_QUALITY in PRESETS
     assert inspect.signature(run_reconstruct).parameters["quality"].default == DEFAULT_QUALITY
+    assert ReconstructParams().quality == DEFAULT_QUALITY  # what the API queues when a request says nothing
     for command in (cli_reconstruct, bench_reconstruct, bench_predict):
         assert inspect.signature(command).parameters["quality"].default.default == DEFAULT_QUALITY, command
 
@@ -74,7 +76,7 @@ def test_the_terminal_rise_speed_is_the_physics_configs() -> None:
 def test_a_video_that_does_not_fit_its_camera_is_refused_alike_by_the_cli_and_the_api(tmp_path: Path) -> None:
     """Same bad input, both call sites, one message: a 64x48 video for a 32x24 camera (the same
     aspect ratio, which the CLI used to accept by rescaling the camera)."""
-    from api.settings import Settings
+    from service.settings import Settings
     from api.uploads import UploadRejected, validate_scene
     from fluidnexus.cli import app
 

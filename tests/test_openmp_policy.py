@@ -19,7 +19,7 @@ CHECK = (
 )
 
 
-@pytest.mark.parametrize("module", ["fluidnexus.cli", "worker.celery_app", "bench.physics", "bench.render"])
+@pytest.mark.parametrize("module", ["fluidnexus.cli", "service.celery_app", "bench.physics", "bench.render"])
 def test_entry_point_sets_passive_waits_before_torch(module: str) -> None:
     env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
     result = subprocess.run([sys.executable, "-c", CHECK, module], env=env, capture_output=True, text=True)

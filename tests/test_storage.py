@@ -9,7 +9,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from api.storage import InvalidKey, LocalStorage, MinioStorage, ObjectNotFound, Storage, StorageError
+from service.storage import InvalidKey, LocalStorage, MinioStorage, ObjectNotFound, Storage, StorageError
 from service_support import free_port
 
 DATA = bytes(range(256)) * 5000  # 1.28 MB: more than one streaming chunk

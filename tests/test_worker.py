@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from api.database import make_engine, make_sessionmaker, migrate, session_scope
-from api.models import Artifact, Job, JobState, Scene, utcnow
-from api.settings import Settings
-from api.storage import LocalStorage, Storage, StorageError, run_prefix
+from service.database import make_engine, make_sessionmaker, migrate, session_scope
+from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.settings import Settings
+from service.storage import LocalStorage, Storage, StorageError, run_prefix
 from worker.execution import RUN_SHARE, JobBusy, JobExecutor
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
@@ -115,7 +115,7 @@ def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
     # A continuation of a continuation: the whole chain is back where its manifests say it is.
     def predict(inputs: RunInputs) -> list[Path]:
         assert inputs.parent_run is not None
-        grandparent = Path(json.loads((inputs.parent_run / "manifest.json").read_text())["parent"])
+        grandparent = inputs.parent_run / json.loads((inputs.parent_run / "manifest.json").read_text())["parent"]
         seen.append((inputs, json.loads((grandparent / "manifest.json").read_text())))
         return fake_job(inputs)
 
@@ -147,6 +147,41 @@ def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None
     job = world.get(job_id)
     assert job.attempts == 2 and job.worker == "second"
     assert list((world.tmp_path / "cache-second" / "jobs").iterdir()) == []  # local copies removed at the end
+
+
+def test_a_continuation_resumes_under_another_work_dir(world: World) -> None:
+    """Runs name their parent relative to themselves and a worker fetches each ancestor to the same
+    place under its own work dir: a predict of a predict started under one work dir finishes under
+    another, from its checkpoints, with every parent reference resolving inside the new work dir."""
+    reconstruct = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+    predict = world.job("predict", parent_job_id=reconstruct, params={"frames": 2})
+    for job_id in (reconstruct, predict):
+        assert world.executor("a").run(job_id) == "succeeded"
+    chained = world.job("predict", parent_job_id=predict, params={"frames": 4, "crash_after": 2})
+    with pytest.raises(SimulatedCrash):
+        world.executor("a").run(chained)
+    with session_scope(world.sessions) as session:
+        job = session.get(Job, chained)
+        job.heartbeat_at = utcnow() - timedelta(seconds=61)  # the crashed worker's lease ran out
+        job.params = {"frames": 4}
+
+    chains: list[list[Path]] = []
+
+    def follow_chain(inputs: RunInputs) -> list[Path]:
+        chain, run = [], inputs.run_dir
+        while (parent := json.loads((run / "manifest.json").read_text())["parent"]) is not None:
+            run = (run / parent).resolve()
+            chain.append(run)
+        chains.append(chain)
+        return fake_job(inputs)
+
+    other = world.executor("b", {**FAKE_RUNNERS, "predict": follow_chain})
+    assert other.work_dir != world.executor("a").work_dir
+    assert other.run(chained) == "succeeded"
+    assert (world.tmp_path / "cache-b" / f"computed-{chained}.txt").read_text().split() == ["2", "3"]
+    [chain] = chains
+    assert chain == [other.work_dir / "jobs" / job_id / "run" for job_id in (predict, reconstruct)]  # inside b
+    assert world.get(chained).attempts == 2
 
 
 def test_progress_and_stage_time_are_visible_while_running(world: World) -> None:
@@ -237,7 +272,7 @@ def test_s3_storage_round_trip(tmp_path: Path) -> None:
     """The same executor against the S3 backend (moto's server), SQLite database."""
     from moto.server import ThreadedMotoServer
 
-    from api.storage import MinioStorage
+    from service.storage import MinioStorage
     from service_support import free_port
 
     port = free_port()

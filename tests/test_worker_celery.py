@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pytest
 
-from api.database import make_engine, make_sessionmaker, migrate, session_scope
-from api.models import Job, JobState, Scene
-from api.queue import CeleryQueue, requeue_orphans
-from api.settings import Settings
-from api.storage import LocalStorage
+from service.database import make_engine, make_sessionmaker, migrate, session_scope
+from service.models import Job, JobState, Scene
+from service.queue import CeleryQueue, requeue_orphans
+from service.settings import Settings
+from service.storage import LocalStorage
 from service_support import REDIS_URL, database_url, port_open, scene_files
 
 TESTS = Path(__file__).resolve().parent
@@ -151,7 +151,7 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
 
 def test_celery_queue_reports_an_unreachable_broker(tmp_path: Path) -> None:
     """What /readyz and POST /v1/jobs see when Redis is down: QueueUnavailable, not a hang."""
-    from api.queue import QueueUnavailable
+    from service.queue import QueueUnavailable
     from service_support import free_port
 
     down = CeleryQueue(Settings(data_dir=tmp_path, broker_url=f"redis://127.0.0.1:{free_port()}/0"))
@@ -169,7 +169,7 @@ def test_embedded_broker_keeps_its_files_in_the_data_folder(tmp_path: Path) -> N
     started_in = tmp_path / "cwd"
     started_in.mkdir()
     send = (
-        "from api.queue import CeleryQueue; from api.settings import Settings; "
+        "from service.queue import CeleryQueue; from service.settings import Settings; "
         f"CeleryQueue(Settings(data_dir={str(tmp_path / 'data')!r})).enqueue('some-job', 'reconstruct')"
     )
     subprocess.run([sys.executable, "-c", send], cwd=started_in, check=True, timeout=60)

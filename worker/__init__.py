@@ -1,1 +1,1 @@
-"""Celery workers that run fluidcore jobs."""
+"""Celery workers that run fluidcore jobs. Imports `service` (the core), never `api`."""

@@ -19,10 +19,11 @@ from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from api.database import session_scope
-from api.models import Artifact, Job, JobState, Scene, utcnow
-from api.settings import Settings
-from api.storage import Storage, run_prefix, videos_prefix
+from service.database import session_scope
+from service.job_types import JobType
+from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.settings import Settings
+from service.storage import Storage, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
@@ -43,7 +44,7 @@ class JobBusy(Exception):
 @dataclass(frozen=True)
 class Claim:
     job_id: str
-    job_type: str
+    job_type: str  # checked against JobType when the job runs: an unknown one fails the job
     params: dict
     scene_id: str | None
     ancestors: tuple[str, ...]  # parent job first, then its parent, ...: the runs this one continues
@@ -169,9 +170,9 @@ class JobExecutor:
     def _fetch_inputs(self, claim: Claim) -> dict[str, object]:
         """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder.
 
-        A run names its parent by path (rendering looks up the chain for the background), so
-        every ancestor is fetched to the same place in the work dir it was written from; workers
-        share one work-dir layout, so those paths hold on every machine.
+        Rendering follows a run's chain of parents to the background, so every ancestor is fetched
+        too, each to WORK/jobs/<its id>/run as when it ran: a run names its parent relative to
+        itself ("../../<parent id>/run"), so the chain resolves under any work dir, on any worker.
         """
         if claim.scene_id is not None:
             return self._fetch_scene(claim.scene_id)
@@ -311,7 +312,7 @@ class ProgressReporter:
 def _transient_errors() -> tuple[type[BaseException], ...]:
     from sqlalchemy.exc import OperationalError
 
-    from api.storage import StorageError
+    from service.storage import StorageError
 
     return (StorageError, OperationalError, ConnectionError, TimeoutError)
 

@@ -3,7 +3,8 @@ docs/architecture.md). fluidcore and torch are imported inside the runner bodies
 the Celery app, the API and the tests of the service logic load without them.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
-files to publish besides the run folder itself (MP4 per camera, orbit video).
+files to publish besides the run folder itself (MP4 per camera, orbit video). Each reads its
+parameters through its type's model in `service.job_types`, so defaults live there only.
 """
 
 from __future__ import annotations
@@ -13,6 +14,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams
 
 Progress = Callable[[float, str], None]
 ShouldCancel = Callable[[], bool]
@@ -25,8 +28,8 @@ class JobCancelled(Exception):
 @dataclass(frozen=True)
 class RunInputs:
     job_id: str
-    job_type: str
-    params: dict[str, Any]
+    job_type: JobType
+    params: dict[str, Any]  # as stored by the API; parse with the type's parameter model
     run_dir: Path  # the job's run folder: checkpointed to storage, resumed from on a retry
     render_dir: Path  # where the videos go
     device: str
@@ -71,16 +74,15 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
 @_translating_cancel
 def reconstruct(inputs: RunInputs) -> None:
     from fluidcore.reconstruct.job import run_reconstruct
-    from fluidcore.reconstruct.presets import DEFAULT_QUALITY
 
-    frames = inputs.params.get("frames")
+    params = ReconstructParams.model_validate(inputs.params)
     assert inputs.cameras_path is not None and inputs.videos is not None
     run_reconstruct(
         inputs.cameras_path,
         dict(inputs.videos),
         inputs.run_dir,
-        quality=inputs.params.get("quality", DEFAULT_QUALITY),
-        frames=tuple(frames) if frames is not None else None,
+        quality=params.quality,
+        frames=params.frames,
         **_callbacks(inputs),
     )
 
@@ -89,21 +91,21 @@ def reconstruct(inputs: RunInputs) -> None:
 def predict(inputs: RunInputs) -> None:
     from fluidcore.predict.job import run_predict
 
-    run_predict(inputs.parent_run, inputs.run_dir, frames=inputs.params["frames"], **_callbacks(inputs))
+    params = PredictParams.model_validate(inputs.params)
+    run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, **_callbacks(inputs))
 
 
 @_translating_cancel
 def interact(inputs: RunInputs) -> None:
-    from fluidcore.interaction import BallParams, WindParams
     from fluidcore.predict.job import run_interact
 
-    wind, ball = inputs.params.get("wind"), inputs.params.get("ball")
+    params = InteractParams.model_validate(inputs.params)
     run_interact(
         inputs.parent_run,
         inputs.run_dir,
-        frames=inputs.params["frames"],
-        wind=WindParams.model_validate(wind) if wind is not None else None,
-        ball=BallParams.model_validate(ball) if ball is not None else None,
+        frames=params.frames,
+        wind=params.wind,
+        ball=params.ball,
         **_callbacks(inputs),
     )
 
@@ -115,21 +117,22 @@ def resimulate(inputs: RunInputs) -> None:
     run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
 
 
-FLUIDCORE_RUNNERS: dict[str, Runner] = {
-    "reconstruct": reconstruct,
-    "predict": predict,
-    "interact": interact,
-    "resimulate": resimulate,
+FLUIDCORE_RUNNERS: dict[JobType, Runner] = {
+    JobType.RECONSTRUCT: reconstruct,
+    JobType.PREDICT: predict,
+    JobType.INTERACT: interact,
+    JobType.RESIMULATE: resimulate,
 }
 
 
 def load_runners(spec: str | None) -> Mapping[str, Runner]:
-    """fluidcore's runners, or the dict named by `spec` ('module:attribute'), the seam for test doubles."""
-    if spec is None:
-        return FLUIDCORE_RUNNERS
-    module_name, _, attribute = spec.partition(":")
-    runners = getattr(importlib.import_module(module_name), attribute)
-    missing = set(FLUIDCORE_RUNNERS) - set(runners)
+    """fluidcore's runners, or the dict named by `spec` ('module:attribute'), the seam for test
+    doubles; either must have a runner for every `JobType`, so a worker never takes a job it cannot run."""
+    runners = FLUIDCORE_RUNNERS
+    if spec is not None:
+        module_name, _, attribute = spec.partition(":")
+        runners = getattr(importlib.import_module(module_name), attribute)
+    missing = sorted(job_type.value for job_type in set(JobType) - set(runners))
     if missing:
-        raise ValueError(f"runners {spec}: no runner for {sorted(missing)}")
+        raise ValueError(f"runners {spec or 'FLUIDCORE_RUNNERS'}: no runner for {missing}")
     return runners

@@ -12,7 +12,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from api.storage import Storage
+from service.storage import Storage
 
 MANIFEST = "manifest.json"
 

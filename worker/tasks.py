@@ -1,8 +1,9 @@
-"""Celery tasks, one per job type: `celery -A worker.tasks worker -Q gpu --concurrency 1`.
+"""Celery tasks, one per `JobType`, registered in a loop under `task_name(job_type)`:
+`celery -A worker.tasks worker -Q gpu --concurrency 1`.
 
-Each task only names its job; `JobExecutor` does the work. Retries are for transient faults
-only (storage or database unreachable): the run resumes from its checkpoints, so a retry
-loses at most the frame in flight. Bad input and bugs fail the job with a message at once.
+Each task only names its job; `JobExecutor` does the work with the runner of the job's type.
+Retries are for transient faults only (storage or database unreachable): the run resumes from
+its checkpoints, so a retry loses at most the frame in flight. Bad input and bugs fail the job with a message at once.
 """
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ from functools import lru_cache
 from celery import Task
 from celery.signals import worker_process_init
 
-from api.database import make_engine, make_sessionmaker
-from api.models import JobState
-from api.settings import get_settings
-from api.storage import make_storage
-from worker.celery_app import TASK_PREFIX, make_celery
+from service.celery_app import make_celery, task_name
+from service.database import make_engine, make_sessionmaker
+from service.job_types import JobType
+from service.models import JobState
+from service.settings import get_settings
+from service.storage import make_storage
 from worker.execution import TRANSIENT_ERRORS, JobBusy, JobExecutor
 from worker.runners import load_runners
 
@@ -72,25 +74,15 @@ def _run(task: Task, job_id: str) -> str | None:
         raise task.retry(exc=exc, countdown=countdown) from None
 
 
-@app.task(name=f"{TASK_PREFIX}reconstruct", bind=True)
-def reconstruct(self: Task, job_id: str) -> str | None:
-    """Fit particles to a scene's videos (fluidcore.reconstruct.job.run_reconstruct), then render."""
-    return _run(self, job_id)
+def _register(job_type: JobType) -> Task:
+    """The task for one job type; per-type tasks keep the type visible in Flower and routable apart."""
+
+    def run_job(self: Task, job_id: str) -> str | None:
+        return _run(self, job_id)
+
+    run_job.__name__ = job_type.value
+    run_job.__doc__ = f"Run a {job_type.value} job ({job_type.params.__name__}), then render its videos."
+    return app.task(name=task_name(job_type), bind=True)(run_job)
 
 
-@app.task(name=f"{TASK_PREFIX}predict", bind=True)
-def predict(self: Task, job_id: str) -> str | None:
-    """Continue a reconstruction into new frames (fluidcore.predict.job.run_predict), then render."""
-    return _run(self, job_id)
-
-
-@app.task(name=f"{TASK_PREFIX}interact", bind=True)
-def interact(self: Task, job_id: str) -> str | None:
-    """Continue a reconstruction under wind and/or a ball (fluidcore.predict.job.run_interact), then render."""
-    return _run(self, job_id)
-
-
-@app.task(name=f"{TASK_PREFIX}resimulate", bind=True)
-def resimulate(self: Task, job_id: str) -> str | None:
-    """Re-simulate a reconstruction (fluidcore.predict.job.run_resimulate), then render."""
-    return _run(self, job_id)
+TASKS: dict[JobType, Task] = {job_type: _register(job_type) for job_type in JobType}

@@ -10,11 +10,11 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import OptionalOwnerDep, OwnerDep, SessionDep, SettingsDep, StorageDep, unauthorized
-from api.models import Artifact, Job
 from api.routers.jobs import owned_job
 from api.schemas import ArtifactList, ArtifactOut
 from api.signing import signed_url, signing_key, verify
-from api.storage import ObjectNotFound
+from service.models import Artifact, Job
+from service.storage import ObjectNotFound
 
 router = APIRouter(prefix="/v1/jobs", tags=["artifacts"])
 

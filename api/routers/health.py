@@ -7,8 +7,8 @@ from collections.abc import Callable
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
-from api.database import ping
 from api.schemas import Health
+from service.database import ping
 
 router = APIRouter(tags=["health"])
 

@@ -13,23 +13,13 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.models import Artifact, Job, JobState, utcnow
-from api.queue import QueueUnavailable
 from api.routers.scenes import owned_scene
-from api.schemas import (
-    InteractParams,
-    InteractRequest,
-    JobLinks,
-    JobOut,
-    JobRequest,
-    JobStateName,
-    JobTimings,
-    JobTypeName,
-    Page,
-    ReconstructRequest,
-)
-from api.settings import Settings
-from api.storage import ObjectNotFound, Storage, job_prefix, run_prefix
+from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
+from service.job_types import InteractParams, JobType
+from service.models import Artifact, Job, JobState, utcnow
+from service.queue import QueueUnavailable
+from service.settings import Settings
+from service.storage import ObjectNotFound, Storage, job_prefix, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
@@ -88,8 +78,8 @@ def create_job(
 def list_jobs(
     owner: OwnerDep,
     session: SessionDep,
-    state: JobStateName | None = None,
-    type: JobTypeName | None = None,
+    state: JobState | None = None,
+    type: JobType | None = None,
     scene_id: str | None = None,
     parent_job_id: str | None = None,
     limit: Annotated[int, Query(ge=1, le=100)] = 20,
@@ -165,7 +155,7 @@ def _check_references(
     session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
 ) -> None:
     """The scene or parent job exists, belongs to the caller, and fits the parameters."""
-    if isinstance(request, ReconstructRequest):
+    if JobType(request.type).starts_from == "scene":
         scene = owned_scene(session, request.scene_id, owner)
         frames = request.params.frames
         if frames is not None and frames[1] > scene.n_frames:
@@ -186,7 +176,7 @@ def _check_references(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
             f"params.frames: at most {settings.max_predict_frames} new frames per job",
         )
-    if isinstance(request, InteractRequest):
+    if isinstance(request.params, InteractParams):
         _check_in_run_scene(storage, parent.id, request.params)
 
 

@@ -11,10 +11,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
-from api.models import Job, Scene, new_id
 from api.schemas import Page, SceneOut, SceneVideo
-from api.storage import scene_prefix
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene, validate_scene
+from service.models import Job, Scene, new_id
+from service.storage import scene_prefix
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 

@@ -23,7 +23,7 @@ from fluidnexus.cli.errors import user_errors
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
 
-    from api.settings import Settings
+    from service.settings import Settings
 
 DataDir = Annotated[
     Path | None,
@@ -33,7 +33,7 @@ WORKER_STOP_TIMEOUT_S = 30
 
 
 def _settings(data_dir: Path | None) -> Settings:
-    from api.settings import Settings
+    from service.settings import Settings
 
     settings = Settings(data_dir=data_dir) if data_dir is not None else Settings()
     settings.resolved_data_dir().mkdir(parents=True, exist_ok=True)
@@ -50,7 +50,7 @@ def serve(
     import uvicorn
 
     from api.app import create_app
-    from api.queue import CeleryQueue, requeue_orphans
+    from service.queue import CeleryQueue, requeue_orphans
 
     settings = _settings(data_dir)
     queue = CeleryQueue(settings)
@@ -108,7 +108,7 @@ def keys_create(
 ) -> None:
     """Create an API key and print it (the only time it is shown; the database keeps a salted hash)."""
     from api.auth import InvalidOwner, create_key
-    from api.database import session_scope
+    from service.database import session_scope
 
     with user_errors(InvalidOwner), _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         key = create_key(session, owner)
@@ -122,8 +122,8 @@ def keys_list(
     """List key ids, owners and dates (never the keys themselves: only their hashes are stored)."""
     from sqlalchemy import select
 
-    from api.database import session_scope
-    from api.models import ApiKey
+    from service.database import session_scope
+    from service.models import ApiKey
 
     with _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         query = select(ApiKey).order_by(ApiKey.created_at)
@@ -138,7 +138,7 @@ def keys_revoke(
 ) -> None:
     """Revoke a key: requests with it answer 401 from now on."""
     from api.auth import UnknownKey, revoke_key
-    from api.database import session_scope
+    from service.database import session_scope
 
     with user_errors(UnknownKey), _database(_settings(data_dir)) as sessions, session_scope(sessions) as session:
         row = revoke_key(session, key_id)
@@ -148,7 +148,7 @@ def keys_revoke(
 @contextmanager
 def _database(settings: Settings) -> Iterator[sessionmaker[Session]]:
     """Sessions on the settings' database, migrated to the latest schema first."""
-    from api.database import make_engine, make_sessionmaker, migrate
+    from service.database import make_engine, make_sessionmaker, migrate
 
     url = settings.resolved_database_url()
     migrate(url)

@@ -38,13 +38,6 @@ class UTCDateTime(TypeDecorator[datetime]):
         return value
 
 
-class JobType(enum.StrEnum):
-    RECONSTRUCT = "reconstruct"
-    PREDICT = "predict"
-    INTERACT = "interact"
-    RESIMULATE = "resimulate"
-
-
 class JobState(enum.StrEnum):
     QUEUED = "queued"
     RUNNING = "running"
@@ -103,7 +96,7 @@ class Job(Base):
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     owner: Mapped[str] = mapped_column(String(128))
-    type: Mapped[str] = mapped_column(String(32))
+    type: Mapped[str] = mapped_column(String(32))  # a service.job_types.JobType value
     scene_id: Mapped[str | None] = mapped_column(ForeignKey("scenes.id"), index=True, default=None)
     parent_job_id: Mapped[str | None] = mapped_column(ForeignKey("jobs.id"), index=True, default=None)
     params: Mapped[dict[str, Any]] = mapped_column(JSON, default=dict)

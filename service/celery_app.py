@@ -1,5 +1,6 @@
-"""The Celery application: configuration only, no tasks and no torch, so the API can import it
-to send jobs. `worker.tasks` registers the tasks; workers start with `-A worker.tasks`.
+"""The Celery application: configuration and task names only, no tasks and no torch, so the API
+sends jobs with it by name. `worker.tasks` registers one task per `JobType` under the same names;
+workers start with `-A worker.tasks`.
 
 Production choices, each for a reason:
 - acks_late + task_reject_on_worker_lost: a job whose worker dies is redelivered, and the
@@ -18,9 +19,15 @@ from celery import Celery
 
 import fluidcore  # noqa: F401  before the tasks import torch: sets OpenMP's wait policy
 
-from api.settings import GPU_QUEUE, Settings
+from service.job_types import JobType
+from service.settings import GPU_QUEUE, Settings
 
 TASK_PREFIX = "fluidnexus."
+
+
+def task_name(job_type: JobType) -> str:
+    """The Celery task that runs jobs of this type: the name the API sends and the worker registers."""
+    return f"{TASK_PREFIX}{job_type.value}"
 
 
 def make_celery(settings: Settings) -> Celery:

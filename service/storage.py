@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
-from api.settings import Settings
+from service.settings import Settings
 from fluidcore.files import atomic_output
 
 CHUNK = 1024 * 1024

@@ -1,5 +1,5 @@
-"""How the API hands a job to the workers. The Celery implementation is the real one; tests of the
-API's own logic may pass another `JobQueue` to `create_app`."""
+"""How a job reaches the workers. The Celery implementation is the real one; tests of the API's own
+logic may pass another `JobQueue` to `create_app`."""
 
 from __future__ import annotations
 
@@ -8,9 +8,11 @@ from typing import Protocol
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from api.database import session_scope
-from api.models import Job, JobState
-from api.settings import GPU_QUEUE, Settings
+from service.celery_app import make_celery, task_name
+from service.database import session_scope
+from service.job_types import JobType
+from service.models import Job, JobState
+from service.settings import GPU_QUEUE, Settings
 
 
 class QueueUnavailable(Exception):
@@ -18,7 +20,7 @@ class QueueUnavailable(Exception):
 
 
 class JobQueue(Protocol):
-    def enqueue(self, job_id: str, job_type: str) -> str:
+    def enqueue(self, job_id: str, job_type: JobType) -> str:
         """Send the job to a worker; returns the broker's task id."""
 
     def ping(self) -> None:
@@ -26,16 +28,15 @@ class JobQueue(Protocol):
 
 
 class CeleryQueue:
-    """Sends `fluidnexus.<type>` tasks to the `gpu` queue by name (the API never imports the tasks)."""
+    """Sends each job's task to the `gpu` queue by name (`task_name`): the tasks themselves live in
+    `worker.tasks`, which the API never imports."""
 
     def __init__(self, settings: Settings) -> None:
-        from worker.celery_app import make_celery
-
         self.app = make_celery(settings)
 
-    def enqueue(self, job_id: str, job_type: str) -> str:
+    def enqueue(self, job_id: str, job_type: JobType) -> str:
         try:
-            result = self.app.send_task(f"fluidnexus.{job_type}", args=[job_id], queue=GPU_QUEUE)
+            result = self.app.send_task(task_name(JobType(job_type)), args=[job_id], queue=GPU_QUEUE)
         except Exception as exc:  # kombu raises many transport-specific errors
             raise QueueUnavailable(f"the job broker did not accept the job: {exc}") from exc
         return result.id
@@ -56,7 +57,7 @@ def requeue_orphans(sessions: sessionmaker[Session], queue: JobQueue) -> list[st
         jobs = session.scalars(select(Job).where(Job.state == JobState.RUNNING)).all()
         for job in jobs:
             job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to resume", None
-        orphans = [(job.id, job.type) for job in jobs]
+        orphans = [(job.id, JobType(job.type)) for job in jobs]
     for job_id, job_type in orphans:
         queue.enqueue(job_id, job_type)
     return [job_id for job_id, _ in orphans]

@@ -1,0 +1,99 @@
+"""The job types, declared once: each type's name, its parameter model and what it starts from.
+
+The API's request schema (`api.schemas.JobRequest`), the Celery task names (`service.celery_app
+.task_name`), the tasks the worker registers (`worker.tasks`) and the runners it checks for
+(`worker.runners`) are all derived from `JobType`, so a new job type is one member here plus its
+runner in `worker/runners.py`. Parameter models are strict (an unknown field is a 422 naming it)
+and torch-free, so the API validates a request before anything is queued.
+"""
+
+from __future__ import annotations
+
+import enum
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from fluidcore.interaction import BallParams, WindParams
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, PRESETS
+
+_STRICT = ConfigDict(extra="forbid")
+
+QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
+
+StartsFrom = Literal["scene", "parent"]
+
+
+class ReconstructParams(BaseModel):
+    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted."""
+
+    model_config = _STRICT
+    quality: QualityName = DEFAULT_QUALITY
+    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ReconstructParams:
+        if self.frames is not None and self.frames[1] <= self.frames[0]:
+            raise ValueError(f"frames: end ({self.frames[1]}) must be greater than start ({self.frames[0]})")
+        return self
+
+
+class PredictParams(BaseModel):
+    """`frames`: how many new frames to predict after the parent run's last frame."""
+
+    model_config = _STRICT
+    frames: int = Field(default=30, ge=1)
+
+
+class InteractParams(BaseModel):
+    """A counterfactual continuation of the parent run: wind, a ball, or both, for `frames` new frames."""
+
+    model_config = _STRICT
+    frames: int = Field(default=30, ge=1)
+    wind: WindParams | None = None
+    ball: BallParams | None = None
+
+    @model_validator(mode="after")
+    def _something(self) -> InteractParams:
+        if self.wind is None and self.ball is None:
+            raise ValueError("interact needs wind, ball or both")
+        return self
+
+
+class ResimulateParams(BaseModel):
+    """Re-simulate the parent run's frames with physics alone; it takes no parameters."""
+
+    model_config = _STRICT
+
+
+class JobType(enum.StrEnum):
+    """A job type: its name (the value stored in `jobs.type` and sent in requests), its parameter
+    model, and whether it starts from an uploaded scene or continues a succeeded parent job."""
+
+    params: type[BaseModel]
+    starts_from: StartsFrom
+
+    def __new__(cls, value: str, params: type[BaseModel], starts_from: StartsFrom) -> JobType:
+        member = str.__new__(cls, value)
+        member._value_ = value
+        member.params = params
+        member.starts_from = starts_from
+        return member
+
+    RECONSTRUCT = "reconstruct", ReconstructParams, "scene"
+    PREDICT = "predict", PredictParams, "parent"
+    INTERACT = "interact", InteractParams, "parent"
+    RESIMULATE = "resimulate", ResimulateParams, "parent"
+
+    @property
+    def input_field(self) -> str:
+        """The request field naming what the job starts from."""
+        return "scene_id" if self.starts_from == "scene" else "parent_job_id"
+
+    def default_params(self) -> BaseModel | None:
+        """The parameters a request gets when it sends none, or None when they are required
+        (interact: wind or ball must be given)."""
+        try:
+            return self.params()
+        except ValidationError:
+            return None
