@@ -196,7 +196,7 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
         n_frames = int(frames) if isinstance(frames, int) else (frames[1] - frames[0] if frames else 4)
     states = inputs.run_dir / "states"
     states.mkdir(parents=True, exist_ok=True)
-    computed = inputs.run_dir.parents[2] / f"computed-{inputs.job_id}.txt"  # run_dir = WORK/jobs/ID/run
+    computed = inputs.run_dir.parents[3] / f"computed-{inputs.job_id}.txt"  # run_dir = WORK/jobs/ID/runs/ID
     parent = os.path.relpath(inputs.parent_run, inputs.run_dir) if inputs.parent_run else None
     manifest_path = inputs.run_dir / "manifest.json"
     if manifest_path.exists() and json.loads(manifest_path.read_text())["parent"] != parent:

@@ -150,8 +150,8 @@ def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None
 
 
 def test_a_continuation_resumes_under_another_work_dir(world: World) -> None:
-    """Runs name their parent relative to themselves and a worker fetches each ancestor to the same
-    place under its own work dir: a predict of a predict started under one work dir finishes under
+    """Runs name their parent relative to themselves and a worker fetches a job's ancestors beside
+    its run, in the job's own folder: a predict of a predict started under one work dir finishes under
     another, from its checkpoints, with every parent reference resolving inside the new work dir."""
     reconstruct = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
     predict = world.job("predict", parent_job_id=reconstruct, params={"frames": 2})
@@ -180,8 +180,28 @@ def test_a_continuation_resumes_under_another_work_dir(world: World) -> None:
     assert other.run(chained) == "succeeded"
     assert (world.tmp_path / "cache-b" / f"computed-{chained}.txt").read_text().split() == ["2", "3"]
     [chain] = chains
-    assert chain == [other.work_dir / "jobs" / job_id / "run" for job_id in (predict, reconstruct)]  # inside b
+    runs = other.work_dir / "jobs" / chained / "runs"
+    assert chain == [runs / predict, runs / reconstruct]  # both resolved inside work dir b, in the job's folder
     assert world.get(chained).attempts == 2
+
+
+def test_jobs_on_one_work_dir_keep_their_own_copies_of_a_shared_parent(world: World) -> None:
+    """Two continuations of one run on workers sharing a work dir: the second one runs and ends
+    (pulling the parent again, then removing its local copies) while the first is between frames;
+    the first still finds its parent's run intact."""
+    parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+    assert world.executor("a").run(parent) == "succeeded"
+    second = world.job("predict", parent_job_id=parent, params={"frames": 2})
+    parent_frames: list[list[str]] = []
+
+    def first_runner(inputs: RunInputs) -> list[Path]:
+        assert world.executor("a").run(second) == "succeeded"  # same work dir, meanwhile
+        parent_frames.append(sorted(p.name for p in (inputs.parent_run / "states").iterdir()))
+        return fake_job(inputs)
+
+    first = world.job("predict", parent_job_id=parent, params={"frames": 2})
+    assert world.executor("a", {**FAKE_RUNNERS, "predict": first_runner}).run(first) == "succeeded"
+    assert parent_frames == [["frame_000000.npz", "frame_000001.npz"]]
 
 
 def test_progress_and_stage_time_are_visible_while_running(world: World) -> None:

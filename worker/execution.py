@@ -42,6 +42,33 @@ class JobBusy(Exception):
 
 
 @dataclass(frozen=True)
+class JobFolder:
+    """A job's local folder (WORK/jobs/<job id>), removed when the job ends. Nothing in it is shared
+    with another job, so two workers on one work dir never pull or delete each other's inputs.
+
+        runs/<job id>/       the job's run folder, mirrored to storage (`run_prefix`)
+        runs/<ancestor id>/  each run it continues, fetched from storage beside it: a run names its
+                             parent relative to itself ("../<parent id>"), so the chain resolves
+                             under any work dir and a job resumes on any worker
+        scene/               a reconstruction's cameras file and videos
+        videos/              the rendered MP4s
+    """
+
+    root: Path
+
+    def run(self, job_id: str) -> Path:
+        return self.root / "runs" / job_id
+
+    @property
+    def scene(self) -> Path:
+        return self.root / "scene"
+
+    @property
+    def videos(self) -> Path:
+        return self.root / "videos"
+
+
+@dataclass(frozen=True)
 class Claim:
     job_id: str
     job_type: str  # checked against JobType when the job runs: an unknown one fails the job
@@ -82,14 +109,10 @@ class JobExecutor:
         try:
             return self._run_claimed(claim)
         finally:  # storage holds the checkpoints and results; the local copies would only pile up
-            for folder in self._local_folders(claim):
-                shutil.rmtree(folder, ignore_errors=True)
+            shutil.rmtree(self._folder(claim.job_id).root, ignore_errors=True)
 
-    def _local_folders(self, claim: Claim) -> list[Path]:
-        folders = [self.work_dir / "jobs" / job_id for job_id in (claim.job_id, *claim.ancestors)]
-        if claim.scene_id is not None:
-            folders.append(self.work_dir / "scenes" / claim.scene_id)
-        return folders
+    def _folder(self, job_id: str) -> JobFolder:
+        return JobFolder(self.work_dir / "jobs" / job_id)
 
     def _run_claimed(self, claim: Claim) -> str:
         job_id = claim.job_id
@@ -140,13 +163,12 @@ class JobExecutor:
             return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job))
 
     def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
-        job_dir = self.work_dir / "jobs" / claim.job_id
-        mirror = FolderMirror(self.storage, job_dir / "run", run_prefix(claim.job_id))
+        folder = self._folder(claim.job_id)
+        mirror = FolderMirror(self.storage, folder.run(claim.job_id), run_prefix(claim.job_id))
         resumed = mirror.pull()
         if resumed:
             log.info("job %s resumes from %d checkpointed files", claim.job_id, len(resumed))
-        render_dir = job_dir / "videos"
-        render_dir.mkdir(parents=True, exist_ok=True)
+        folder.videos.mkdir(parents=True, exist_ok=True)
 
         def progress(fraction: float, stage: str) -> None:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
@@ -157,39 +179,34 @@ class JobExecutor:
             job_type=claim.job_type,
             params=claim.params,
             run_dir=mirror.folder,
-            render_dir=render_dir,
+            render_dir=folder.videos,
             device=self.device,
             progress=progress,
             should_cancel=reporter.cancel_requested,
-            **self._fetch_inputs(claim),
+            **self._fetch_inputs(claim, folder),
         )
         files = self.runners[claim.job_type](inputs)
         mirror.push()
         return files
 
-    def _fetch_inputs(self, claim: Claim) -> dict[str, object]:
-        """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder.
-
-        Rendering follows a run's chain of parents to the background, so every ancestor is fetched
-        too, each to WORK/jobs/<its id>/run as when it ran: a run names its parent relative to
-        itself ("../../<parent id>/run"), so the chain resolves under any work dir, on any worker.
-        """
+    def _fetch_inputs(self, claim: Claim, folder: JobFolder) -> dict[str, object]:
+        """Reconstruct: the scene's cameras file and videos. Others: the parent's run folder, and
+        its whole chain of ancestors beside it (rendering follows the chain to the background)."""
         if claim.scene_id is not None:
-            return self._fetch_scene(claim.scene_id)
+            return self._fetch_scene(claim.scene_id, folder.scene)
         for job_id in claim.ancestors:
-            folder = self.work_dir / "jobs" / job_id / "run"
-            FolderMirror(self.storage, folder, run_prefix(job_id)).pull()
-            if not (folder / MANIFEST).is_file():
+            run = folder.run(job_id)
+            FolderMirror(self.storage, run, run_prefix(job_id)).pull()
+            if not (run / MANIFEST).is_file():
                 raise ValueError(f"job {job_id} has no run folder in storage")
-        return {"parent_run": self.work_dir / "jobs" / claim.ancestors[0] / "run"}
+        return {"parent_run": folder.run(claim.ancestors[0])}
 
-    def _fetch_scene(self, scene_id: str) -> dict[str, object]:
+    def _fetch_scene(self, scene_id: str, folder: Path) -> dict[str, object]:
         with session_scope(self.sessions) as session:
             scene = session.get(Scene, scene_id)
             if scene is None:
                 raise ValueError(f"scene {scene_id} no longer exists")
             cameras_key, video_keys = scene.cameras_key, {c: v["key"] for c, v in scene.videos.items()}
-        folder = self.work_dir / "scenes" / scene_id
         local = {key: folder / PurePosixPath(key).name for key in [cameras_key, *video_keys.values()]}
         for key, path in local.items():
             self.storage.get_file(key, path)
