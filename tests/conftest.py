@@ -37,3 +37,15 @@ def realdata() -> Path:
     if not REALDATA.is_dir():
         pytest.skip("../shared/realdata not present")
     return REALDATA
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A models folder holding randomly initialised tiny Zero123 and CogVideoX models, written in
+    the public layouts (fluidcore.generative.random_weights) and loaded back like real weights."""
+    from fluidcore.generative import random_weights
+
+    root = tmp_path_factory.mktemp("models")
+    random_weights.save_novel_view(random_weights.build_novel_view("tiny", seed=0), root)
+    random_weights.save_video(random_weights.build_video("tiny", seed=0), root)
+    return root
