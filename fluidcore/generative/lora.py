@@ -8,8 +8,10 @@ support). Adapters go on the attention projections, as in the paper's fine-tunin
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import torch
+if TYPE_CHECKING:
+    import torch
 
 ADAPTER_NAME = "smoke"
 CONFIG_FILE = "adapter_config.json"
@@ -24,6 +26,7 @@ def is_adapter(folder: Path) -> bool:
 def add_new(module: torch.nn.Module, rank: int = 16, seed: int = 0) -> None:
     """A fresh adapter on `module` (B = 0, so the model's output is unchanged until trained);
     every base weight is frozen, only the adapter trains."""
+    import torch
     from peft import LoraConfig
 
     if rank < 1:

@@ -20,11 +20,16 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import torch
+from typing import TYPE_CHECKING
 
 from fluidcore import weights
 from fluidcore.generative import lora
+
+if TYPE_CHECKING:  # torch and the model libraries load only when a model does: listing is instant
+    import torch
+
+    from fluidcore.generative.novel_view import NovelViewModel
+    from fluidcore.generative.refine import VideoModel
 
 NOVEL_VIEW = "zero123"
 VIDEO = "cogvideox"
@@ -162,9 +167,11 @@ def _require(name: str, root: str | Path | None) -> ModelEntry:
 
 
 def load_novel_view(
-    root: str | Path | None = None, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32, use_adapter: bool = True
-):
-    """The Zero123 model of the models folder (with its LoRA adapter when there is one)."""
+    root: str | Path | None = None, device: str | torch.device = "cpu", dtype: torch.dtype | None = None, use_adapter: bool = True
+) -> NovelViewModel:
+    """The Zero123 model of the models folder (with its LoRA adapter when there is one);
+    dtype None is float32."""
+    import torch
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPVisionModelWithProjection
 
@@ -173,6 +180,7 @@ def load_novel_view(
     found = _require(NOVEL_VIEW, root)
     quiet_libraries()
     path = found.path
+    dtype = dtype or torch.float32
     options = {"torch_dtype": dtype, "local_files_only": True}
     unet = UNet2DConditionModel.from_pretrained(path / "unet", **options)
     if use_adapter and found.adapter is not None:
@@ -200,9 +208,11 @@ def _crop_side(processor: dict) -> int:
     return int(crop)
 
 
-def load_cc_projection(folder: Path, dtype: torch.dtype = torch.float32) -> torch.nn.Linear:
+def load_cc_projection(folder: Path, dtype: torch.dtype) -> torch.nn.Linear:
     """The pose projection as the conversion stores it: config.json (in_channel, out_channel)
     and a `projection` Linear's weight and bias (safetensors, or the older .bin)."""
+    import torch
+
     config = json.loads((folder / "config.json").read_text())
     layer = torch.nn.Linear(int(config["in_channel"]), int(config["out_channel"]))
     safetensors_file = folder / "diffusion_pytorch_model.safetensors"
@@ -217,9 +227,11 @@ def load_cc_projection(folder: Path, dtype: torch.dtype = torch.float32) -> torc
 
 
 def load_video(
-    root: str | Path | None = None, device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32, use_adapter: bool = True
-):
-    """The CogVideoX video-to-video model of the models folder, text condition encoded."""
+    root: str | Path | None = None, device: str | torch.device = "cpu", dtype: torch.dtype | None = None, use_adapter: bool = True
+) -> VideoModel:
+    """The CogVideoX video-to-video model of the models folder, text condition encoded; dtype
+    None is float32."""
+    import torch
     from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel, CogVideoXVideoToVideoPipeline
 
     from fluidcore.generative.refine import VideoModel
@@ -227,6 +239,7 @@ def load_video(
     found = _require(VIDEO, root)
     quiet_libraries()
     path = found.path
+    dtype = dtype or torch.float32
     options = {"torch_dtype": dtype, "local_files_only": True}
     transformer = CogVideoXTransformer3DModel.from_pretrained(path / "transformer", **options)
     if use_adapter and found.adapter is not None:
@@ -258,6 +271,7 @@ def _text_condition(path: Path, length: int, device: str | torch.device, dtype: 
             if key not in tensors or tensors[key].ndim != 3 or tensors[key].shape[0] != 1:
                 raise MissingWeights(f"{embeddings}: needs a (1, L, D) tensor named {key!r}")
         return tensors["prompt_embeds"].to(device, dtype), tensors["negative_prompt_embeds"].to(device, dtype)
+    import torch
     from transformers import AutoTokenizer, T5EncoderModel
 
     tokenizer = AutoTokenizer.from_pretrained(path / "tokenizer", local_files_only=True)

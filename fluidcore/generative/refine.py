@@ -128,8 +128,8 @@ def refine_video(
     weight_sum = torch.zeros(n_frames)
     for first in range(0, len(starts), options.batch_size):
         batch = starts[first : first + options.batch_size]
-        clips = torch.stack([_window_frames(video, s, window) for s in batch])  # (B, L, H, W, C)
-        refined = _run(model, _to_model(clips, work_width, work_height), [options.seed + first + i for i in range(len(batch))], options)
+        clips = torch.stack([window_frames(video, s, window) for s in batch])  # (B, L, H, W, C)
+        refined = _run(model, to_model_frames(clips, work_width, work_height), [options.seed + first + i for i in range(len(batch))], options)
         back = F.interpolate(refined.flatten(0, 1), size=(height, width), mode="bilinear", antialias=True, align_corners=False)
         back = back.view(len(batch), window, 3, height, width)
         for i, start in enumerate(batch):
@@ -145,7 +145,7 @@ def refine_video(
     return out.clamp(0.0, 1.0).to(video.device)
 
 
-def _window_frames(video: torch.Tensor, start: int, window: int) -> torch.Tensor:
+def window_frames(video: torch.Tensor, start: int, window: int) -> torch.Tensor:
     """`window` frames from `start`, padded with the last frame when the video is shorter."""
     clip = video[start : start + window].float().cpu()
     if len(clip) < window:
@@ -153,7 +153,7 @@ def _window_frames(video: torch.Tensor, start: int, window: int) -> torch.Tensor
     return clip
 
 
-def _to_model(clips: torch.Tensor, width: int, height: int) -> torch.Tensor:
+def to_model_frames(clips: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """(B, L, H, W, C) in [0, 1] -> (B, L, 3, height, width) in [0, 1] at the model's size."""
     batch, length, _, _, channels = clips.shape
     frames = clips.flatten(0, 1).permute(0, 3, 1, 2)

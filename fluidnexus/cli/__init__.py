@@ -10,7 +10,7 @@ from __future__ import annotations
 import fluidcore  # noqa: F401  first, before any command imports torch: sets OpenMP's wait policy
 import typer
 
-from fluidnexus.cli import benchmarks, interaction, scenes, service
+from fluidnexus.cli import benchmarks, generative, interaction, scenes, service
 
 app = typer.Typer(
     name="fluidnexus",
@@ -21,7 +21,7 @@ app = typer.Typer(
 bench = typer.Typer(help="Benchmarks: print a table, or one JSON object with --json.", no_args_is_help=True)
 app.add_typer(bench, name="bench")
 
-for module in (scenes, interaction, service, benchmarks):
+for module in (scenes, interaction, generative, service, benchmarks):
     module.register(app, bench)
 
 
