@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics", "physics", "render")
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "metrics", "physics", "render", "generative")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
