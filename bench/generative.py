@@ -178,6 +178,7 @@ def command(
         if device.startswith("cuda") and not torch.cuda.is_available():
             raise UserError("--device cuda: no CUDA device here")
         torch.set_num_threads(threads or os.cpu_count() or 1)
+        load_before = [round(x, 2) for x in os.getloadavg()]  # other work on the machine, before ours
         chosen = getattr(torch, dtype or ("float16" if device.startswith("cuda") else "float32"))
         _log(f"generative bench: building {size if models_dir is None else models_dir} models on {device} ({chosen}) ...")
         began = time.perf_counter()
@@ -195,6 +196,7 @@ def command(
         "dtype": str(chosen).removeprefix("torch."),
         "threads": torch.get_num_threads(),
         "cpu_count": os.cpu_count(),
+        "load_average": load_before,
         "load_seconds": round(load_seconds, 2),
         "rows": rows,
     }

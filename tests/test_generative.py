@@ -225,3 +225,17 @@ def test_bad_refine_options_are_refused(cogvideox: refine.VideoModel) -> None:
         refine.RefineOptions(strength=0.0)
     with pytest.raises(refine.RefineError, match="video"):
         refine.refine_video(cogvideox, torch.zeros(4, 8, 8))
+
+
+def test_full_size_architectures_have_the_public_parameter_counts() -> None:
+    """Built on the meta device (no memory): the bench's real-size models are Zero123-XL
+    (SD 1.x UNet, 860M; CLIP ViT-L/14 vision tower, 304M) and CogVideoX-2b (1.69B)."""
+    from fluidcore.generative import random_weights
+
+    count = lambda module: sum(p.numel() for p in module.parameters()) / 1e6  # noqa: E731
+    zero123 = random_weights.build_novel_view("full", device="meta")
+    assert 855 < count(zero123.unet) < 865 and 300 < count(zero123.image_encoder) < 308
+    assert (zero123.cc_projection.in_features, zero123.cc_projection.out_features) == (772, 768) and zero123.size == 256
+    video = random_weights.build_video("full", device="meta")
+    assert 1650 < count(video.transformer) < 1750 and video.size == (720, 480) and video.window == 49
+    assert video.prompt_embeds.shape == (1, 226, 4096)
