@@ -166,25 +166,37 @@ def _require(name: str, root: str | Path | None) -> ModelEntry:
     return entry(name, root)
 
 
+def _loading(name: str, root: str | Path | None, dtype: torch.dtype | None) -> tuple[ModelEntry, dict]:
+    """The model's entry (MissingWeights when it cannot load) and the from_pretrained options:
+    the dtype (None: float32) and local files only, so nothing is ever fetched."""
+    import torch
+
+    found = _require(name, root)
+    quiet_libraries()
+    return found, {"torch_dtype": dtype or torch.float32, "local_files_only": True}
+
+
+def _denoiser(model_class: type, found: ModelEntry, part: str, options: dict, use_adapter: bool) -> torch.nn.Module:
+    """The model's denoising network, with the LoRA adapter of the models folder when asked."""
+    module = model_class.from_pretrained(found.path / part, **options)
+    if use_adapter and found.adapter is not None:
+        lora.load(module, found.adapter)
+    return module
+
+
 def load_novel_view(
     root: str | Path | None = None, device: str | torch.device = "cpu", dtype: torch.dtype | None = None, use_adapter: bool = True
 ) -> NovelViewModel:
     """The Zero123 model of the models folder (with its LoRA adapter when there is one);
     dtype None is float32."""
-    import torch
     from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
     from transformers import CLIPVisionModelWithProjection
 
     from fluidcore.generative.novel_view import NovelViewModel
 
-    found = _require(NOVEL_VIEW, root)
-    quiet_libraries()
-    path = found.path
-    dtype = dtype or torch.float32
-    options = {"torch_dtype": dtype, "local_files_only": True}
-    unet = UNet2DConditionModel.from_pretrained(path / "unet", **options)
-    if use_adapter and found.adapter is not None:
-        lora.load(unet, found.adapter)
+    found, options = _loading(NOVEL_VIEW, root, dtype)
+    path, dtype = found.path, options["torch_dtype"]
+    unet = _denoiser(UNet2DConditionModel, found, "unet", options, use_adapter)
     processor = json.loads((path / "feature_extractor" / "preprocessor_config.json").read_text())
     model = NovelViewModel(
         unet=unet,
@@ -231,19 +243,13 @@ def load_video(
 ) -> VideoModel:
     """The CogVideoX video-to-video model of the models folder, text condition encoded; dtype
     None is float32."""
-    import torch
     from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel, CogVideoXVideoToVideoPipeline
 
     from fluidcore.generative.refine import VideoModel
 
-    found = _require(VIDEO, root)
-    quiet_libraries()
-    path = found.path
-    dtype = dtype or torch.float32
-    options = {"torch_dtype": dtype, "local_files_only": True}
-    transformer = CogVideoXTransformer3DModel.from_pretrained(path / "transformer", **options)
-    if use_adapter and found.adapter is not None:
-        lora.load(transformer, found.adapter)
+    found, options = _loading(VIDEO, root, dtype)
+    path, dtype = found.path, options["torch_dtype"]
+    transformer = _denoiser(CogVideoXTransformer3DModel, found, "transformer", options, use_adapter)
     pipeline = CogVideoXVideoToVideoPipeline(
         tokenizer=None,
         text_encoder=None,
