@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 Progress = Callable[[float, str], None]
 ShouldCancel = Callable[[], bool]
+BatchProgress = Callable[[str, int, int], None]  # (stage, batches done, batches in the stage)
 
 
 class Cancelled(Exception):
@@ -26,6 +27,18 @@ class JobInputError(ValueError):
 
 def no_progress(fraction: float, stage: str) -> None:
     """The progress callback of a caller that does not listen."""
+
+
+def batch_progress(report: Progress, should_cancel: ShouldCancel | None, job: str) -> BatchProgress:
+    """For a stage that works in batches (the generative models): each finished batch is
+    reported as the stage's fraction done, and cancelling takes effect after it."""
+
+    def on_batch(stage: str, done: int, total: int) -> None:
+        report(done / max(total, 1), stage)
+        if should_cancel is not None and should_cancel():
+            raise Cancelled(f"{job} cancelled during {stage}; starting it again resumes where it stopped")
+
+    return on_batch
 
 
 def parse_frames(text: str | None) -> tuple[int, int] | None:

@@ -3,7 +3,9 @@
     generated_views   single-view reconstruction (Algorithm S1): the novel-view model draws the
                       other cameras' views of every frame from the INPUT view alone, the video
                       model refines each generated video (strength 0.5), and they become
-                      ViewTargets of kind "generated", weighted below the real view
+                      ViewTargets of kind "generated", weighted below the real view;
+                      `with_generated_views` puts them into a prepared reconstruction in place
+                      of the plume-symmetry pseudo-views
     refine_frames     prediction (Algorithm S2): rough future frames rendered from the input
                       camera are refined by the video model (strength 0.75)
 
@@ -20,20 +22,24 @@ import gc
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from fluidcore.cameras import Camera
 from fluidcore.generative import models
+from fluidcore.jobs import BatchProgress
 from fluidcore.generative.novel_view import SamplingOptions, generate_views
 from fluidcore.generative.refine import STRENGTH_FUTURES, STRENGTH_NOVEL_VIEWS, RefineOptions, refine_video, window_starts
 from fluidcore.reconstruct.views import ViewTarget, rotate_about_axis
 
+if TYPE_CHECKING:
+    from fluidcore.reconstruct.loop import Reconstruction
+
 NOVEL_VIEWS = "novel views"
 REFINE_VIEWS = "refine views"
 REFINE_FUTURES = "refine futures"
-StageProgress = Callable[[str, int, int], None]  # (stage, done, total)
 
 
 @dataclass(frozen=True)
@@ -85,7 +91,7 @@ def generated_views(
     weight: float,
     settings: GenerativeSettings,
     device: str | torch.device = "cpu",
-    on_batch: StageProgress | None = None,
+    on_batch: BatchProgress | None = None,
 ) -> tuple[list[ViewTarget], dict[str, str]]:
     """Generated ViewTargets (total loss weight `weight`, split evenly) and the status of both
     steps: {"novel_views": ..., "view_refinement": ...}. Only `source.frames` reach a model."""
@@ -108,8 +114,32 @@ def generated_views(
     return views, status
 
 
+def with_generated_views(
+    rec: Reconstruction, settings: GenerativeSettings, device: str | torch.device = "cpu", on_batch: BatchProgress | None = None
+) -> dict[str, str]:
+    """Replace the symmetry pseudo-views of a single-view reconstruction by generated views
+    (same total weight, `Quality.symmetry_weight`) when the novel-view weights exist; returns
+    the manifest's status lines. The generated cameras are the scene's other cameras (their
+    poses only), else as many turned copies of the input camera as the symmetry prior uses."""
+    if len(rec.input_views) != 1:
+        reason = "skipped: more than one input view (real views constrain the depth)"
+        return {"novel_views": reason, "view_refinement": reason}
+    quality = rec.quality
+    if quality.symmetry_views < 1 or quality.symmetry_weight <= 0:
+        reason = "skipped: pseudo-views are off in this quality (symmetry_views or symmetry_weight is 0)"
+        return {"novel_views": reason, "view_refinement": reason}
+    source = rec.views[0]
+    center = 0.5 * (np.asarray(rec.box.lo) + np.asarray(rec.box.hi))
+    count = min(quality.symmetry_views, settings.max_views)
+    targets = target_cameras(rec.cameras, source.camera, center, rec.up, count)
+    views, status = generated_views(source, targets, center, rec.up, quality.symmetry_weight, settings, device, on_batch)
+    if views:
+        rec.views = [v for v in rec.views if v.kind != "symmetry"] + views
+    return status
+
+
 def refine_frames(
-    videos: Mapping[str, torch.Tensor], settings: GenerativeSettings, device: str | torch.device = "cpu", on_batch: StageProgress | None = None
+    videos: Mapping[str, torch.Tensor], settings: GenerativeSettings, device: str | torch.device = "cpu", on_batch: BatchProgress | None = None
 ) -> tuple[dict[str, torch.Tensor], str]:
     """Algorithm S2's refinement of rough futures ({camera: (T, H, W, C) in [0, 1]}): the refined
     videos and the status line (the inputs unchanged when the video model is absent)."""
@@ -118,7 +148,7 @@ def refine_frames(
 
 def _refine_all(
     videos: dict[str, torch.Tensor], strength: float, stage: str, settings: GenerativeSettings, device: str | torch.device,
-    on_batch: StageProgress | None,
+    on_batch: BatchProgress | None,
 ) -> tuple[dict[str, torch.Tensor], str]:
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
     if skipped is not None:
@@ -147,7 +177,7 @@ def _adapter_note(name: str, settings: GenerativeSettings) -> str:
     return f"LoRA {adapter}" if adapter is not None else "base weights, no LoRA adapter"
 
 
-def _stage(on_batch: StageProgress | None, stage: str) -> Callable[[int, int], None] | None:
+def _stage(on_batch: BatchProgress | None, stage: str) -> Callable[[int, int], None] | None:
     if on_batch is None:
         return None
     return lambda done, total: on_batch(stage, done, total)

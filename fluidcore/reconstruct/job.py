@@ -13,11 +13,15 @@ import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
+from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, batch_progress, no_progress
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, Quality
+
+if TYPE_CHECKING:
+    from fluidcore.generative.stages import GenerativeSettings
 
 
 def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
@@ -48,14 +52,19 @@ def run_reconstruct(
     should_cancel: ShouldCancel | None = None,
     source: tuple[Sequence[float], float] | None = None,
     progress_bar: bool = False,
+    generative: GenerativeSettings | None = None,
 ) -> Path:
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
     `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
     uses). Returns the run folder. `progress_bar` draws a tqdm bar on stderr (the CLI's).
+    With one input view, the generative priors (`generative`, default: the weights of
+    `fluidcore.weights.weights_dir()`) replace the symmetry pseudo-views when their weights
+    exist; the manifest's "novel_views" and "view_refinement" say what ran or why not.
     """
     from fluidcore import cameras as camera_io
     from fluidcore import video
+    from fluidcore.generative.stages import GenerativeSettings, with_generated_views
     from fluidcore.reconstruct.loop import Reconstructor, prepare
     from fluidcore.reconstruct.presets import get, render_size
 
@@ -88,8 +97,10 @@ def run_reconstruct(
         source=source, device=device,
     )
     del decoded
+    status = with_generated_views(rec, generative or GenerativeSettings(), device, batch_progress(report, should_cancel, f"reconstruction in {out_dir}"))
     reconstructor = Reconstructor(rec, device=device)
     run = reconstructor.open_run(out_dir)
+    run.update(**status)
     total = frame_range[1] - frame_range[0]
     bar = _bar(total, len(run.frames()), progress_bar)
     cancelled = False

@@ -12,6 +12,7 @@ lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -67,6 +68,12 @@ class Quality:
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, Any]) -> Quality:
+        """Inverse of `to_json` (a run manifest's "quality"): a later stage that reconstructs
+        again, like Algorithm S2's refinement, fits at the quality the run was made with."""
+        return cls(**{**data, "coarse_to_fine": tuple(data["coarse_to_fine"]), "weights": LossWeights(**data["weights"])})
 
     def visual_settings(self) -> dict[str, Any]:
         """How the visual Gaussians move and are born: recorded in a reconstruction's manifest

@@ -1,0 +1,123 @@
+"""The generative priors inside the jobs, with tiny models: a single-view reconstruction fits
+generated views (never fed a held-out frame), a prediction is refined and reconstructed again,
+and without weights each stage says in the manifest why it was skipped."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from fluidcore import jobs, synth, video
+from fluidcore.generative import models, stages
+from fluidcore.generative.novel_view import to_square
+from fluidcore.generative.refine import to_model_frames
+from fluidcore.predict import job as predict_job
+from fluidcore.reconstruct import get
+from fluidcore.reconstruct import job as reconstruct_job
+from fluidcore.runs import Run
+
+QUICK = get("preview").with_overrides(position_iterations=2, appearance_iterations=1, first_frame_factor=1, symmetry_views=2, long_side=32)
+INPUT = "view_01"
+HELD_OUT = ("view_00", "view_02")
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    folder = tmp_path_factory.mktemp("scene")
+    synth.write(synth.generate(synth.SynthSpec(frames=3, width=24, height=32, views=3)), folder)
+    return folder
+
+
+def settings(root: Path) -> stages.GenerativeSettings:
+    return stages.GenerativeSettings(models_root=root, novel_view_steps=2, refine_steps=2, novel_view_batch=3)
+
+
+class Recorder:
+    """Forward pre-hooks on every image encoder of the loaded models: each image tensor a
+    generative model receives is kept (in the model's own [-1, 1] pixel space)."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        self.novel_view: list[torch.Tensor] = []  # (3, S, S) squares given to Zero123's VAE
+        self.video: list[torch.Tensor] = []  # (3, h, w) frames given to CogVideoX's VAE
+        load_novel_view, load_video = models.load_novel_view, models.load_video
+
+        def novel_view(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            model = load_novel_view(*args, **kwargs)
+            model.vae.encoder.register_forward_pre_hook(lambda _m, a: self.novel_view.extend(a[0].detach().float()))
+            model.image_encoder.register_forward_pre_hook(self._clip, with_kwargs=True)
+            return model
+
+        def video_model(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            model = load_video(*args, **kwargs)
+            model.pipeline.vae.encoder.register_forward_pre_hook(lambda _m, a: self.video.extend(a[0].detach().float().permute(0, 2, 1, 3, 4).flatten(0, 1)))
+            return model
+
+        monkeypatch.setattr(models, "load_novel_view", novel_view)
+        monkeypatch.setattr(models, "load_video", video_model)
+        self.clip_calls = 0
+
+    def _clip(self, _module, _args, kwargs):  # noqa: ANN001, ANN202
+        self.clip_calls += 1
+
+
+def frames_of(scene: Path, name: str, size: tuple[int, int]) -> torch.Tensor:
+    return torch.from_numpy(video.read_frames(scene / "videos" / f"{name}.mp4", size=size)).float() / 255.0
+
+
+def nearest(images: list[torch.Tensor], references: torch.Tensor) -> float:
+    """Smallest mean absolute difference between any recorded image and any reference."""
+    return min(float((image - reference).abs().mean()) for image in images for reference in references)
+
+
+def test_single_view_reconstruction_fits_generated_views_from_the_input_view_only(
+    scene: Path, tiny_models: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    recorder = Recorder(monkeypatch)
+    seen: list[tuple[float, str]] = []
+    out = reconstruct_job.run_reconstruct(
+        scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK,
+        generative=settings(tiny_models), progress=lambda fraction, stage: seen.append((fraction, stage)),
+    )
+    manifest = Run.open(out).manifest
+    views = manifest["settings"]["views"]
+    assert [v["camera"] for v in views] == [INPUT, *HELD_OUT]
+    assert [v["kind"] for v in views] == ["input", "generated", "generated"]
+    assert all(v["weight"] < views[0]["weight"] for v in views[1:]) and sum(v["weight"] for v in views[1:]) == pytest.approx(0.5)
+    assert manifest["novel_views"].startswith(f"generated 2 views x 3 frames from {INPUT}")
+    assert manifest["view_refinement"].startswith("refined 2 videos with cogvideox (strength 0.5")
+    assert {"novel views", "refine views", "reconstruct"} <= {stage for _, stage in seen}
+    assert Run.open(out).frames() == [0, 1, 2]
+
+    # the held-out guard: every image the novel-view model was given is an input-view frame,
+    # and no image any model was given is a held-out camera's frame
+    working = (24, 32)
+    squares = lambda frames: to_square(frames, 32)  # noqa: E731 - the tiny model's size
+    inputs = squares(frames_of(scene, INPUT, working))
+    assert recorder.novel_view and recorder.clip_calls > 0 and recorder.video
+    assert all(min(float((image - frame).abs().max()) for frame in inputs) < 1e-5 for image in recorder.novel_view)
+    for name in HELD_OUT:
+        held = frames_of(scene, name, working)
+        assert nearest(recorder.novel_view, squares(held)) > 1e-3
+        as_video_input = to_model_frames(held[None], 64, 48)[0] * 2.0 - 1.0
+        assert nearest(recorder.video, as_video_input) > 1e-3
+
+
+def test_without_weights_reconstruction_keeps_the_symmetry_prior_and_says_why(scene: Path, tmp_path: Path) -> None:
+    out = reconstruct_job.run_reconstruct(
+        scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK, frames=(0, 1),
+        generative=stages.GenerativeSettings(models_root=tmp_path / "models"),
+    )
+    manifest = Run.open(out).manifest
+    assert manifest["novel_views"] == f"skipped: no zero123 weights in {tmp_path / 'models'}"
+    assert [v["kind"] for v in manifest["settings"]["views"]] == ["input", "symmetry", "symmetry"]
+
+
+def test_cancelling_during_generation_raises_the_jobs_cancel(scene: Path, tiny_models: Path, tmp_path: Path) -> None:
+    with pytest.raises(jobs.Cancelled, match="during novel views"):
+        reconstruct_job.run_reconstruct(
+            scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK,
+            generative=settings(tiny_models), should_cancel=lambda: True,
+        )
