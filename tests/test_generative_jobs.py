@@ -121,3 +121,32 @@ def test_cancelling_during_generation_raises_the_jobs_cancel(scene: Path, tiny_m
             scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK,
             generative=settings(tiny_models), should_cancel=lambda: True,
         )
+
+
+def test_prediction_refines_its_future_and_reconstructs_on_it(scene: Path, tiny_models: Path, tmp_path: Path) -> None:
+    parent = reconstruct_job.run_reconstruct(
+        scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "parent", quality=QUICK, frames=(0, 2),
+        generative=stages.GenerativeSettings(models_root=tmp_path / "none"),
+    )
+    seen: list[str] = []
+    out = predict_job.run_predict(parent, tmp_path / "pred", frames=3, generative=settings(tiny_models),
+                                  progress=lambda fraction, stage: seen.append(stage))
+    run = Run.open(out)
+    assert run.frames() == [2, 3, 4]
+    assert run.manifest["refinement"].startswith("refined 1 videos with cogvideox (strength 0.75, 1 of 2 steps")
+    assert run.manifest["refinement"].endswith("reconstructed on them from frame 2 in refined/")
+    refined = Run.open(out / "refined")
+    assert refined.kind == "reconstruct" and refined.frames() == [2, 3, 4] and refined.manifest["input_views"] == [INPUT]
+    assert [v["kind"] for v in refined.manifest["settings"]["views"]] == ["input"]
+    np.testing.assert_array_equal(refined.read_frame(2).positions, run.read_frame(2).positions)  # starts from the prediction
+    assert not np.array_equal(refined.read_frame(4).gaussians["means"], run.read_frame(4).gaussians["means"])
+    assert {"predict", "refine futures", "reconstruct refined"} <= set(seen)
+
+
+def test_only_predictions_are_refined(scene: Path, tiny_models: Path, tmp_path: Path) -> None:
+    parent = reconstruct_job.run_reconstruct(
+        scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "parent", quality=QUICK, frames=(0, 2),
+        generative=stages.GenerativeSettings(models_root=tmp_path / "none"),
+    )
+    run = Run.open(predict_job.run_resimulate(parent, tmp_path / "resim"))
+    assert run.manifest["refinement"] == predict_job.NOT_REFINED and not (tmp_path / "resim" / "refined").exists()

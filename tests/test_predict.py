@@ -48,13 +48,16 @@ def assert_same_states(a: Run, b: Run) -> None:
             np.testing.assert_array_equal(x[key], y[key], err_msg=key)
 
 
-def test_prediction_continues_after_the_last_frame_and_records_its_parent(parent: Path, tmp_path: Path) -> None:
+def test_prediction_continues_after_the_last_frame_and_records_its_parent(
+    parent: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("FLUIDNEXUS_MODELS", str(tmp_path / "models"))  # no video model: refinement says so
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert run.kind == "predict" and run.manifest["complete"]
     assert run.frames() == list(range(3, 3 + FRAMES))
     assert not Path(run.manifest["parent"]).is_absolute()  # relative to the run folder: a chain moves as one
     assert run.parent is not None and run.parent.path.resolve() == parent.resolve()
-    assert run.manifest["refinement"] == priors.NO_REFINER
+    assert run.manifest["refinement"] == f"skipped: no cogvideox weights in {tmp_path / 'models'}"
     first = run.read_frame(3)
     last_parent = Run.open(parent).read_frame(2)
     assert first.time == pytest.approx(last_parent.time + 1 / 30)

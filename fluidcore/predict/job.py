@@ -22,17 +22,23 @@ import time
 from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
 from fluidcore.physics import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
-from fluidcore.predict.priors import HeightProfile, refinement_status
+from fluidcore.predict.priors import HeightProfile, refine_future
 from fluidcore.predict.rollout import Rollout, continued_scene, source_template
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
+
+if TYPE_CHECKING:
+    from fluidcore.generative.stages import GenerativeSettings
+
+NOT_REFINED = "skipped: only predictions are refined (Algorithm S2); what-if and re-simulation runs show the physics"
+
 
 def run_predict(
     parent_run: str | os.PathLike[str],
@@ -42,9 +48,12 @@ def run_predict(
     device: str = "cpu",
     progress: Progress | None = None,
     should_cancel: ShouldCancel | None = None,
+    generative: GenerativeSettings | None = None,
 ) -> Path:
-    """Simulate `frames` frames after the parent's last frame (no interventions)."""
-    return _continue(parent_run, out_dir, "predict", frames, InteractionParams(), device, progress, should_cancel)
+    """Simulate `frames` frames after the parent's last frame (no interventions); then, when the
+    video model's weights exist (`generative`, default: `fluidcore.weights.weights_dir()`),
+    refine and reconstruct them (`priors.refine_future`, Algorithm S2)."""
+    return _continue(parent_run, out_dir, "predict", frames, InteractionParams(), device, progress, should_cancel, generative)
 
 
 def run_interact(
@@ -92,12 +101,13 @@ def _continue(
     device: str,
     progress: Progress | None,
     should_cancel: ShouldCancel | None,
+    generative: GenerativeSettings | None = None,
 ) -> Path:
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise JobInputError(f"frames must be a whole number >= 1, got {frames!r}")
     parent = _open_parent(parent_run)
     last = parent.frames()[-1]
-    return _write(parent, out_dir, kind, last, (last + 1, last + 1 + frames), params, device, progress, should_cancel)
+    return _write(parent, out_dir, kind, last, (last + 1, last + 1 + frames), params, device, progress, should_cancel, generative)
 
 
 def _open_parent(path: str | os.PathLike[str]) -> Run:
@@ -117,9 +127,11 @@ def _write(
     device: str,
     progress: Progress | None,
     should_cancel: ShouldCancel | None,
+    generative: GenerativeSettings | None = None,
 ) -> Path:
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
-    its frame `start_frame` (written unchanged first when it lies inside the range)."""
+    its frame `start_frame` (written unchanged first when it lies inside the range); a
+    prediction is then refined (Algorithm S2), other kinds are not."""
     scene = continued_scene(parent.scene)
     start = SmokeState.from_frame(parent.read_frame(start_frame), device)
     buoyancy_scale, calibration, profile = 1.0, {}, None
@@ -154,7 +166,7 @@ def _write(
         },
         parent=parent.path,
     )
-    run.update(refinement=refinement_status())
+    run.update(refinement="pending: runs after the last simulated frame" if kind == "predict" else NOT_REFINED)
     rollout = _rollout(scene, start, params, visual_settings, device, profile)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
     report = progress or no_progress
@@ -168,6 +180,8 @@ def _write(
             stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means))}
         run.write_frame(t, smoke.to_frame(), stats, time.perf_counter() - began)
         report((t + 1 - frame_range[0]) / n_frames, kind)
+    if kind == "predict":
+        run.update(refinement=refine_future(run, generative, device, report, should_cancel))
     return Path(out_dir)
 
 

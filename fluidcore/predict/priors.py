@@ -2,27 +2,32 @@
 
     HeightProfile      the appearance height profile: smoke at a given height keeps looking the
                        way the reconstruction's last frame showed it (a stationarity prior)
-    refinement_status  the seam for generative priors (`fluidcore.generative`): Algorithm S2
-                       refines the rough simulated frames with a video diffusion model; until
-                       that stage exists the manifest records why it was skipped
+    refine_future      Algorithm S2's generative prior: the rough simulated frames, rendered from
+                       the input camera, refined by the video model (`fluidcore.generative`) and
+                       reconstructed again (Algorithm S1) from the first predicted state; without
+                       video weights the manifest records why it was skipped
 
 A new prior goes here, and `fluidcore.predict.job` applies it (see docs/architecture.md).
 """
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
-from fluidcore.jobs import JobInputError
+from fluidcore.jobs import JobInputError, Progress, ShouldCancel
+from fluidcore.runs import Run
 from fluidcore.smoke import Appearance, SmokeState
 
-NO_REFINER = "skipped: no video model weights"
+if TYPE_CHECKING:
+    import numpy as np
+
+    from fluidcore.generative.stages import GenerativeSettings
+
 PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
 HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per frame
 # Held attributes are shifted in the space they are drawn in and kept valid there: a mean of
@@ -106,12 +111,66 @@ def _band_means(value: torch.Tensor, band: torch.Tensor, bands: int) -> torch.Te
     return sums / counts[:, None]
 
 
-def refinement_status() -> str:
-    """What became of Algorithm S2's refinement step for a run written now.
+REFINED_RUN = "refined"  # sub-folder of a prediction holding the reconstruction on refined frames
 
-    The seam for `fluidcore.generative`: once that stage provides a video model with weights,
-    this is where the rough renders of the new frames are refined and reconstructed again.
+
+def refine_future(
+    run: Run, generative: GenerativeSettings | None, device: str, progress: Progress, should_cancel: ShouldCancel | None
+) -> str:
+    """Refine the new frames of a finished prediction `run` and reconstruct on them into
+    `run.path / REFINED_RUN`; returns the manifest's "refinement" line (what ran, or why not).
+
+    The refined reconstruction fits at the quality and physics preset of the reconstruction the
+    prediction started from, seeing only the input camera(s), and starts from the prediction's
+    first frame. Stages: "refine futures" (per window batch), "reconstruct refined" (per frame).
     """
-    if importlib.util.find_spec("fluidcore.generative") is None:
-        return NO_REFINER
-    return "skipped: fluidcore.generative has no video refinement step yet"
+    import numpy as np
+
+    from fluidcore.artifacts import render_frames
+    from fluidcore.generative import models
+    from fluidcore.generative.stages import GenerativeSettings, refine_frames
+    from fluidcore.jobs import batch_progress
+    from fluidcore.reconstruct.job import fit
+    from fluidcore.reconstruct.loop import prepare
+    from fluidcore.reconstruct.presets import Quality, render_size
+
+    settings = generative or GenerativeSettings()
+    skipped = models.skip_reason(models.VIDEO, settings.models_root)
+    if skipped is not None:
+        return skipped
+    origin = run.parent
+    while origin is not None and origin.kind != "reconstruct":
+        origin = origin.parent
+    if origin is None:
+        return "skipped: no reconstruction among the run's parents to take the quality and physics from"
+    quality = Quality.from_json(origin.manifest["settings"]["quality"])
+    cameras = run.cameras()
+    rough = {}
+    for name in run.manifest["input_views"]:
+        camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
+        rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), device)).float() / 255.0
+    refined, status = refine_frames(rough, settings, device, batch_progress(progress, should_cancel, f"refinement of {run.path}"))
+    scene = run.scene
+    videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
+    rec = prepare(
+        cameras, videos, frame_range=tuple(run.manifest["frame_range"]), fps=run.fps, quality=quality,
+        box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
+        source=(scene.source["center"], scene.source["radius"]), physics_preset=origin.manifest["settings"]["physics_preset"],
+        device=device,
+    )
+    rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets
+    first = run.frames()[0]
+    fit(rec, run.path / REFINED_RUN, device=device, progress=progress, should_cancel=should_cancel,
+        status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")
+    return f"{status}; reconstructed on them from frame {first} in {REFINED_RUN}/"
+
+
+def _as_video(frames: torch.Tensor, channels: int) -> np.ndarray:
+    """Refined (T, H, W, C) floats as the uint8 RGB video `prepare` reads; grey runs stay grey
+    (the model's output can drift apart per channel)."""
+    import numpy as np
+
+    if channels == 1:
+        frames = frames.mean(dim=-1, keepdim=True)
+    rgb = frames.expand(-1, -1, -1, 3) if frames.shape[-1] == 1 else frames
+    return (rgb.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy().astype(np.uint8)

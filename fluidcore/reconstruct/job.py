@@ -22,6 +22,8 @@ from fluidcore.reconstruct.presets import DEFAULT_QUALITY, Quality
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
+    from fluidcore.reconstruct.loop import Reconstruction
+    from fluidcore.runs import FrameState
 
 
 def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
@@ -65,7 +67,7 @@ def run_reconstruct(
     from fluidcore import cameras as camera_io
     from fluidcore import video
     from fluidcore.generative.stages import GenerativeSettings, with_generated_views
-    from fluidcore.reconstruct.loop import Reconstructor, prepare
+    from fluidcore.reconstruct.loop import prepare
     from fluidcore.reconstruct.presets import get, render_size
 
     preset = quality if isinstance(quality, Quality) else get(quality)
@@ -98,16 +100,44 @@ def run_reconstruct(
     )
     del decoded
     status = with_generated_views(rec, generative or GenerativeSettings(), device, batch_progress(report, should_cancel, f"reconstruction in {out_dir}"))
+    return fit(rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status)
+
+
+def fit(
+    rec: Reconstruction,
+    out_dir: str | os.PathLike[str],
+    *,
+    device: str = "cpu",
+    progress: Progress | None = None,
+    should_cancel: ShouldCancel | None = None,
+    progress_bar: bool = False,
+    status: Mapping[str, str] | None = None,
+    first_state: FrameState | None = None,
+    stage: str = "reconstruct",
+) -> Path:
+    """Fit a prepared reconstruction frame by frame into `out_dir` (resuming what is there).
+
+    `status` lines go into the manifest. `first_state`, when given, is written as the first
+    frame instead of fitting it, and the fit continues from it: Algorithm S2 reconstructs
+    refined futures starting from the predicted state, not from a freshly seeded source.
+    """
+    from fluidcore.reconstruct.loop import Reconstructor
+
+    report = progress or no_progress
     reconstructor = Reconstructor(rec, device=device)
     run = reconstructor.open_run(out_dir)
-    run.update(**status)
+    if status:
+        run.update(**status)
+    frame_range = rec.frame_range
+    if first_state is not None and not run.frames():
+        run.write_frame(frame_range[0], first_state, {}, 0.0)
     total = frame_range[1] - frame_range[0]
     bar = _bar(total, len(run.frames()), progress_bar)
     cancelled = False
 
     def on_frame(t: int, losses: Mapping[str, float]) -> None:
         done = t + 1 - frame_range[0]
-        report(done / total, "reconstruct")
+        report(done / total, stage)
         if bar is not None:
             bar.set_postfix(psnr=f"{losses['input_psnr']:.1f}", refresh=False)
             bar.update(1)
