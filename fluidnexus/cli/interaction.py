@@ -13,6 +13,7 @@ from pathlib import Path
 import typer
 
 from fluidnexus.cli.errors import user_errors
+from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or a prediction).")
 OUT_OPT = typer.Option(..., "--out", help="Folder for the new run; an unfinished run there is resumed.")
@@ -31,12 +32,15 @@ def predict(
     frames: int = typer.Option(..., "--frames", min=1, help="How many frames to predict after the last one."),
     out: Path = OUT_OPT,
     device: str = DEVICE_OPT,
+    models: ModelsDir = None,
 ) -> None:
-    """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2)."""
+    """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2);
+    with video-model weights in the models folder, refine them and reconstruct on them."""
+    from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.predict.job import run_predict
 
     with user_errors(ValueError):
-        path = run_predict(run, out, frames=frames, device=device, progress=_ProgressBar())
+        path = run_predict(run, out, frames=frames, device=device, progress=_ProgressBar(), generative=GenerativeSettings(models_root=models))
     typer.echo(str(path))
 
 
@@ -79,12 +83,18 @@ def interact(
 
 
 class _ProgressBar:
-    """A tqdm bar on stderr fed by (fraction, stage) reports, so stdout carries only the run's path."""
+    """A tqdm bar on stderr fed by (fraction, stage) reports, so stdout carries only the run's path;
+    a new stage (a prediction's refinement after its simulation) starts a new bar."""
 
     def __init__(self) -> None:
         self._bar = None
+        self._stage: str | None = None
 
     def __call__(self, fraction: float, stage: str) -> None:
+        if stage != self._stage and self._bar is not None:
+            self._bar.close()
+            self._bar = None
+        self._stage = stage
         if self._bar is None:
             from tqdm import tqdm
 

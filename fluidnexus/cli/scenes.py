@@ -13,6 +13,7 @@ import typer
 
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES
 from fluidnexus.cli.errors import UserError, user_errors
+from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")
 
@@ -71,8 +72,13 @@ def reconstruct(
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
+    models: ModelsDir = None,
 ) -> None:
-    """Reconstruct physical particles and visual Gaussians from one video or a few (Algorithm S1)."""
+    """Reconstruct physical particles and visual Gaussians from one video or a few (Algorithm S1).
+
+    With one video and novel-view weights in the models folder, generated views of the other
+    cameras join the fit (see `fluidnexus models`)."""
+    from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
 
@@ -80,7 +86,7 @@ def reconstruct(
         _set_threads(threads)
         path = run_reconstruct(
             cameras, _parse_videos(video), out, quality=quality, frames=parse_frames(frames),
-            device=device, progress_bar=True,
+            device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
         )
     typer.echo(str(path))
 
