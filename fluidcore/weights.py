@@ -2,7 +2,9 @@
 is skipped and says so (for example, LPIPS is reported as null).
 
 The folder is `$FLUIDNEXUS_MODELS`, or `./models` relative to the working directory. Each model
-documents its own layout below that folder (fluidcore.metrics: `lpips/alex.pth` + `lpips/alexnet.pth`).
+documents its own layout below that folder (fluidcore.metrics: `lpips/alex.pth` + `lpips/alexnet.pth`;
+fluidcore.generative.models: `zero123/`, `cogvideox/`, `lora/<model>/` in the public diffusers and
+peft layouts; `fluidnexus models` lists what is there).
 """
 
 from __future__ import annotations
