@@ -55,6 +55,14 @@ def test_tiny_models_use_the_public_folder_layouts(tiny_models: Path) -> None:
     assert models.skip_reason("zero123", tiny_models) is None
 
 
+def test_the_models_folder_defaults_to_the_environment_variable(tiny_models: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The worker passes no models folder: $FLUIDNEXUS_MODELS (docker-compose mounts /models) decides."""
+    monkeypatch.setenv("FLUIDNEXUS_MODELS", str(tiny_models))
+    assert models.skip_reason("zero123") is None and models.skip_reason("cogvideox") is None
+    monkeypatch.setenv("FLUIDNEXUS_MODELS", str(tiny_models / "absent"))
+    assert models.skip_reason("zero123") == f"skipped: no zero123 weights in {tiny_models / 'absent'}"
+
+
 def test_empty_models_folder_says_why_each_stage_is_skipped(tmp_path: Path) -> None:
     entries = {e.name: e for e in models.inventory(tmp_path)}
     assert not entries["zero123"].present and "unet/config.json" in entries["zero123"].missing
