@@ -150,3 +150,25 @@ def test_only_predictions_are_refined(scene: Path, tiny_models: Path, tmp_path: 
     )
     run = Run.open(predict_job.run_resimulate(parent, tmp_path / "resim"))
     assert run.manifest["refinement"] == predict_job.NOT_REFINED and not (tmp_path / "resim" / "refined").exists()
+
+
+def test_the_worker_runs_the_generative_stages_from_the_models_variable(
+    scene: Path, tiny_models: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The worker's reconstruct runner passes no models folder: $FLUIDNEXUS_MODELS decides, and the
+    stages show up in the job's progress (default sampling settings, preview quality)."""
+    from service.job_types import JobType
+    from worker import runners
+
+    monkeypatch.setenv("FLUIDNEXUS_MODELS", str(tiny_models))
+    seen: list[str] = []
+    inputs = runners.RunInputs(
+        job_id="job", job_type=JobType.RECONSTRUCT, params={"frames": [0, 2]}, run_dir=tmp_path / "run",
+        render_dir=tmp_path / "render", device="cpu", progress=lambda fraction, stage: seen.append(stage),
+        should_cancel=lambda: False, cameras_path=scene / "transforms.json", videos={INPUT: scene / "videos" / f"{INPUT}.mp4"},
+    )
+    files = runners.reconstruct(inputs)
+    assert {"novel views", "refine views", "reconstruct", "render"} <= set(seen)
+    assert seen.index("novel views") < seen.index("refine views") < seen.index("reconstruct") < seen.index("render")
+    assert [v["kind"] for v in Run.open(tmp_path / "run").manifest["settings"]["views"]] == ["input", "generated", "generated"]
+    assert sorted(f.name for f in files) == ["orbit.mp4", *(f"{name}.mp4" for name in sorted((INPUT, *HELD_OUT)))]
