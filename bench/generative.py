@@ -156,9 +156,13 @@ def command(
     size: str = typer.Option("tiny", "--size", help="tiny (CPU smoke test) or full (real architectures, random weights)."),
     models_dir: Optional[Path] = typer.Option(None, "--models", help="Time the weights of this models folder instead."),
     device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
-    dtype: Optional[str] = typer.Option(None, "--dtype", help="float32, float16 or bfloat16 (default: float16 on CUDA, float32 on CPU)."),
+    dtype: Optional[str] = typer.Option(
+        None, "--dtype", help="float32, float16 or bfloat16 (default: float16 on CUDA, float32 on CPU)."
+    ),
     steps: int = typer.Option(50, "--steps", min=1, max=1000, help="Denoising steps (refinement runs steps x strength)."),
-    strength: float = typer.Option(0.75, "--strength", min=0.01, max=1.0, help="Refinement strength (0.75: futures, 0.5: views)."),
+    strength: float = typer.Option(
+        0.75, "--strength", min=0.01, max=1.0, help="Refinement strength (0.75: futures, 0.5: views)."
+    ),
     views: int = typer.Option(4, "--views", min=1, max=64, help="Target cameras for novel views."),
     frames: int = typer.Option(2, "--frames", min=1, max=64, help="Time steps per target camera."),
     batch_size: int = typer.Option(8, "--batch-size", min=1, max=256, help="Novel-view items per batch."),

@@ -210,7 +210,10 @@ def refine_loss(model: VideoModel, scene: Scene, rng: random.Random, generator: 
     if model.transformer.config.use_rotary_positional_embeddings:  # CogVideoX-5b
         rotary = pipeline._prepare_rotary_positional_embeddings(height, width, latents.shape[1], device)
     prediction = model.transformer(
-        hidden_states=noisy, encoder_hidden_states=model.prompt_embeds.to(device, dtype), timestep=timesteps, image_rotary_emb=rotary
+        hidden_states=noisy,
+        encoder_hidden_states=model.prompt_embeds.to(device, dtype),
+        timestep=timesteps,
+        image_rotary_emb=rotary,
     ).sample
     return F.mse_loss(prediction.float(), _diffusion_target(pipeline.scheduler, latents, noise, timesteps).float())
 

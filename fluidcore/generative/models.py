@@ -243,7 +243,12 @@ def load_video(
 ) -> VideoModel:
     """The CogVideoX video-to-video model of the models folder, text condition encoded; dtype
     None is float32."""
-    from diffusers import AutoencoderKLCogVideoX, CogVideoXDDIMScheduler, CogVideoXTransformer3DModel, CogVideoXVideoToVideoPipeline
+    from diffusers import (
+        AutoencoderKLCogVideoX,
+        CogVideoXDDIMScheduler,
+        CogVideoXTransformer3DModel,
+        CogVideoXVideoToVideoPipeline,
+    )
 
     from fluidcore.generative.refine import VideoModel
 

@@ -252,7 +252,8 @@ def sample(
 
 def condition(model: NovelViewModel, squares: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
     """Cross-attention context (B, 1, D): CLIP embedding of the input view plus the pose, projected."""
-    pixels = F.interpolate(squares.float(), size=(model.clip_size, model.clip_size), mode="bicubic", antialias=True, align_corners=False)
+    side = (model.clip_size, model.clip_size)
+    pixels = F.interpolate(squares.float(), size=side, mode="bicubic", antialias=True, align_corners=False)
     pixels = (pixels + 1.0) / 2.0
     mean = torch.tensor(model.clip_mean, device=pixels.device).view(1, 3, 1, 1)
     std = torch.tensor(model.clip_std, device=pixels.device).view(1, 3, 1, 1)

@@ -129,7 +129,8 @@ def refine_video(
     for first in range(0, len(starts), options.batch_size):
         batch = starts[first : first + options.batch_size]
         clips = torch.stack([window_frames(video, s, window) for s in batch])  # (B, L, H, W, C)
-        refined = _run(model, to_model_frames(clips, work_width, work_height), [options.seed + first + i for i in range(len(batch))], options)
+        seeds = [options.seed + first + i for i in range(len(batch))]  # one per window, whatever the batching
+        refined = _run(model, to_model_frames(clips, work_width, work_height), seeds, options)
         back = F.interpolate(refined.flatten(0, 1), size=(height, width), mode="bilinear", antialias=True, align_corners=False)
         back = back.view(len(batch), window, 3, height, width)
         for i, start in enumerate(batch):

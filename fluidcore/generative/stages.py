@@ -75,7 +75,8 @@ def target_cameras(
     long_side = max(source.width, source.height)
     others = [c for name, c in sorted(cameras.items()) if name != source.name][:count]
     if not others:
-        return [rotate_about_axis(source, center, up, 2.0 * np.pi * i / (count + 1), f"{source.name}~gen{i}") for i in range(1, count + 1)]
+        turns = [2.0 * np.pi * i / (count + 1) for i in range(1, count + 1)]
+        return [rotate_about_axis(source, center, up, turn, f"{source.name}~gen{i}") for i, turn in enumerate(turns, 1)]
     scaled = []
     for camera in others:
         factor = long_side / max(camera.width, camera.height)
@@ -110,7 +111,10 @@ def generated_views(
     frames, status["view_refinement"] = _refine_all(frames, STRENGTH_NOVEL_VIEWS, REFINE_VIEWS, settings, device, on_batch)
     background = _colour(source.background)
     per_view = weight / max(len(targets), 1)
-    views = [ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated") for camera in targets]
+    views = [
+        ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated")
+        for camera in targets
+    ]
     return views, status
 
 
@@ -139,7 +143,10 @@ def with_generated_views(
 
 
 def refine_frames(
-    videos: Mapping[str, torch.Tensor], settings: GenerativeSettings, device: str | torch.device = "cpu", on_batch: BatchProgress | None = None
+    videos: Mapping[str, torch.Tensor],
+    settings: GenerativeSettings,
+    device: str | torch.device = "cpu",
+    on_batch: BatchProgress | None = None,
 ) -> tuple[dict[str, torch.Tensor], str]:
     """Algorithm S2's refinement of rough futures ({camera: (T, H, W, C) in [0, 1]}): the refined
     videos and the status line (the inputs unchanged when the video model is absent)."""

@@ -99,8 +99,11 @@ def run_reconstruct(
         source=source, device=device,
     )
     del decoded
-    status = with_generated_views(rec, generative or GenerativeSettings(), device, batch_progress(report, should_cancel, f"reconstruction in {out_dir}"))
-    return fit(rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status)
+    on_batch = batch_progress(report, should_cancel, f"reconstruction in {out_dir}")
+    status = with_generated_views(rec, generative or GenerativeSettings(), device, on_batch)
+    return fit(
+        rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status
+    )
 
 
 def fit(

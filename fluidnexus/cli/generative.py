@@ -54,13 +54,17 @@ def _finetune(kind: str, data: Path, out: Path, steps: int, models_dir: Path | N
     from fluidcore.generative import finetune
 
     with user_errors(ValueError, FileNotFoundError):
-        result = finetune.run(kind, data, out, steps=steps, models_root=models_dir, progress=lambda line: typer.echo(line, err=True), **options)
+        result = finetune.run(
+            kind, data, out, steps=steps, models_root=models_dir, progress=lambda line: typer.echo(line, err=True), **options
+        )
     typer.echo(str(result))
 
 
 Data = Annotated[Path, typer.Option("--data", help="a scene folder (transforms.json + videos) or a folder of them")]
 Out = Annotated[Path, typer.Option("--out", help="adapter folder; a checkpoint there is resumed")]
-Steps = Annotated[int, typer.Option("--steps", min=1, max=100_000, help="optimiser steps in total (a resumed run counts its earlier ones)")]
+Steps = Annotated[
+    int, typer.Option("--steps", min=1, max=100_000, help="optimiser steps in total (a resumed run counts its earlier ones)")
+]
 Rank = Annotated[int, typer.Option("--rank", min=1, max=256, help="LoRA rank")]
 LearningRate = Annotated[float, typer.Option("--lr", min=1e-7, max=1e-1, help="Adam learning rate")]
 Device = Annotated[str, typer.Option("--device", help="torch device: cpu, cuda, ...")]

@@ -40,7 +40,9 @@ def predict(
     from fluidcore.predict.job import run_predict
 
     with user_errors(ValueError):
-        path = run_predict(run, out, frames=frames, device=device, progress=_ProgressBar(), generative=GenerativeSettings(models_root=models))
+        path = run_predict(
+            run, out, frames=frames, device=device, progress=_ProgressBar(), generative=GenerativeSettings(models_root=models)
+        )
     typer.echo(str(path))
 
 
