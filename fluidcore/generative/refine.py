@@ -41,6 +41,13 @@ class VideoModel:
     prompt_embeds: torch.Tensor  # (1, L, D)
     negative_prompt_embeds: torch.Tensor  # (1, L, D)
 
+    def __post_init__(self) -> None:
+        """On CUDA the VAE encodes and decodes in overlapping spatial tiles: a 49-frame 720x480
+        window decoded whole needs tens of GB, and the memory a job needs should be bounded by
+        its batch size, not by the frame size (tiles are blended, as diffusers recommends)."""
+        if self.transformer.device.type == "cuda":
+            self.pipeline.vae.enable_tiling()
+
     @property
     def transformer(self) -> torch.nn.Module:
         return self.pipeline.transformer
