@@ -17,6 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from fluidcore.jobs import JobInputError, Progress, ShouldCancel
@@ -24,8 +25,6 @@ from fluidcore.runs import Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
-    import numpy as np
-
     from fluidcore.generative.stages import GenerativeSettings
 
 PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
@@ -124,8 +123,6 @@ def refine_future(
     prediction started from, seeing only the input camera(s), and starts from the prediction's
     first frame. Stages: "refine futures" (per window batch), "reconstruct refined" (per frame).
     """
-    import numpy as np
-
     from fluidcore.artifacts import render_frames
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
@@ -168,9 +165,7 @@ def refine_future(
 def _as_video(frames: torch.Tensor, channels: int) -> np.ndarray:
     """Refined (T, H, W, C) floats as the uint8 RGB video `prepare` reads; grey runs stay grey
     (the model's output can drift apart per channel)."""
-    import numpy as np
-
     if channels == 1:
         frames = frames.mean(dim=-1, keepdim=True)
     rgb = frames.expand(-1, -1, -1, 3) if frames.shape[-1] == 1 else frames
-    return (rgb.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy().astype(np.uint8)
+    return (rgb.clamp(0.0, 1.0) * 255.0 + 0.5).to(torch.uint8).numpy()
