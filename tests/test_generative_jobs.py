@@ -172,3 +172,30 @@ def test_the_worker_runs_the_generative_stages_from_the_models_variable(
     assert seen.index("novel views") < seen.index("refine views") < seen.index("reconstruct") < seen.index("render")
     assert [v["kind"] for v in Run.open(tmp_path / "run").manifest["settings"]["views"]] == ["input", "generated", "generated"]
     assert sorted(f.name for f in files) == ["orbit.mp4", *(f"{name}.mp4" for name in sorted((INPUT, *HELD_OUT)))]
+
+
+def test_a_resumed_reconstruction_reads_its_generated_views_back(
+    scene: Path, tiny_models: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Stopped after frame 0 and started again, the job samples nothing new and ends where an
+    uninterrupted run ends."""
+    args = (scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"})
+    straight = reconstruct_job.run_reconstruct(*args, tmp_path / "straight", quality=QUICK, generative=settings(tiny_models))
+    stopped = tmp_path / "stopped"
+    done_frames = lambda: len(Run.open(stopped).frames()) if (stopped / "manifest.json").exists() else 0  # noqa: E731
+    with pytest.raises(jobs.Cancelled):
+        reconstruct_job.run_reconstruct(*args, stopped, quality=QUICK, generative=settings(tiny_models),
+                                        should_cancel=lambda: done_frames() >= 1)
+    assert Run.open(stopped).frames() == [0]
+    assert sorted(p.name for p in (stopped / stages.GENERATED_DIR).iterdir()) == sorted(["views.json", *(f"{n}.npz" for n in HELD_OUT)])
+
+    def no_sampling(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("a resumed job loaded a generative model")
+
+    monkeypatch.setattr(models, "load_novel_view", no_sampling)
+    monkeypatch.setattr(models, "load_video", no_sampling)
+    reconstruct_job.run_reconstruct(*args, stopped, quality=QUICK, generative=settings(tiny_models))
+    resumed = Run.open(stopped)
+    assert resumed.frames() == [0, 1, 2] and resumed.manifest["novel_views"].endswith("(read back from generated/)")
+    for name in ("positions", "velocities"):
+        np.testing.assert_array_equal(getattr(resumed.read_frame(2), name), getattr(Run.open(straight).read_frame(2), name))

@@ -9,6 +9,10 @@
     refine_frames     prediction (Algorithm S2): rough future frames rendered from the input
                       camera are refined by the video model (strength 0.75)
 
+Generated frames are rounded to 8 bits, and a reconstruction keeps them in its run folder
+(`generated/`: one `NAME.npz` per camera plus `views.json`, what they were made from): a resumed
+or retried job reads them back instead of sampling again, and fits exactly the same targets.
+
 A stage whose weights are absent (or incomplete) does not run; its status line says so and
 why, e.g. "skipped: no cogvideox weights in ./models", and the caller keeps its weight-free
 prior. Models are loaded for one stage and released after it, so the novel-view model and the
@@ -19,6 +23,7 @@ total)` after each; an exception it raises, e.g. a job's Cancelled, stops the wo
 from __future__ import annotations
 
 import gc
+import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +42,7 @@ from fluidcore.reconstruct.views import ViewTarget, rotate_about_axis
 if TYPE_CHECKING:
     from fluidcore.reconstruct.loop import Reconstruction
 
+GENERATED_DIR = "generated"  # in a reconstruction's run folder
 NOVEL_VIEWS = "novel views"
 REFINE_VIEWS = "refine views"
 REFINE_FUTURES = "refine futures"
@@ -109,22 +115,35 @@ def generated_views(
     status = {"novel_views": f"generated {len(targets)} views x {len(source.frames)} frames from {source.camera.name} "
                              f"({options.steps} DDIM steps, {_adapter_note(models.NOVEL_VIEW, settings)})"}
     frames, status["view_refinement"] = _refine_all(frames, STRENGTH_NOVEL_VIEWS, REFINE_VIEWS, settings, device, on_batch)
+    eight_bit = {name: torch.round(video.clamp(0.0, 1.0) * 255.0) / 255.0 for name, video in frames.items()}
+    return _as_targets(source, targets, eight_bit, weight), status
+
+
+def _as_targets(
+    source: ViewTarget, targets: Sequence[Camera], frames: Mapping[str, torch.Tensor], weight: float
+) -> list[ViewTarget]:
+    """Generated frames as fitting targets: the input's background colour, `weight` split evenly."""
     background = _colour(source.background)
     per_view = weight / max(len(targets), 1)
-    views = [
+    return [
         ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated")
         for camera in targets
     ]
-    return views, status
 
 
 def with_generated_views(
-    rec: Reconstruction, settings: GenerativeSettings, device: str | torch.device = "cpu", on_batch: BatchProgress | None = None
+    rec: Reconstruction,
+    settings: GenerativeSettings,
+    device: str | torch.device = "cpu",
+    on_batch: BatchProgress | None = None,
+    stored: Path | None = None,
 ) -> dict[str, str]:
     """Replace the symmetry pseudo-views of a single-view reconstruction by generated views
     (same total weight, `Quality.symmetry_weight`) when the novel-view weights exist; returns
     the manifest's status lines. The generated cameras are the scene's other cameras (their
-    poses only), else as many turned copies of the input camera as the symmetry prior uses."""
+    poses only), else as many turned copies of the input camera as the symmetry prior uses.
+    Views saved in `stored` (`save_generated_views`) from the same inputs and settings are read
+    back instead of sampled again."""
     if len(rec.input_views) != 1:
         reason = "skipped: more than one input view (real views constrain the depth)"
         return {"novel_views": reason, "view_refinement": reason}
@@ -136,10 +155,62 @@ def with_generated_views(
     center = 0.5 * (np.asarray(rec.box.lo) + np.asarray(rec.box.hi))
     count = min(quality.symmetry_views, settings.max_views)
     targets = target_cameras(rec.cameras, source.camera, center, rec.up, count)
-    views, status = generated_views(source, targets, center, rec.up, quality.symmetry_weight, settings, device, on_batch)
+    saved = _read_saved(stored, _saved_key(rec, targets, settings)) if stored is not None else None
+    if saved is not None:
+        frames, status = saved
+        views = _as_targets(source, targets, frames, quality.symmetry_weight)
+        status = {name: f"{line} (read back from {GENERATED_DIR}/)" for name, line in status.items()}
+    else:
+        views, status = generated_views(source, targets, center, rec.up, quality.symmetry_weight, settings, device, on_batch)
     if views:
         rec.views = [v for v in rec.views if v.kind != "symmetry"] + views
     return status
+
+
+def save_generated_views(rec: Reconstruction, settings: GenerativeSettings, status: Mapping[str, str], folder: Path) -> None:
+    """Keep the generated views of `rec` in `folder` (a run's GENERATED_DIR) for a resume; the
+    index (views.json) is written last, so a half-written folder is never read back."""
+    from fluidcore.files import atomic_output
+
+    generated = [v for v in rec.views if v.kind == "generated"]
+    key = _saved_key(rec, [v.camera for v in generated], settings)
+    index = folder / "views.json"
+    if not generated or (index.is_file() and json.loads(index.read_text()).get("key") == json.loads(json.dumps(key))):
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    for view in generated:
+        frames = torch.round(view.frames.cpu() * 255.0).to(torch.uint8).numpy()
+        with atomic_output(folder / f"{view.camera.name}.npz", suffix=".npz") as tmp:
+            np.savez_compressed(tmp, frames=frames)
+    with atomic_output(index) as tmp:
+        tmp.write_text(json.dumps({"key": key, "status": dict(status)}, indent=1))
+
+
+def _saved_key(rec: Reconstruction, targets: Sequence[Camera], settings: GenerativeSettings) -> dict:
+    """What saved views were made from: reading them back is only right when all of it agrees."""
+    return {
+        "input": rec.input_views[0],
+        "frame_range": list(rec.frame_range),
+        "targets": [[c.name, c.width, c.height] for c in targets],
+        "novel_view_steps": settings.novel_view_steps,
+        "refine_steps": settings.refine_steps,
+        "seed": settings.seed,
+        "models": {e.name: {"present": e.present, "adapter": str(e.adapter)} for e in models.inventory(settings.models_root)},
+    }
+
+
+def _read_saved(folder: Path, key: dict) -> tuple[dict[str, torch.Tensor], dict[str, str]] | None:
+    index = folder / "views.json"
+    if not index.is_file():
+        return None
+    saved = json.loads(index.read_text())
+    if saved.get("key") != json.loads(json.dumps(key)):
+        return None
+    frames = {}
+    for name, _width, _height in key["targets"]:
+        with np.load(folder / f"{name}.npz") as data:
+            frames[name] = torch.from_numpy(data["frames"]).float() / 255.0
+    return frames, saved["status"]
 
 
 def refine_frames(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,7 +23,7 @@ from fluidcore.reconstruct.presets import DEFAULT_QUALITY, Quality
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.reconstruct.loop import Reconstruction
-    from fluidcore.runs import FrameState
+    from fluidcore.runs import FrameState, Run
 
 
 def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
@@ -66,7 +66,7 @@ def run_reconstruct(
     """
     from fluidcore import cameras as camera_io
     from fluidcore import video
-    from fluidcore.generative.stages import GenerativeSettings, with_generated_views
+    from fluidcore.generative.stages import GENERATED_DIR, GenerativeSettings, save_generated_views, with_generated_views
     from fluidcore.reconstruct.loop import prepare
     from fluidcore.reconstruct.presets import get, render_size
 
@@ -99,10 +99,12 @@ def run_reconstruct(
         source=source, device=device,
     )
     del decoded
+    settings = generative or GenerativeSettings()
     on_batch = batch_progress(report, should_cancel, f"reconstruction in {out_dir}")
-    status = with_generated_views(rec, generative or GenerativeSettings(), device, on_batch)
+    status = with_generated_views(rec, settings, device, on_batch, stored=Path(out_dir) / GENERATED_DIR)
     return fit(
-        rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status
+        rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status,
+        on_open=lambda run: save_generated_views(rec, settings, status, run.path / GENERATED_DIR),
     )
 
 
@@ -117,12 +119,15 @@ def fit(
     status: Mapping[str, str] | None = None,
     first_state: FrameState | None = None,
     stage: str = "reconstruct",
+    on_open: Callable[[Run], None] | None = None,
 ) -> Path:
     """Fit a prepared reconstruction frame by frame into `out_dir` (resuming what is there).
 
     `status` lines go into the manifest. `first_state`, when given, is written as the first
     frame instead of fitting it, and the fit continues from it: Algorithm S2 reconstructs
     refined futures starting from the predicted state, not from a freshly seeded source.
+    `on_open(run)` runs once the run folder exists, before the first frame (it keeps the
+    generated views there).
     """
     from fluidcore.reconstruct.loop import Reconstructor
 
@@ -131,6 +136,8 @@ def fit(
     run = reconstructor.open_run(out_dir)
     if status:
         run.update(**status)
+    if on_open is not None:
+        on_open(run)
     frame_range = rec.frame_range
     if first_state is not None and not run.frames():
         run.write_frame(frame_range[0], first_state, {}, 0.0)
