@@ -84,8 +84,11 @@ def render_orbit(run, device: str = "cpu") -> np.ndarray:  # noqa: ANN001
 def render_artifacts(
     run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cameras: Mapping[str, object] | None = None
 ) -> list[Path]:
-    """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files."""
-    from fluidcore.runs import Run
+    """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files. A
+    prediction refined by Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/`
+    sub-run, the future reconstructed on the refined frames."""
+    from fluidcore.predict.priors import REFINED_RUN
+    from fluidcore.runs import MANIFEST, Run
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)
@@ -97,4 +100,8 @@ def render_artifacts(
     for name, camera in (cameras or run.cameras()).items():
         written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera), fps=run.fps))
     written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
+    if (run.path / REFINED_RUN / MANIFEST).is_file():
+        refined = Run.open(run.path / REFINED_RUN)
+        for name, camera in (cameras or refined.cameras()).items():
+            written.append(write_mp4(out / f"refined_{name}.mp4", render_frames(refined, camera), fps=refined.fps))
     return written

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from fluidcore import jobs, synth, video
+from fluidcore import artifacts, jobs, synth, video
 from fluidcore.generative import models, stages
 from fluidcore.generative.novel_view import to_square
 from fluidcore.generative.refine import to_model_frames
@@ -141,6 +141,9 @@ def test_prediction_refines_its_future_and_reconstructs_on_it(scene: Path, tiny_
     np.testing.assert_array_equal(refined.read_frame(2).positions, run.read_frame(2).positions)  # starts from the prediction
     assert not np.array_equal(refined.read_frame(4).gaussians["means"], run.read_frame(4).gaussians["means"])
     assert {"predict", "refine futures", "reconstruct refined"} <= set(seen)
+    files = {f.name for f in artifacts.render_artifacts(out, tmp_path / "videos")}
+    assert {f"refined_{name}.mp4" for name in (INPUT, *HELD_OUT)} <= files and "orbit.mp4" in files
+    assert video.probe(tmp_path / "videos" / f"refined_{INPUT}.mp4").n_frames == 3
 
 
 def test_only_predictions_are_refined(scene: Path, tiny_models: Path, tmp_path: Path) -> None:
