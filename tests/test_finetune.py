@@ -101,3 +101,11 @@ def test_models_command_lists_what_each_model_enables(tiny_models: Path, tmp_pat
     empty = CliRunner().invoke(app, ["models", "--models", str(tmp_path)])
     assert empty.exit_code == 0
     assert "zero123    missing: unet/config.json" in empty.output and "would enable novel-view" in empty.output
+
+
+def test_excluded_cameras_are_never_trained_on(tiny_models: Path, captures: Path, tmp_path: Path) -> None:
+    scene = finetune.load_scene(captures / "plume", 32, exclude=["view_00"])
+    assert sorted(scene.videos) == ["view_01", "view_02"]
+    args = ["finetune", "refine", "--data", str(captures), "--out", str(tmp_path / "o"), "--models", str(tiny_models), "--steps", "1"]
+    result = CliRunner().invoke(app, [*args, "--exclude", "view_00", "--exclude", "view_01"])
+    assert result.exit_code == 2 and "has 1 camera(s) with a video; fine-tuning needs at least 2" in result.output

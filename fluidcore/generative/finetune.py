@@ -24,7 +24,7 @@ import json
 import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -57,6 +57,7 @@ class Settings:
     rank: int
     learning_rate: float
     seed: int
+    exclude: tuple[str, ...]
 
 
 @dataclass
@@ -83,8 +84,9 @@ def find_scenes(data: Path) -> list[Path]:
     return scenes
 
 
-def load_scene(folder: Path, long_side: int) -> Scene:
-    """Cameras and videos of one scene folder; every camera needs a video (its file_path)."""
+def load_scene(folder: Path, long_side: int, exclude: Sequence[str] = ()) -> Scene:
+    """Cameras and videos of one scene folder: the cameras with a video (their file_path), less
+    those named in `exclude` (views held out for measuring: never trained on)."""
     from fluidcore import cameras as camera_io
     from fluidcore.reconstruct.presets import render_size
     from fluidcore.video import probe, read_frames
@@ -92,7 +94,7 @@ def load_scene(folder: Path, long_side: int) -> Scene:
     cameras = camera_io.load(folder / "transforms.json")
     scaled, videos = {}, {}
     for name, camera in cameras.items():
-        if camera.file_path is None or not (folder / camera.file_path).is_file():
+        if name in exclude or camera.file_path is None or not (folder / camera.file_path).is_file():
             continue
         width, height = render_size(camera.width, camera.height, long_side)
         path = folder / camera.file_path
@@ -117,14 +119,16 @@ def run(
     device: str = "cpu",
     seed: int = 0,
     checkpoint_every: int = 50,
+    exclude: Sequence[str] = (),
     progress: Progress | None = None,
 ) -> Path:
-    """Train (or resume) the adapter of `kind` for `steps` steps in total; returns `out`."""
+    """Train (or resume) the adapter of `kind` for `steps` steps in total; returns `out`.
+    Cameras named in `exclude` are left out of every scene."""
     if kind not in KINDS:
         raise FinetuneError(f"kind must be one of {KINDS}, got {kind!r}")
     if steps < 1 or checkpoint_every < 1:
         raise FinetuneError("steps and checkpoint_every must be >= 1")
-    settings = Settings(kind, rank, learning_rate, seed)
+    settings = Settings(kind, rank, learning_rate, seed, tuple(sorted(exclude)))
     report = progress or (lambda line: None)
     if kind == "novel-view":
         model = models.load_novel_view(models_root, device=device, use_adapter=False)
@@ -132,7 +136,7 @@ def run(
     else:
         model = models.load_video(models_root, device=device, use_adapter=False)
         module, long_side = model.transformer, max(model.size)
-    scenes = [load_scene(folder, long_side) for folder in find_scenes(Path(data))]
+    scenes = [load_scene(folder, long_side, exclude) for folder in find_scenes(Path(data))]
     lora.add_new(module, rank=rank, seed=seed)
     module.train()
     parameters = [p for p in module.parameters() if p.requires_grad]

@@ -69,19 +69,24 @@ Rank = Annotated[int, typer.Option("--rank", min=1, max=256, help="LoRA rank")]
 LearningRate = Annotated[float, typer.Option("--lr", min=1e-7, max=1e-1, help="Adam learning rate")]
 Device = Annotated[str, typer.Option("--device", help="torch device: cpu, cuda, ...")]
 Seed = Annotated[int, typer.Option("--seed")]
+Exclude = Annotated[
+    list[str], typer.Option("--exclude", help="camera held out for measuring (never trained on); repeat for several")
+]
 
 
 def finetune_novel_view(
     data: Data, out: Out, steps: Steps = 500, rank: Rank = 16, lr: LearningRate = 1e-4, device: Device = "cpu", seed: Seed = 0,
-    models_dir: ModelsDir = None,
+    models_dir: ModelsDir = None, exclude: Exclude = [],  # noqa: B006 - typer reads the default, never mutates it
 ) -> None:
     """Fit a LoRA adapter of the Zero123 UNet to pairs of views of the same frame."""
-    _finetune("novel-view", data, out, steps, models_dir, {"rank": rank, "learning_rate": lr, "device": device, "seed": seed})
+    options = {"rank": rank, "learning_rate": lr, "device": device, "seed": seed, "exclude": exclude}
+    _finetune("novel-view", data, out, steps, models_dir, options)
 
 
 def finetune_refine(
     data: Data, out: Out, steps: Steps = 500, rank: Rank = 16, lr: LearningRate = 1e-4, device: Device = "cpu", seed: Seed = 0,
-    models_dir: ModelsDir = None,
+    models_dir: ModelsDir = None, exclude: Exclude = [],  # noqa: B006 - typer reads the default, never mutates it
 ) -> None:
     """Fit a LoRA adapter of the CogVideoX transformer to clips of the captured videos."""
-    _finetune("refine", data, out, steps, models_dir, {"rank": rank, "learning_rate": lr, "device": device, "seed": seed})
+    options = {"rank": rank, "learning_rate": lr, "device": device, "seed": seed, "exclude": exclude}
+    _finetune("refine", data, out, steps, models_dir, options)
