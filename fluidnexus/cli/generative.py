@@ -19,8 +19,8 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     """Add `models` and the `finetune` group."""
     app.command("models")(models)
     finetune = typer.Typer(help="LoRA fine-tuning of the generative priors on multi-view captures.", no_args_is_help=True)
-    finetune.command("novel-view")(finetune_novel_view)
-    finetune.command("refine")(finetune_refine)
+    for kind in FINETUNE_HELP:
+        finetune.command(kind)(finetune_command(kind))
     app.add_typer(finetune, name="finetune")
 
 
@@ -74,19 +74,21 @@ Exclude = Annotated[
 ]
 
 
-def finetune_novel_view(
-    data: Data, out: Out, steps: Steps = 500, rank: Rank = 16, lr: LearningRate = 1e-4, device: Device = "cpu", seed: Seed = 0,
-    models_dir: ModelsDir = None, exclude: Exclude = [],  # noqa: B006 - typer reads the default, never mutates it
-) -> None:
-    """Fit a LoRA adapter of the Zero123 UNet to pairs of views of the same frame."""
-    options = {"rank": rank, "learning_rate": lr, "device": device, "seed": seed, "exclude": exclude}
-    _finetune("novel-view", data, out, steps, models_dir, options)
+FINETUNE_HELP = {
+    "novel-view": "Fit a LoRA adapter of the Zero123 UNet to pairs of views of the same frame.",
+    "refine": "Fit a LoRA adapter of the CogVideoX transformer to clips of the captured videos.",
+}
 
 
-def finetune_refine(
-    data: Data, out: Out, steps: Steps = 500, rank: Rank = 16, lr: LearningRate = 1e-4, device: Device = "cpu", seed: Seed = 0,
-    models_dir: ModelsDir = None, exclude: Exclude = [],  # noqa: B006 - typer reads the default, never mutates it
-) -> None:
-    """Fit a LoRA adapter of the CogVideoX transformer to clips of the captured videos."""
-    options = {"rank": rank, "learning_rate": lr, "device": device, "seed": seed, "exclude": exclude}
-    _finetune("refine", data, out, steps, models_dir, options)
+def finetune_command(kind: str):  # noqa: ANN201 - a typer command function
+    """The `fluidnexus finetune KIND` command: both kinds take the same options."""
+
+    def command(
+        data: Data, out: Out, steps: Steps = 500, rank: Rank = 16, lr: LearningRate = 1e-4, device: Device = "cpu",
+        seed: Seed = 0, models_dir: ModelsDir = None, exclude: Exclude = [],  # noqa: B006 - typer only reads it
+    ) -> None:
+        options = {"rank": rank, "learning_rate": lr, "device": device, "seed": seed, "exclude": exclude}
+        _finetune(kind, data, out, steps, models_dir, options)
+
+    command.__doc__ = FINETUNE_HELP[kind]
+    return command
