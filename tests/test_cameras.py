@@ -283,7 +283,7 @@ def _mutate(data: dict, path: str, value) -> dict:
         ("w", None, "missing field w"),
         ("cx", float("nan"), "cx must be finite"),
         ("frames.1.camera", "cam0", r"frames\[1\].*duplicated camera name 'cam0'"),
-        ("k1", 0.01, "k1 = 0.01: lens distortion is not supported"),
+        ("k4", 0.01, "k4 = 0.01: a fisheye coefficient"),
         ("camera_model", "OPENCV_FISHEYE", "camera_model 'OPENCV_FISHEYE' is not supported"),
         ("frames", [], "no cameras"),
         ("frames.0.camera", 7, "camera must be a non-empty string, got 7"),
@@ -422,13 +422,12 @@ def test_colmap_text_binary_and_zip_agree_with_pycolmap(tmp_path: Path) -> None:
             np.testing.assert_allclose(uv[0], expected, atol=1e-6)
 
 
-def test_colmap_rejects_distortion_and_hostile_zips(tmp_path: Path) -> None:
+def test_colmap_keeps_distortion_and_rejects_hostile_zips(tmp_path: Path) -> None:
     ring = _colmap_ring()
     _write_colmap_text(tmp_path / "zero", ring, model="SIMPLE_RADIAL", extra="0.0")
-    assert len(cameras.load(tmp_path / "zero")) == 3
+    assert all(c.distortion == () for c in cameras.load(tmp_path / "zero").values())
     _write_colmap_text(tmp_path / "radial", ring, model="SIMPLE_RADIAL", extra="0.05")
-    with pytest.raises(CameraError, match="non-zero distortion"):
-        cameras.load(tmp_path / "radial")
+    assert all(c.distortion == (0.05, 0.0, 0.0, 0.0) for c in cameras.load(tmp_path / "radial").values())
     evil = tmp_path / "evil.zip"
     with zipfile.ZipFile(evil, "w") as zf:
         zf.writestr("../cameras.txt", "1 PINHOLE 10 10 5 5 5 5\n")

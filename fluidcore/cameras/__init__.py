@@ -19,6 +19,7 @@ from fluidcore.cameras.boxes import Box, box_center, check_box_visible, frusta_b
 from fluidcore.cameras.camera import Camera, CameraError, check_rigid, look_at, orbit
 from fluidcore.cameras.colmap import find_model_dir, load_colmap_dir, load_colmap_zip
 from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json, to_transforms, write_transforms
+from fluidcore.cameras.undistort import undistort_frames
 
 ZIP_MAGIC = b"PK\x03\x04"
 JSON_START = (b"{", b"\xef\xbb\xbf{")  # optionally after a UTF-8 byte-order mark
@@ -92,5 +93,6 @@ __all__ = [
     "orbit",
     "scene_box",
     "to_transforms",
+    "undistort_frames",
     "write_transforms",
 ]

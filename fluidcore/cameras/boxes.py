@@ -1,5 +1,9 @@
 """Where the smoke is: a scene's bounding box from its camera file, or estimated from the cameras.
 
+A camera JSON file declares the box in one of two ways (docs/cameras.md, "Scene box"):
+`scene_box` = {"lo": [x, y, z], "hi": [x, y, z]}, the world-space bounds (FluidNexus's own
+field, written by `fluidnexus cameras single|colmap`), or PINF's voxel box.
+
 PINF's voxel box (also copied into FluidNexus transforms.json files): simulation coordinates
 s in [0, 1]^3 map to world coordinates as
 
@@ -30,12 +34,14 @@ Box = tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) float64, world coordin
 
 
 def scene_box(path: str | Path) -> Box | None:
-    """The world-space box a camera JSON file declares (`voxel_scale` + `voxel_matrix`), or None
-    when the file declares none (or is not JSON, e.g. a COLMAP model)."""
+    """The world-space box a camera JSON file declares (`scene_box`, or `voxel_scale` +
+    `voxel_matrix`), or None when the file declares none (or is not JSON, e.g. a COLMAP model)."""
     path = Path(path)
     if path.is_dir() or _is_zip(path):
         return None
     data = read_json(path)
+    if data.get("scene_box") is not None:
+        return bounds_box(data["scene_box"], f"{path.name}: scene_box")
     if data.get("voxel_matrix") is None and data.get("voxel_scale") is None:
         return None
     return voxel_box(data, path.name)
@@ -44,6 +50,19 @@ def scene_box(path: str | Path) -> Box | None:
 def _is_zip(path: Path) -> bool:
     with path.open("rb") as handle:
         return handle.read(4) == b"PK\x03\x04"
+
+
+def bounds_box(value: Any, source: str) -> Box:
+    """A box from {"lo": [x, y, z], "hi": [x, y, z]}, lo < hi on every axis."""
+    try:
+        lo, hi = (np.asarray(value[key], dtype=np.float64) for key in ("lo", "hi"))
+    except (KeyError, TypeError, ValueError):
+        raise CameraError(f"{source} must be {{\"lo\": [x, y, z], \"hi\": [x, y, z]}}, got {value!r}") from None
+    if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        raise CameraError(f"{source}: lo and hi must be 3 finite numbers each")
+    if not np.all(lo < hi):
+        raise CameraError(f"{source}: lo {lo.tolist()} must be below hi {hi.tolist()} on every axis")
+    return lo, hi
 
 
 def voxel_box(data: dict[str, Any], source: str) -> Box:

@@ -98,6 +98,7 @@ class Camera:
     height: int
     world_to_camera: np.ndarray = field(repr=False)
     file_path: str | None = None
+    distortion: tuple[float, ...] = ()  # OpenCV order (k1, k2, p1, p2[, k3[, k4, k5, k6]]); () = pinhole
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -109,6 +110,7 @@ class Camera:
                 raise CameraError(f"{name} must be finite, got {getattr(self, name)}")
         for name in ("width", "height"):
             values[name] = _check_size(getattr(self, name), name)
+        values["distortion"] = _check_distortion(self.distortion)
         pose = check_rigid(self.world_to_camera, "world_to_camera").copy()
         pose.setflags(write=False)
         values["world_to_camera"] = pose
@@ -119,8 +121,9 @@ class Camera:
         if not isinstance(other, Camera):
             return NotImplemented
         return (
-            (self.name, self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.file_path)
-            == (other.name, other.fx, other.fy, other.cx, other.cy, other.width, other.height, other.file_path)
+            (self.name, self.fx, self.fy, self.cx, self.cy, self.width, self.height, self.file_path, self.distortion)
+            == (other.name, other.fx, other.fy, other.cx, other.cy, other.width, other.height, other.file_path,
+                other.distortion)
             and np.array_equal(self.world_to_camera, other.world_to_camera)
         )
 
@@ -142,6 +145,11 @@ class Camera:
     def forward(self) -> np.ndarray:
         """(3,) unit viewing direction (camera +z) in world coordinates."""
         return self.world_to_camera[2, :3].copy()
+
+    def pinhole(self) -> Camera:
+        """The same camera without lens distortion: what frames undistorted with
+        `fluidcore.cameras.undistort_frames` are seen through (same intrinsics)."""
+        return replace(self, distortion=())
 
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera for frames resized to width x height (exact in continuous pixels)."""
@@ -197,6 +205,24 @@ class Camera:
         """(N,) bool: in front of the camera and inside [0, width) x [0, height)."""
         uv, depth = self.project_numpy(points)
         return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
+
+
+OPENCV_DISTORTION_LENGTHS = (4, 5, 8)  # k1 k2 p1 p2 | + k3 | + k4 k5 k6
+
+
+def _check_distortion(value: object) -> tuple[float, ...]:
+    """Coefficients in OpenCV's order, all zero collapsing to () (a pinhole), so equal lenses compare equal."""
+    try:
+        coefficients = tuple(_as_float(v, "distortion") for v in value)  # type: ignore[union-attr]
+    except TypeError:
+        raise CameraError(f"distortion must be a list of numbers, got {value!r}") from None
+    if not coefficients or not any(coefficients):
+        return ()
+    if len(coefficients) not in OPENCV_DISTORTION_LENGTHS or not all(map(math.isfinite, coefficients)):
+        raise CameraError(
+            f"distortion must be 4, 5 or 8 finite numbers (OpenCV's k1 k2 p1 p2 [k3 [k4 k5 k6]]), got {list(coefficients)}"
+        )
+    return coefficients
 
 
 # --- placing new cameras ----------------------------------------------------------------------

@@ -5,9 +5,9 @@ centre is at (0.5, 0.5)), so `cam_from_world` is our `world_to_camera` unchanged
 named by its image's file stem (the video or frame it was calibrated from); only registered
 images (with a pose) become cameras.
 
-Lens models: pinhole ones are taken as they are; radial / OpenCV models are accepted only when
-every distortion coefficient is zero (the renderer is a pinhole: undistort the frames with
-COLMAP's image_undistorter first). Fisheye and other models are rejected.
+Lens models: pinhole ones are taken as they are; the radial and OpenCV models keep their
+coefficients as the camera's `distortion` (OpenCV order), and the reconstruction undistorts
+the frames with OpenCV (fluidcore.cameras.undistort). Fisheye and other models are rejected.
 
 Zips (what the API receives) are opened defensively: member names may not escape the folder,
 and the unpacked size is capped, so an upload cannot write elsewhere or fill the disk.
@@ -23,8 +23,15 @@ import numpy as np
 
 from fluidcore.cameras.camera import Camera, CameraError
 
-PINHOLE_MODELS = {"SIMPLE_PINHOLE", "PINHOLE"}
-DISTORTED_MODELS = {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}  # pinhole when coefficients are 0
+# Where each supported model's extra parameters go in OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6).
+DISTORTION_SLOTS = {
+    "SIMPLE_PINHOLE": (),
+    "PINHOLE": (),
+    "SIMPLE_RADIAL": (0,),
+    "RADIAL": (0, 1),
+    "OPENCV": (0, 1, 2, 3),
+    "FULL_OPENCV": (0, 1, 2, 3, 4, 5, 6, 7),
+}
 MODEL_FILES = ("cameras", "images")
 MAX_UNZIPPED_BYTES = 512 * 1024 * 1024
 
@@ -56,7 +63,7 @@ def load_colmap_dir(folder: Path) -> dict[str, Camera]:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except (ValueError, RuntimeError) as error:
         raise CameraError(f"{folder.name}: unreadable COLMAP model: {error}") from None
-    return _cameras_from_reconstruction(reconstruction, folder.name)
+    return cameras_from_reconstruction(reconstruction, folder.name)
 
 
 def load_colmap_zip(path: Path) -> dict[str, Camera]:
@@ -86,7 +93,7 @@ def _safe_extract(path: Path, target: Path) -> None:
                     raise CameraError(f"{path.name}: cannot unpack {member.filename}: {error}") from None
 
 
-def _cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera]:
+def cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera]:
     cameras: dict[str, Camera] = {}
     for image in sorted(reconstruction.images.values(), key=lambda im: im.name):
         if not image.has_pose:
@@ -96,12 +103,13 @@ def _cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camer
         if name in cameras:
             raise CameraError(f"{context}: duplicated camera name {name!r}")
         colmap_camera = reconstruction.cameras[image.camera_id]
-        fx, fy, cx, cy = _pinhole_intrinsics(colmap_camera, context)
+        fx, fy, cx, cy, distortion = _intrinsics(colmap_camera, context)
         world_to_camera = np.eye(4)
         world_to_camera[:3, :] = image.cam_from_world().matrix()  # pycolmap 4.x: a method
         try:
             cameras[name] = Camera(
-                name, fx, fy, cx, cy, colmap_camera.width, colmap_camera.height, world_to_camera, file_path=image.name
+                name, fx, fy, cx, cy, colmap_camera.width, colmap_camera.height, world_to_camera,
+                file_path=image.name, distortion=distortion,
             )
         except CameraError as error:
             raise CameraError(f"{context}: {error}") from None
@@ -110,16 +118,14 @@ def _cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camer
     return cameras
 
 
-def _pinhole_intrinsics(colmap_camera, context: str) -> tuple[float, float, float, float]:
+def _intrinsics(colmap_camera, context: str) -> tuple[float, float, float, float, tuple[float, ...]]:
     model = colmap_camera.model.name
-    if model not in PINHOLE_MODELS | DISTORTED_MODELS:
-        raise CameraError(f"{context}: camera model {model} is not supported (use a pinhole model)")
+    if model not in DISTORTION_SLOTS:
+        raise CameraError(f"{context}: camera model {model} is not supported (use {', '.join(DISTORTION_SLOTS)})")
     params = np.asarray(colmap_camera.params, dtype=np.float64)
     extra = params[list(colmap_camera.extra_params_idxs())]
-    if np.any(extra != 0.0):
-        raise CameraError(
-            f"{context}: camera model {model} has non-zero distortion {extra.tolist()}; "
-            "undistort first (COLMAP image_undistorter) and export a PINHOLE model"
-        )
+    slots = DISTORTION_SLOTS[model]
+    distortion = np.zeros(8 if len(slots) > 4 else 4)
+    distortion[list(slots)] = extra
     k = np.asarray(colmap_camera.calibration_matrix(), dtype=np.float64)
-    return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])
+    return float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]), tuple(distortion.tolist())

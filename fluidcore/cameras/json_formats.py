@@ -11,10 +11,10 @@ then at the top level (nerfstudio allows both), in this order:
      or `w`/`h`, or, as PINF does, from the entry's video (`file_name`/`file_path`) when
      that file exists; square pixels and a centred principal point.
 
-Lens distortion: a pinhole renderer cannot honour it, and ignoring it would silently misplace
-every pixel away from the centre, so non-zero `k1..k4`, `p1`, `p2` are REJECTED with a message
-that asks for undistorted frames (e.g. COLMAP's image_undistorter). Zero coefficients (as in
-the ScalarFlow file) are accepted. `camera_model` must be PINHOLE, OPENCV or absent.
+Lens distortion: nerfstudio's OPENCV model (`k1`, `k2`, `k3`, `p1`, `p2`) becomes the camera's
+`distortion` (OpenCV order k1 k2 p1 p2 k3); the reconstruction undistorts the frames with OpenCV
+(fluidcore.cameras.undistort) and works with the pinhole camera. `k4` belongs to the fisheye
+model, which is rejected. `camera_model` must be PINHOLE, OPENCV or absent.
 
 A camera's name is the entry's `camera` field, else the stem of its `file_path` / `file_name`.
 """
@@ -32,7 +32,7 @@ from fluidcore.cameras.camera import Camera, CameraError, check_rigid
 from fluidcore.files import atomic_output
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z axes
-DISTORTION_FIELDS = ("k1", "k2", "k3", "k4", "p1", "p2")
+OPENCV_FIELDS = ("k1", "k2", "p1", "p2", "k3")  # nerfstudio's names, in OpenCV's coefficient order
 PINF_VIDEO_LISTS = ("train_videos", "val_videos", "test_videos")
 SUPPORTED_MODELS = ("PINHOLE", "OPENCV")
 
@@ -92,10 +92,10 @@ def _entry_camera(path: Path, data: dict[str, Any], where: str, entry: dict[str,
     context = f"{path.name}: {where} ({name})"
     try:
         fx, fy, cx, cy, width, height = _intrinsics(path, data, entry, video)
-        _check_distortion(data, entry)
+        distortion = _distortion(data, entry)
         camera_to_world = check_rigid(_field(entry, "transform_matrix"), "transform_matrix")
         world_to_camera = np.linalg.inv(camera_to_world @ OPENGL_TO_OPENCV)
-        return Camera(name, fx, fy, cx, cy, width, height, world_to_camera, file_path=video)
+        return Camera(name, fx, fy, cx, cy, width, height, world_to_camera, file_path=video, distortion=distortion)
     except CameraError as error:
         raise CameraError(f"{context}: {error}") from None
 
@@ -176,22 +176,21 @@ def _image_size(path: Path, data: dict[str, Any], entry: dict[str, Any], video: 
     raise CameraError("missing fields w and h (or camera_hw, or a readable video in file_path)")
 
 
-def _check_distortion(data: dict[str, Any], entry: dict[str, Any]) -> None:
+def _distortion(data: dict[str, Any], entry: dict[str, Any]) -> tuple[float, ...]:
     model = _lookup(data, entry, "camera_model")
     if model is not None and model not in SUPPORTED_MODELS:
         raise CameraError(f"camera_model {model!r} is not supported; use one of {', '.join(SUPPORTED_MODELS)}")
-    for key in DISTORTION_FIELDS:
-        value = _lookup(data, entry, key)
-        if value is not None and _number(value, key) != 0.0:
-            raise CameraError(
-                f"{key} = {value}: lens distortion is not supported (the renderer is a pinhole); "
-                "undistort the frames first (e.g. COLMAP image_undistorter) and give zero coefficients"
-            )
+    k4 = _lookup(data, entry, "k4")
+    if k4 is not None and _number(k4, "k4") != 0.0:
+        raise CameraError(f"k4 = {k4}: a fisheye coefficient; only the OPENCV (k1 k2 k3 p1 p2) lens model is supported")
+    values = [_lookup(data, entry, key) for key in OPENCV_FIELDS]
+    return tuple(0.0 if v is None else _number(v, key) for key, v in zip(OPENCV_FIELDS, values))
 
 
 def to_transforms(cameras: Mapping[str, Camera], **top_level: Any) -> dict[str, Any]:
-    """A nerfstudio transforms.json object for `cameras` (per-frame intrinsics, PINHOLE), the
-    exact inverse of the reader; `top_level` adds fields such as voxel_scale/voxel_matrix."""
+    """A nerfstudio transforms.json object for `cameras` (per-frame intrinsics; OPENCV when a
+    camera has lens distortion, else PINHOLE), the exact inverse of the reader; `top_level` adds
+    fields such as scene_box or voxel_scale/voxel_matrix."""
     frames = [
         {
             "camera": name,
@@ -203,10 +202,20 @@ def to_transforms(cameras: Mapping[str, Camera], **top_level: Any) -> dict[str, 
             "w": camera.width,
             "h": camera.height,
             "transform_matrix": (camera.camera_to_world() @ OPENGL_TO_OPENCV).tolist(),
+            **_distortion_fields(camera),
         }
         for name, camera in cameras.items()
     ]
-    return {"camera_model": "PINHOLE", **top_level, "frames": frames}
+    distorted = any(camera.distortion for camera in cameras.values())
+    return {"camera_model": "OPENCV" if distorted else "PINHOLE", **top_level, "frames": frames}
+
+
+def _distortion_fields(camera: Camera) -> dict[str, float]:
+    if not camera.distortion:
+        return {}
+    if len(camera.distortion) > len(OPENCV_FIELDS) and any(camera.distortion[len(OPENCV_FIELDS):]):
+        raise CameraError(f"camera {camera.name!r}: k4..k6 (rational lens model) have no transforms.json field")
+    return dict(zip(OPENCV_FIELDS, camera.distortion))
 
 
 def write_transforms(path: str | Path, cameras: Mapping[str, Camera], **top_level: Any) -> Path:

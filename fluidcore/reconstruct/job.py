@@ -86,12 +86,16 @@ def run_reconstruct(
             raise JobInputError(str(exc)) from None
     frame_range = _frame_range(infos, frames)
     fps = infos[next(iter(videos))].fps
-    decoded = {
-        name: video.read_frames(
-            path, frame_range[0], frame_range[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side)
+    decoded = {  # undistorted: from here on every camera is the pinhole the renderer models
+        name: camera_io.undistort_frames(
+            cameras[name],
+            video.read_frames(
+                path, frame_range[0], frame_range[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side)
+            ),
         )
         for name, path in videos.items()
     }
+    cameras = {name: camera.pinhole() for name, camera in cameras.items()}
     report = progress or no_progress
     report(0.0, "prepare")
     rec = prepare(

@@ -1,0 +1,76 @@
+"""One uncalibrated camera (a phone video, a clip without calibration): a pinhole from the field
+of view, and a scene box where the smoke must be.
+
+A single view cannot tell scale or depth, so both are declared, not measured: the camera sits
+`distance` world units from the world origin, looking at it along -z, and the scene box is the
+view's cross-section at the origin (as wide and as tall as the frame there), as deep as it is
+wide. World up is +y (docs/architecture.md); `up` says which way world up points in the image
+(a phone held sideways records "left" or "right"). The box format is documented in
+docs/cameras.md ("Scene box").
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from fluidcore.cameras.boxes import Box
+from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.json_formats import write_transforms
+
+# Image direction (du, dv) in which world up points, for each --up choice.
+IMAGE_UP = {"up": (0.0, -1.0), "down": (0.0, 1.0), "left": (-1.0, 0.0), "right": (1.0, 0.0)}
+MIN_FOV_DEG, MAX_FOV_DEG = 1.0, 170.0
+
+
+def single_camera(
+    name: str, width: int, height: int, fov_deg: float, distance: float = 1.0, up: str = "up",
+    file_path: str | None = None,
+) -> tuple[Camera, Box]:
+    """The camera (horizontal field of view `fov_deg`, square pixels, centred principal point)
+    and the scene box in world units (see the module docstring)."""
+    if not MIN_FOV_DEG <= fov_deg <= MAX_FOV_DEG or not math.isfinite(fov_deg):
+        raise CameraError(f"fov must be between {MIN_FOV_DEG:g} and {MAX_FOV_DEG:g} degrees, got {fov_deg}")
+    if not (math.isfinite(distance) and distance > 0):
+        raise CameraError(f"distance must be a positive number of world units, got {distance}")
+    if up not in IMAGE_UP:
+        raise CameraError(f"up must be one of {', '.join(IMAGE_UP)}, got {up!r}")
+    focal = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
+    du, dv = IMAGE_UP[up]
+    roll = math.atan2(du, -dv)  # rotation about the optical axis taking the image's up to (du, dv)
+    c, s = math.cos(roll), math.sin(roll)
+    upright = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # x right, y down, z forward
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ upright
+    pose[:3, 3] = -pose[:3, :3] @ np.array([0.0, 0.0, distance])
+    camera = Camera(name, focal, focal, width / 2, height / 2, width, height, pose, file_path=file_path)
+    half_along_up = distance * (height if du == 0 else width) / (2 * focal)
+    half_across = distance * (width if du == 0 else height) / (2 * focal)
+    half = np.array([half_across, half_along_up, half_across])
+    return camera, (-half, half)
+
+
+def write_single_camera(
+    out: str | os.PathLike[str], video: str | os.PathLike[str], fov_deg: float, distance: float = 1.0, up: str = "up",
+    name: str | None = None,
+) -> Path:
+    """Write a transforms.json for one `video` (its size read from the file) with its scene box.
+
+    The camera is named after the video's file stem (or `name`); `file_path` is the video's
+    path relative to the JSON file, as nerfstudio stores it.
+    """
+    from fluidcore.video import probe
+
+    out, video = Path(out), Path(video)
+    info = probe(video)
+    file_path = os.path.relpath(video.resolve(), out.resolve().parent)
+    camera, box = single_camera(name or video.stem, info.width, info.height, fov_deg, distance, up, file_path)
+    return write_transforms(out, {camera.name: camera}, scene_box=box_json(box))
+
+
+def box_json(box: Box) -> dict[str, list[float]]:
+    """The `scene_box` field of a transforms.json (docs/cameras.md)."""
+    return {"lo": [float(v) for v in box[0]], "hi": [float(v) for v in box[1]]}
