@@ -1,12 +1,14 @@
 """Service settings, read from `FLUIDNEXUS_*` environment variables (and `.env`).
 
-Everything has an embedded default rooted in `data_dir`: SQLite database, local storage
+Everything has an embedded default rooted in `data_dir` (FLUIDNEXUS_DATA_DIR, default the per-user
+~/.local/share/fluidnexus): SQLite database, local storage
 folder and a kombu filesystem broker. Pointing `database_url`, `broker_url` or
 `storage_backend` elsewhere switches that one piece to PostgreSQL, Redis or MinIO/S3.
 """
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -17,12 +19,22 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 GPU_QUEUE = "gpu"
 
 
+def default_data_dir() -> Path:
+    """The per-user data folder (XDG base directories), never the current folder: `keys create`
+    run from one folder and `serve` from another must find the same database."""
+    return Path(os.environ.get("XDG_DATA_HOME") or Path.home() / ".local" / "share") / "fluidnexus"
+
+
 class Settings(BaseSettings):
     """One object shared by the API, the worker and the `fluidnexus` service commands."""
 
     model_config = SettingsConfigDict(env_prefix="FLUIDNEXUS_", env_file=".env", extra="ignore")
 
-    data_dir: Path = Path("data")
+    data_dir: Path = Field(
+        default_factory=default_data_dir,
+        description="default $XDG_DATA_HOME/fluidnexus (~/.local/share/fluidnexus): the same folder wherever "
+        "`serve` and `keys` run from",
+    )
     database_url: str | None = Field(default=None, description="SQLAlchemy URL; default sqlite in data_dir")
     broker_url: str | None = Field(default=None, description="Celery broker; default kombu filesystem in data_dir")
     broker_key_prefix: str = Field(default="", description="Redis key namespace, so deployments can share a Redis")

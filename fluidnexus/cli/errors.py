@@ -1,4 +1,5 @@
-"""How the command line reports bad input: one clear line on stderr and exit code 2, no traceback."""
+"""How the command line reports: bad input as one clear line on stderr and exit code 2 (no
+traceback), results on stdout as text or, with --json, as one JSON object (logs go to stderr)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,46 @@ def user_errors(*kinds: type[BaseException]) -> Iterator[None]:
     except (UserError, *kinds) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from None
+
+
+def check_device(device: str) -> None:
+    """Refuse a torch device this machine does not have (a CPU-only torch asked for cuda) with
+    one line, before any work, instead of a traceback from deep inside the first kernel."""
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise UserError(f"--device {device!r} is not a torch device (cpu, cuda, cuda:1, ...)") from None
+    if parsed.type != "cuda":
+        return
+    if not torch.cuda.is_available():
+        raise UserError(f"--device {device}: no CUDA device available to this torch ({torch.__version__}); use --device cpu")
+    if parsed.index is not None and parsed.index >= torch.cuda.device_count():
+        raise UserError(f"--device {device}: only {torch.cuda.device_count()} CUDA device(s) here")
+
+
+def emit(as_json: bool, text: str, **fields: object) -> None:
+    """A command's result on stdout: `text` for people, or the fields as one JSON object (--json)."""
+    if as_json:
+        echo_json(fields)
+    else:
+        typer.echo(text)
+
+
+def run_fields(path: object) -> dict[str, object]:
+    """What --json reports about a run folder a command wrote: path, kind, frames, parent."""
+    from fluidcore.runs import Run
+
+    run = Run.open(path)
+    frames = run.frames()
+    return {
+        "run": str(path),
+        "kind": run.kind,
+        "frames": [frames[0], frames[-1]] if frames else [],
+        "parent": run.manifest.get("parent"),
+        "settings": {k: run.manifest["settings"].get(k) for k in ("start_frame", "wind", "ball") if k in run.manifest["settings"]},
+    }
 
 
 def echo_json(obj: object) -> None:

@@ -12,12 +12,13 @@ from pathlib import Path
 
 import typer
 
-from fluidnexus.cli.errors import user_errors
+from fluidnexus.cli.errors import check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or a prediction).")
 OUT_OPT = typer.Option(..., "--out", help="Folder for the new run; an unfinished run there is resumed.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="torch device: cpu, cuda, cuda:1, ...")
+JSON_OPT = typer.Option(False, "--json", help="Print one JSON object (run, kind, frames, parent) on stdout.")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
@@ -33,6 +34,7 @@ def predict(
     out: Path = OUT_OPT,
     device: str = DEVICE_OPT,
     models: ModelsDir = None,
+    as_json: bool = JSON_OPT,
 ) -> None:
     """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2);
     with video-model weights in the models folder, refine them and reconstruct on them."""
@@ -40,19 +42,21 @@ def predict(
     from fluidcore.predict.job import run_predict
 
     with user_errors(ValueError):
+        check_device(device)
         path = run_predict(
             run, out, frames=frames, device=device, progress=_ProgressBar(), generative=GenerativeSettings(models_root=models)
         )
-    typer.echo(str(path))
+        emit(as_json, str(path), **run_fields(path))
 
 
-def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT) -> None:
+def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT, as_json: bool = JSON_OPT) -> None:
     """Re-run the simulator from the reconstructed first frame over the observed window."""
     from fluidcore.predict.job import run_resimulate
 
     with user_errors(ValueError):
+        check_device(device)
         path = run_resimulate(run, out, device=device, progress=_ProgressBar())
-    typer.echo(str(path))
+        emit(as_json, str(path), **run_fields(path))
 
 
 def interact(
@@ -70,6 +74,7 @@ def interact(
         help='Ball as JSON: {"center": [x, y, z], "radius": r, "start_frame": f, "velocity": [vx, vy, vz]}',
     ),
     device: str = DEVICE_OPT,
+    as_json: bool = JSON_OPT,
 ) -> None:
     """Ask what if: a wind, a ball in the plume's way, or both, after the last reconstructed frame."""
     from fluidcore.interaction import parse_interaction
@@ -78,10 +83,11 @@ def interact(
         params = parse_interaction(wind, ball)  # the edge: bad JSON or values fail here, before torch loads
         from fluidcore.predict.job import run_interact
 
+        check_device(device)
         path = run_interact(
             run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_ProgressBar()
         )
-    typer.echo(str(path))
+        emit(as_json, str(path), **run_fields(path))
 
 
 class _ProgressBar:

@@ -12,10 +12,11 @@ from pathlib import Path
 import typer
 
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES
-from fluidnexus.cli.errors import UserError, user_errors
+from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")
+JSON_OPT = typer.Option(False, "--json", help="Print one JSON object on stdout (logs and progress stay on stderr).")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
@@ -33,7 +34,7 @@ def _set_threads(threads: int | None) -> None:
         torch.set_num_threads(threads)
 
 
-def _parse_videos(items: list[str]) -> dict[str, Path]:
+def parse_videos(items: list[str]) -> dict[str, Path]:
     videos: dict[str, Path] = {}
     for item in items:
         name, sep, path = item.partition("=")
@@ -73,6 +74,7 @@ def reconstruct(
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
     models: ModelsDir = None,
+    as_json: bool = JSON_OPT,
 ) -> None:
     """Reconstruct physical particles and visual Gaussians from one video or a few (Algorithm S1).
 
@@ -83,12 +85,13 @@ def reconstruct(
     from fluidcore.reconstruct.job import run_reconstruct
 
     with user_errors(ValueError):
+        check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
-            cameras, _parse_videos(video), out, quality=quality, frames=parse_frames(frames),
+            cameras, parse_videos(video), out, quality=quality, frames=parse_frames(frames),
             device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
         )
-    typer.echo(str(path))
+        emit(as_json, str(path), **run_fields(path))
 
 
 def render(
@@ -99,6 +102,7 @@ def render(
     out: Path | None = typer.Option(None, "--out", help="MP4 to write."),
     png_dir: Path | None = typer.Option(None, "--png-dir", help="Also (or instead) write one PNG per frame here."),
     device: str = typer.Option("cpu", "--device"),
+    as_json: bool = JSON_OPT,
 ) -> None:
     """Render a run's frames from one of its cameras, a camera of another file, or an orbit around the scene."""
     import numpy as np
@@ -114,6 +118,7 @@ def render(
             raise UserError("give --out video.mp4 and/or --png-dir DIR")
         if camera is None:
             raise UserError("--camera NAME is required (or --camera orbit)")
+        check_device(device)
         the_run = Run.open(run)
         selected = _select_frames(the_run.frames(), parse_frames(frames))
         if camera == "orbit" and cameras is None:
@@ -127,10 +132,11 @@ def render(
             video = render_frames(the_run, available[camera], selected, device)
         if out is not None:
             write_mp4(out, video, fps=the_run.fps)
-            typer.echo(str(out))
         if png_dir is not None:
             _write_pngs(png_dir, video, selected)
-            typer.echo(str(png_dir))
+    written = [str(p) for p in (out, png_dir) if p is not None]
+    emit(as_json, "\n".join(written), run=str(run), camera=camera, frames=[selected[0], selected[-1]],
+         mp4=None if out is None else str(out), png_dir=None if png_dir is None else str(png_dir))
 
 
 def _select_frames(available: list[int], wanted: tuple[int, int] | None) -> list[int]:
@@ -155,15 +161,13 @@ def _write_pngs(folder: Path, video, frames: list[int]) -> None:  # noqa: ANN001
 def export(
     run: Path = RUN_ARG,
     frame: int = typer.Option(..., "--frame", help="Frame number (as in the run's manifest)."),
-    out: Path = typer.Option(..., "--out", help="NPZ to write: positions, velocities, gaussian_*."),
+    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd (docs/exports.md)."),
+    out: Path = typer.Option(..., "--out", help="File to write."),
+    as_json: bool = JSON_OPT,
 ) -> None:
-    """Write one frame's particles: physical positions and velocities (world units) and the visual Gaussians."""
-    import numpy as np
-
-    from fluidcore.runs import Run
+    """Write one frame: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd)."""
+    from fluidcore.exports import export_frame
 
     with user_errors(ValueError):
-        state = Run.open(run).read_frame(frame)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez(out, **state.export())
-    typer.echo(str(out))
+        path = export_frame(run, frame, fmt, out)
+    emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))

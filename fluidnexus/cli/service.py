@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
 DataDir = Annotated[
     Path | None,
-    typer.Option("--data-dir", help="database, storage and broker folder (default ./data or FLUIDNEXUS_DATA_DIR)"),
+    typer.Option("--data-dir", help="database, storage and broker folder (default $FLUIDNEXUS_DATA_DIR, else ~/.local/share/fluidnexus)"),
 ]
 WORKER_STOP_TIMEOUT_S = 30
 
