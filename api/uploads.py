@@ -89,6 +89,27 @@ def match_camera(filename: str, cameras: dict[str, Camera]) -> str:
     raise UploadRejected(f"video: {filename!r} matches no camera; known cameras: {known}")
 
 
+def single_camera_file(folder: Path, video_sizes: dict[str, int], fov: float, distance: float, up: str) -> str:
+    """Write the transforms.json of `fluidnexus cameras single` for the one spooled video (an
+    upload without a camera file); returns its file name. Same parameters, same file as the CLI."""
+    from fluidcore.cameras import CameraError
+    from fluidcore.cameras.single import write_single_camera
+    from fluidcore.video import VideoError
+
+    if len(video_sizes) != 1:
+        raise UploadRejected(f"fov: a scene without a cameras file takes exactly one video, got {len(video_sizes)}")
+    name = "transforms.json"
+    if name in video_sizes:
+        raise UploadRejected(f"video: the file name {name!r} is reserved for the generated cameras file")
+    try:
+        write_single_camera(folder / name, folder / next(iter(video_sizes)), fov, distance, up)
+    except CameraError as exc:
+        raise UploadRejected(f"cameras: {exc}") from None
+    except VideoError as exc:
+        raise UploadRejected(f"video: {exc}") from None
+    return name
+
+
 def validate_scene(
     folder: Path, cameras_file: str, video_sizes: dict[str, int], settings: Settings
 ) -> ValidatedScene:

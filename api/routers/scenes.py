@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
 from api.schemas import Page, SceneOut, SceneVideo
-from api.uploads import ValidatedScene, safe_filename, spool, store_scene, validate_scene
+from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
 from service.models import Job, Scene, new_id
 from service.storage import scene_prefix
 
@@ -25,21 +25,37 @@ def create_scene(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
-    cameras: Annotated[UploadFile, File(description="transforms.json, info.json or a zipped COLMAP model")],
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
+    cameras: Annotated[
+        UploadFile | None, File(description="transforms.json, info.json or a zipped COLMAP model; or give fov instead")
+    ] = None,
+    fov: Annotated[
+        float | None, Form(description="no cameras file: one video's horizontal field of view, degrees (docs/cameras.md)")
+    ] = None,
+    distance: Annotated[float, Form(description="with fov: camera distance from the scene centre, world units")] = 1.0,
+    up: Annotated[str, Form(description="with fov: where world up points in the image: up, down, left, right")] = "up",
     name: Annotated[str, Form(max_length=256)] = "",
 ) -> SceneOut:
-    """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it."""
+    """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it.
+
+    Without a cameras file, `fov` (and `distance`, `up`) declare the one video's camera and scene
+    box as `fluidnexus cameras single` does."""
+    if (cameras is None) == (fov is None):
+        raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
     with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)
-        cameras_name = safe_filename(cameras.filename, "cameras")
-        spool(cameras.file, folder / cameras_name, settings.max_video_bytes, "cameras")
+        cameras_name = None
+        if cameras is not None:
+            cameras_name = safe_filename(cameras.filename, "cameras")
+            spool(cameras.file, folder / cameras_name, settings.max_video_bytes, "cameras")
         sizes: dict[str, int] = {}
         for part in video:
             filename = safe_filename(part.filename, "video")
             if filename in sizes or filename == cameras_name:
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
             sizes[filename] = spool(part.file, folder / filename, settings.max_video_bytes, "video")
+        if cameras_name is None:
+            cameras_name = single_camera_file(folder, sizes, fov, distance, up)
         validated = validate_scene(folder, cameras_name, sizes, settings)
 
         scene_id = new_id()
