@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -33,11 +33,20 @@ class InteractionError(ValueError):
     """Counterfactual parameters that cannot be applied; the message names the field."""
 
 
-class WindParams(BaseModel):
-    """Wind: force = strength * direction * exp(growth * height above the source), from start_frame on.
+WindProfile = Literal["exponential", "linear", "uniform"]  # fluidcore.physics.WIND_PROFILES
 
-    `strength` is an acceleration (world units / s^2) at the source height; `end_frame` is
-    exclusive, None means the wind blows until the end of the prediction.
+
+class WindParams(BaseModel):
+    """Wind: acceleration = strength * direction * gain(z), z = height above the source centre
+    (world units, along the scene's up), blowing during new frames [start_frame, end_frame).
+
+    gain(z) by `profile`:
+      exponential  exp(growth * z)         the paper's wind (the default);
+      linear       max(0, 1 + growth * z)  a ramp in height, as the official release's force;
+      uniform      1                       the same push everywhere (growth must be 0).
+    Units: `strength` in world units / s^2 (the acceleration at the source height), `growth`
+    per world unit of height, `direction` unitless (normalised here). `end_frame` is exclusive;
+    None means the wind blows until the end of the run.
     """
 
     model_config = _STRICT
@@ -45,6 +54,7 @@ class WindParams(BaseModel):
     direction: Vec3
     strength: float = Field(ge=0.0, le=MAX_WIND_STRENGTH)
     growth: float = Field(default=0.0, ge=-MAX_WIND_GROWTH, le=MAX_WIND_GROWTH)
+    profile: WindProfile = "exponential"
     start_frame: int = Field(default=0, ge=0)
     end_frame: int | None = Field(default=None, ge=0)
 
@@ -60,16 +70,24 @@ class WindParams(BaseModel):
     def _window(self) -> WindParams:
         if self.end_frame is not None and self.end_frame <= self.start_frame:
             raise ValueError(f"end_frame ({self.end_frame}) must be after start_frame ({self.start_frame})")
+        if self.profile == "uniform" and self.growth != 0.0:
+            raise ValueError("growth must be 0 for a uniform wind (it is the same at every height)")
         return self
 
     def active(self, frame: int) -> bool:
         """Whether the wind blows during new frame `frame`: the one definition of its window
-        (`fluidcore.physics.forces.wind_force` asks it for every step)."""
+        (the physics asks it for every step through `fluidcore.predict.interventions`, the
+        renders before drawing the wind arrow)."""
         return frame >= self.start_frame and (self.end_frame is None or frame < self.end_frame)
 
     def peak_acceleration(self, lo: Vec3, hi: Vec3, base_height: float, up: Vec3 = (0.0, 1.0, 0.0)) -> float:
-        """The largest wind acceleration anywhere in the box [lo, hi] (the exponential peaks at a corner)."""
+        """The largest wind acceleration anywhere in the box [lo, hi] (every gain is monotonic in
+        height, so it peaks at a corner)."""
         heights = [sum(u * c for u, c in zip(up, corner)) - base_height for corner in _corners(lo, hi)]
+        if self.profile == "uniform":
+            return self.strength
+        if self.profile == "linear":
+            return self.strength * max(0.0, max(1.0 + self.growth * h for h in heights))
         exponent = max(self.growth * h for h in heights)
         if exponent > 700.0:  # exp overflows a float64 just above 709
             return math.inf
@@ -89,6 +107,20 @@ class BallParams(BaseModel):
     radius: float = Field(gt=0.0)
     start_frame: int = Field(default=0, ge=0)
     velocity: Vec3 = (0.0, 0.0, 0.0)
+
+    def active(self, frame: int) -> bool:
+        """Whether the ball is in the scene during new frame `frame` (the one definition)."""
+        return frame >= self.start_frame
+
+    def center_at(self, frame: int, dt: float) -> Vec3:
+        """Where the ball is at the end of new frame `frame` (world units; `dt` seconds per
+        frame): at `center` at the end of `start_frame`, moving at `velocity` since."""
+        elapsed = (frame - self.start_frame) * dt
+        return (
+            self.center[0] + self.velocity[0] * elapsed,
+            self.center[1] + self.velocity[1] * elapsed,
+            self.center[2] + self.velocity[2] * elapsed,
+        )
 
     def check_in_box(self, lo: Vec3, hi: Vec3) -> None:
         """Reject a ball whose centre lies outside the scene box (it could never touch the smoke)."""

@@ -24,24 +24,34 @@ MAX_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float3
 def wind_force(
     wind: WindParams, blowing: Callable[[float], bool], base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
 ) -> ForceField:
-    """The force field of `wind`: strength * direction * exp(growth * height above `base_height`),
-    height along `up`, in every step whose start time `blowing(time)` accepts.
+    """The force field of `wind`: strength * direction * gain(z), z = height above `base_height`
+    along `up`, in every step whose start time `blowing(time)` accepts. gain by `wind.profile`:
+
+      exponential  exp(growth * z)         the paper's wind;
+      linear       max(0, 1 + growth * z)  a ramp in height (the official release's force);
+      uniform      1                       the same push everywhere.
 
     `wind` is the validated edge type (fluidcore.interaction.WindParams: unit direction, finite
-    bounded strength and growth), so nothing is checked again here; when it blows is the
-    caller's clock (`fluidcore.predict.interventions` derives it from the wind's frame window).
-    The exponent is capped at MAX_EXPONENT so a large growth far above the source stays finite;
-    the simulator's speed limit bounds the result.
+    bounded strength and growth, a known profile), so nothing is checked again here; when it
+    blows is the caller's clock (`fluidcore.predict.interventions` derives it from the wind's
+    frame window). The exponent is capped at MAX_EXPONENT so a large growth far above the source
+    stays finite; the simulator's speed limit bounds the result.
     """
     norm = math.sqrt(sum(c * c for c in up))
     up_unit = tuple(c / norm for c in up)
+
+    def gain(z: Tensor) -> Tensor:
+        if wind.profile == "linear":
+            return torch.clamp(1.0 + wind.growth * z, min=0.0)
+        if wind.profile == "uniform":
+            return torch.ones_like(z)
+        return torch.exp(torch.clamp(wind.growth * z, max=MAX_EXPONENT))
 
     def force(positions: Tensor, time: float) -> Tensor:
         if not blowing(time):
             return torch.zeros_like(positions)
         height = positions @ positions.new_tensor(up_unit)
-        gain = torch.exp(torch.clamp(wind.growth * (height - base_height), max=MAX_EXPONENT))
-        return (wind.strength * gain)[:, None] * positions.new_tensor(wind.direction)
+        return (wind.strength * gain(height - base_height))[:, None] * positions.new_tensor(wind.direction)
 
     return force
 
