@@ -1,0 +1,95 @@
+"""Drawing what a what-if changed onto rendered frames: the ball where it is, and an arrow for
+the wind while it blows; and the side-by-side factual | what-if picture.
+
+The ball is one-way coupled and invisible to the smoke renderer, so without this a what-if
+video shows the smoke swerving around nothing. Whether (and where) an intervention is drawn on
+a frame comes from the same `WindParams.active` / `BallParams.active` / `center_at` that the
+simulator's forces and spheres follow (fluidcore.interaction), so the picture never disagrees
+with the physics. Frames are uint8 (T, H, W, 3) at the camera's size; torch-free.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from fluidcore.cameras import Camera
+from fluidcore.interaction import BallParams, InteractionParams, WindParams
+
+BALL_COLOR = (235, 120, 30)  # RGB; an orange no smoke colour is close to
+BALL_OPACITY = 0.6
+WIND_COLOR = (40, 170, 255)
+LABEL_COLOR = (255, 255, 255)
+
+
+def draw_interventions(
+    frames: np.ndarray, camera: Camera, frame_numbers: Sequence[int], params: InteractionParams, *,
+    first_new_frame: int, dt: float, anchor: Sequence[float], arrow_length: float,
+) -> np.ndarray:
+    """A copy of `frames` (video frames `frame_numbers`) with the ball and the wind drawn where
+    they are active. Intervention frame k is video frame first_new_frame + k; the wind arrow
+    starts at world point `anchor` and is `arrow_length` world units long."""
+    out = np.array(frames, copy=True)
+    for image, t in zip(out, frame_numbers, strict=True):
+        k = t - first_new_frame
+        if params.ball is not None and k >= 0 and params.ball.active(k):
+            _draw_ball(image, camera, params.ball, k, dt)
+        if params.wind is not None and k >= 0 and params.wind.active(k):
+            _draw_wind(image, camera, params.wind, anchor, arrow_length)
+    return out
+
+
+def _draw_ball(image: np.ndarray, camera: Camera, ball: BallParams, k: int, dt: float) -> None:
+    """The sphere's outline (a disc of the projected radius) blended over the frame, with a rim."""
+    import cv2
+
+    center = np.asarray(ball.center_at(k, dt))
+    uv, depth = camera.project_numpy(center)
+    if depth[0] <= ball.radius:  # behind or around the camera: nothing sensible to draw
+        return
+    radius = camera.fx * ball.radius / np.sqrt(depth[0] ** 2 - ball.radius**2)
+    shift = 4  # cv2 draws with sub-pixel precision given as fixed point with this many bits
+    pixel = tuple(int(round((c - 0.5) * (1 << shift))) for c in uv[0])  # continuous -> OpenCV pixel centres
+    size = int(round(radius * (1 << shift)))
+    disc = image.copy()
+    cv2.circle(disc, pixel, size, BALL_COLOR, thickness=-1, lineType=cv2.LINE_AA, shift=shift)
+    blended = cv2.addWeighted(disc, BALL_OPACITY, image, 1.0 - BALL_OPACITY, 0.0)
+    cv2.circle(blended, pixel, size, BALL_COLOR, thickness=max(1, image.shape[1] // 200), lineType=cv2.LINE_AA, shift=shift)
+    image[...] = blended
+
+
+def _draw_wind(image: np.ndarray, camera: Camera, wind: WindParams, anchor: Sequence[float], length: float) -> None:
+    import cv2
+
+    start = np.asarray(anchor, dtype=np.float64)
+    uv, depth = camera.project_numpy(np.stack([start, start + length * np.asarray(wind.direction)]))
+    if np.any(depth <= 0):
+        return
+    a, b = (tuple(int(round(c - 0.5)) for c in p) for p in uv)
+    if a == b:  # blowing straight at or away from the camera: a marker instead of an arrow
+        cv2.circle(image, a, max(3, image.shape[1] // 60), WIND_COLOR, 2, cv2.LINE_AA)
+    else:
+        cv2.arrowedLine(image, a, b, WIND_COLOR, max(2, image.shape[1] // 120), cv2.LINE_AA, tipLength=0.25)
+    _label(image, f"wind ({wind.profile})", (a[0] + 4, a[1] - 6))
+
+
+def _label(image: np.ndarray, text: str, origin: tuple[int, int]) -> None:
+    import cv2
+
+    scale = max(0.35, image.shape[1] / 900)
+    cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, LABEL_COLOR, 1, cv2.LINE_AA)
+
+
+def side_by_side(left: np.ndarray, right: np.ndarray, labels: tuple[str, str] = ("factual", "what-if")) -> np.ndarray:
+    """(T, H, 2W + gap, 3): two videos of the same frames next to each other, each labelled."""
+    if left.shape != right.shape:
+        raise ValueError(f"side_by_side: videos differ in shape ({left.shape} vs {right.shape})")
+    gap = np.full((*left.shape[:2], max(2, left.shape[2] // 100), 3), 255, np.uint8)
+    both = np.concatenate([np.array(left, copy=True), gap, np.array(right, copy=True)], axis=2)
+    offset = left.shape[2] + gap.shape[2]
+    for image in both:
+        _label(image, labels[0], (6, 18))
+        _label(image, labels[1], (offset + 6, 18))
+    return both

@@ -1,0 +1,60 @@
+"""fluidcore.overlay: the ball and the wind arrow drawn where and when the physics has them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fluidcore.cameras import Camera, look_at
+from fluidcore.interaction import parse_interaction
+from fluidcore.overlay import BALL_COLOR, draw_interventions, side_by_side
+
+CAMERA = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 200, 200, 80, 60, 160, 120, np.eye(4)), "c")
+DT = 1 / 30
+
+
+def _draw(params, frames=(10, 11, 12, 13)):  # noqa: ANN001, ANN202
+    blank = np.full((len(frames), 120, 160, 3), 20, np.uint8)
+    return draw_interventions(blank, CAMERA, list(frames), params, first_new_frame=11, dt=DT, anchor=[0, 0.8, 0], arrow_length=0.3)
+
+
+def test_ball_is_drawn_where_it_projects_from_its_start_frame_on() -> None:
+    ball = {"center": [0.2, 0.5, 0.0], "radius": 0.1, "start_frame": 1}
+    out = _draw(parse_interaction(None, ball))
+    changed = np.any(out != 20, axis=-1)
+    assert not changed[0].any() and not changed[1].any()  # before the run's new frames, and new frame 0
+    (u, v), = CAMERA.project_numpy(np.array([0.2, 0.5, 0.0]))[0]
+    radius_px = 200 * 0.1 / np.sqrt(4 - 0.01)
+    assert changed[2, int(v), int(u)] and changed[3, int(v), int(u)]
+    assert out[2, int(v), int(u)].argmax() == int(np.argmax(BALL_COLOR))  # orange, not smoke grey
+    ys, xs = np.mgrid[0:120, 0:160]
+    distance = np.hypot(xs + 0.5 - u, ys + 0.5 - v)
+    assert changed[2][distance < radius_px - 1].all()  # the whole disc
+    assert not changed[2][distance > radius_px + 2.5].any()  # and nothing beyond its anti-aliased rim
+
+
+def test_a_moving_ball_moves_in_the_picture() -> None:
+    ball = {"center": [-0.2, 0.5, 0.0], "radius": 0.05, "velocity": [3.0, 0.0, 0.0]}  # 0.1 units per frame
+    out = _draw(parse_interaction(None, ball))
+    columns = [np.nonzero(np.any(out[i] != 20, axis=-1))[1].mean() for i in (1, 2, 3)]
+    step = 200 * 0.1 / 2  # pixels per frame at depth 2
+    np.testing.assert_allclose(np.diff(columns), step, atol=1.0)
+
+
+def test_wind_arrow_only_while_the_wind_blows() -> None:
+    wind = {"direction": [1, 0, 0], "strength": 1.0, "start_frame": 1, "end_frame": 2, "profile": "uniform"}
+    out = _draw(parse_interaction(wind, None))
+    drawn = [bool(np.any(out[i] != 20)) for i in range(4)]
+    assert drawn == [False, False, True, False]
+    ys, xs = np.nonzero(np.any(out[2] != 20, axis=-1))
+    (u0, _), (u1, _) = CAMERA.project_numpy(np.array([[0, 0.8, 0], [0.3, 0.8, 0]]))[0]
+    assert xs.max() >= u1 - 3 and xs.min() <= u0 + 3  # the arrow spans the projected wind vector
+
+
+def test_side_by_side_keeps_both_videos() -> None:
+    left, right = np.zeros((2, 40, 60, 3), np.uint8), np.full((2, 40, 60, 3), 200, np.uint8)
+    both = side_by_side(left, right)
+    assert both.shape[:2] == (2, 40) and both.shape[2] > 120
+    assert np.all(both[:, 30:, :50] == 0) and np.all(both[:, 30:, -50:] == 200)
+    with pytest.raises(ValueError, match="differ in shape"):
+        side_by_side(left, right[:, :20])
