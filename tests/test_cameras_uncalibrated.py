@@ -35,7 +35,7 @@ def test_single_camera_on_the_fluidnexus_smoke_clip(realdata: Path, tmp_path: Pa
     np.testing.assert_allclose(camera.center(), [0, 0, 2], atol=1e-12)
     assert (out.parent / json.loads(out.read_text())["frames"][0]["file_path"]).resolve() == clip.resolve()
     lo, hi = scene_box(out)
-    assert report["scene_box"] == {"lo": lo.tolist(), "hi": hi.tolist()}
+    assert report["scene_box"] == {"min": lo.tolist(), "max": hi.tolist()}
     # the box is the frame's cross-section at the scene centre: its corners there project to the image corners
     corners = np.array([[lo[0], lo[1], 0.0], [hi[0], hi[1], 0.0]])
     uv, depth = camera.project_numpy(corners)
@@ -67,8 +67,8 @@ def test_single_camera_rejects_bad_parameters(tmp_path: Path) -> None:
 
 def test_scene_box_field_is_validated(tmp_path: Path) -> None:
     camera, _ = single_camera("c", 64, 48, 50.0)
-    path = cameras.write_transforms(tmp_path / "t.json", {"c": camera}, scene_box={"lo": [0, 0, 0], "hi": [1, -1, 1]})
-    with pytest.raises(CameraError, match="scene_box: lo .* must be below hi"):
+    path = cameras.write_transforms(tmp_path / "t.json", {"c": camera}, scene_box={"min": [0, 0, 0], "max": [1, -1, 1]})
+    with pytest.raises(CameraError, match="scene_box: min .* must be below max"):
         scene_box(path)
 
 
@@ -188,3 +188,12 @@ def test_colmap_needs_two_views(tmp_path: Path) -> None:
     clip = video.write_mp4(tmp_path / "a.mp4", np.zeros((2, 16, 16, 3), np.uint8))
     result = runner.invoke(app, ["cameras", "colmap", "--video", f"a={clip}", "--out", str(tmp_path / "t.json")])
     assert result.exit_code == 2 and "needs 2 to" in result.output
+
+
+def test_devdata_scene_box_is_read(tmp_path: Path) -> None:
+    devdata = Path(__file__).resolve().parents[1].parent / "shared" / "devdata" / "phiflow_D" / "D" / "transforms.json"
+    if not devdata.is_file():
+        pytest.skip("../shared/devdata not present")
+    lo, hi = scene_box(devdata)
+    np.testing.assert_allclose(lo, [0.09, 0.015, -0.51])
+    np.testing.assert_allclose(hi, [0.59, 0.765, -0.01])

@@ -1,7 +1,7 @@
 """Where the smoke is: a scene's bounding box from its camera file, or estimated from the cameras.
 
 A camera JSON file declares the box in one of two ways (docs/cameras.md, "Scene box"):
-`scene_box` = {"lo": [x, y, z], "hi": [x, y, z]}, the world-space bounds (FluidNexus's own
+`scene_box` = {"min": [x, y, z], "max": [x, y, z]}, the world-space bounds (FluidNexus's own
 field, written by `fluidnexus cameras single|colmap`), or PINF's voxel box.
 
 PINF's voxel box (also copied into FluidNexus transforms.json files): simulation coordinates
@@ -53,15 +53,15 @@ def _is_zip(path: Path) -> bool:
 
 
 def bounds_box(value: Any, source: str) -> Box:
-    """A box from {"lo": [x, y, z], "hi": [x, y, z]}, lo < hi on every axis."""
+    """A box from {"min": [x, y, z], "max": [x, y, z]}, min < max on every axis."""
     try:
-        lo, hi = (np.asarray(value[key], dtype=np.float64) for key in ("lo", "hi"))
+        lo, hi = (np.asarray(value[key], dtype=np.float64) for key in ("min", "max"))
     except (KeyError, TypeError, ValueError):
-        raise CameraError(f"{source} must be {{\"lo\": [x, y, z], \"hi\": [x, y, z]}}, got {value!r}") from None
+        raise CameraError(f"{source} must be {{\"min\": [x, y, z], \"max\": [x, y, z]}}, got {value!r}") from None
     if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-        raise CameraError(f"{source}: lo and hi must be 3 finite numbers each")
+        raise CameraError(f"{source}: min and max must be 3 finite numbers each")
     if not np.all(lo < hi):
-        raise CameraError(f"{source}: lo {lo.tolist()} must be below hi {hi.tolist()} on every axis")
+        raise CameraError(f"{source}: min {lo.tolist()} must be below max {hi.tolist()} on every axis")
     return lo, hi
 
 

@@ -73,4 +73,4 @@ def write_single_camera(
 
 def box_json(box: Box) -> dict[str, list[float]]:
     """The `scene_box` field of a transforms.json (docs/cameras.md)."""
-    return {"lo": [float(v) for v in box[0]], "hi": [float(v) for v in box[1]]}
+    return {"min": [float(v) for v in box[0]], "max": [float(v) for v in box[1]]}

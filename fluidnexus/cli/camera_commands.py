@@ -58,11 +58,12 @@ def colmap(
 
 def _report(path: Path, as_json: bool) -> None:
     from fluidcore.cameras import load, scene_box
+    from fluidcore.cameras.single import box_json
 
     cameras, box = load(path), scene_box(path)
     emit(
         as_json, str(path), out=str(path),
         cameras={name: {"center": camera.center().tolist(), "fx": camera.fx, "width": camera.width, "height": camera.height}
                  for name, camera in cameras.items()},
-        scene_box=None if box is None else {"lo": box[0].tolist(), "hi": box[1].tolist()},
+        scene_box=None if box is None else box_json(box),
     )
