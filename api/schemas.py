@@ -50,6 +50,35 @@ class SceneVideo(BaseModel):
     size: int
 
 
+Vec3 = tuple[float, float, float]
+
+
+class SceneBox(BaseModel):
+    min: Vec3
+    max: Vec3
+
+
+class SceneSource(BaseModel):
+    center: Vec3
+    radius: float
+
+
+class CameraPlace(BaseModel):
+    center: Vec3
+    forward: Vec3
+
+
+class SceneGeometry(BaseModel):
+    """World units (fluidcore.scene_info): a ball must lie inside `box` (null when the camera file
+    declares none and the cameras share no bounded view); `source` is the smoke source the
+    scene's latest finished reconstruction estimated (null before there is one)."""
+
+    box: SceneBox | None
+    up: Vec3
+    source: SceneSource | None
+    cameras: dict[str, CameraPlace]
+
+
 class SceneOut(BaseModel):
     id: str
     name: str
@@ -58,6 +87,7 @@ class SceneOut(BaseModel):
     videos: dict[str, SceneVideo]
     n_frames: int
     fps: float
+    geometry: SceneGeometry | None = Field(default=None, description="GET /v1/scenes/{id} only (not in listings)")
 
 
 class JobTimings(BaseModel):

@@ -3,7 +3,9 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
+from datetime import UTC, datetime
 from pathlib import Path
 
 import pytest
@@ -12,11 +14,14 @@ from fastapi.testclient import TestClient
 from api.app import create_app
 from api.auth import create_key
 from api.database import session_scope
-from api.models import Scene
+from api.models import Job, JobState, Scene
 from api.settings import Settings
-from fluidcore import cameras
+from api.storage import run_prefix
+from fluidcore import cameras, scene_info
+from fluidcore.runs import Run
+from fluidcore.runs import Scene as RunScene
 from fluidcore.cameras.single import single_camera
-from service_support import RecordingQueue, sqlite_url, write_video
+from service_support import RecordingQueue, scene_files, sqlite_url, upload_parts, write_video
 
 
 @pytest.fixture
@@ -46,6 +51,9 @@ def test_upload_with_fov_instead_of_a_camera_file(client, tmp_path: Path) -> Non
     stored = cameras.load(tmp_path / "stored.json")["phone"]  # the CLI's camera for the same parameters
     assert stored.fx == pytest.approx(expected.fx) and stored.file_path == "phone.mp4"
     assert [list(b) for b in cameras.scene_box(tmp_path / "stored.json")] == [list(b) for b in box]
+    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
+    assert geometry["box"] == {"min": list(box[0]), "max": list(box[1])}
+    assert geometry["cameras"]["phone"]["center"] == pytest.approx([0.0, 0.0, 2.0])
 
 
 @pytest.mark.parametrize(
@@ -62,3 +70,47 @@ def test_fov_upload_errors_are_422(client, tmp_path: Path, data: dict, videos: i
     parts = [_clip(tmp_path, f"v{i}.mp4") for i in range(videos)]
     response = http.post("/v1/scenes", files=parts, data=data, headers=auth)
     assert response.status_code == 422 and message in response.text, response.text
+
+
+def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
+    """Before a reconstruction: the box and cameras of the upload; after: the run's source too."""
+    http, auth = client
+    files = scene_files(tmp_path / "scene")
+    scene = http.post("/v1/scenes", files=upload_parts(files), headers=auth).json()
+    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
+    loaded = cameras.load(files["cameras"])
+    with pytest.raises(cameras.CameraError):  # these test cameras share no bounded view and declare no box
+        cameras.frusta_box(loaded)
+    assert geometry["box"] is None and geometry["source"] is None and geometry["up"] == [0, 1, 0]
+    for name, camera in loaded.items():
+        assert geometry["cameras"][name]["center"] == pytest.approx(camera.center().tolist())
+    assert http.get("/v1/scenes", headers=auth).json()["items"][0]["geometry"] is None  # listings stay light
+
+    # a finished reconstruction: its run manifest knows the source
+    run = Run.create(
+        tmp_path / "run", kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
+        channels=1, background_color=[0.0], settings={},
+        scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), {"h": 0.05}, {"center": [0.5, -0.8, 0.0], "radius": 0.1}),
+    )
+    job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene["id"]}, headers=auth).json()
+    http.app.state.storage.put_file(f"{run_prefix(job['id'])}/manifest.json", run.path / "manifest.json")
+    with session_scope(http.app.state.sessionmaker) as session:
+        row = session.get(Job, job["id"])
+        row.state, row.finished_at = JobState.SUCCEEDED, datetime.now(UTC)
+    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
+    assert geometry["box"] == {"min": [0.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
+    assert geometry["source"] == {"center": [0.5, -0.8, 0.0], "radius": 0.1}
+
+
+def test_scene_info_command_matches(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from fluidnexus.cli import app
+
+    files = scene_files(tmp_path / "scene")
+    result = CliRunner().invoke(app, ["scene", "info", str(files["cameras"])])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout) == scene_info.from_cameras_file(files["cameras"])
+    (tmp_path / "empty").mkdir()
+    result = CliRunner().invoke(app, ["scene", "info", str(tmp_path / "empty")])  # neither a run nor a capture
+    assert result.exit_code == 2 and "error:" in result.output

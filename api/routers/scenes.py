@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import tempfile
 from pathlib import Path
 from typing import Annotated
@@ -11,10 +12,10 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
-from api.schemas import Page, SceneOut, SceneVideo
+from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
-from service.models import Job, Scene, new_id
-from service.storage import scene_prefix
+from service.models import Job, JobState, Scene, new_id
+from service.storage import Storage, run_prefix, scene_prefix
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 
@@ -91,8 +92,30 @@ def list_scenes(
 
 
 @router.get("/{scene_id}", response_model=SceneOut)
-def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep) -> SceneOut:
-    return scene_out(owned_scene(session, scene_id, owner))
+def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> SceneOut:
+    """The scene, with its geometry in world units (box, source, camera centres) to place a ball."""
+    scene = owned_scene(session, scene_id, owner)
+    return scene_out(scene, scene_geometry(session, storage, scene))
+
+
+def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeometry:
+    """From the latest succeeded reconstruction of the scene (its run knows the source), else
+    from the uploaded cameras file alone."""
+    from fluidcore import scene_info
+
+    job = session.scalars(
+        select(Job)
+        .where(Job.scene_id == scene.id, Job.type == "reconstruct", Job.state == JobState.SUCCEEDED)
+        .order_by(Job.finished_at.desc())
+        .limit(1)
+    ).first()
+    if job is not None:
+        manifest = json.loads(storage.read_bytes(f"{run_prefix(job.id)}/manifest.json"))
+        return SceneGeometry.model_validate(scene_info.from_run_manifest(manifest))
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
+        path = Path(tmp) / Path(scene.cameras_key).name
+        storage.get_file(scene.cameras_key, path)
+        return SceneGeometry.model_validate(scene_info.from_cameras_file(path))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
@@ -143,7 +166,7 @@ def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, 
     )
 
 
-def scene_out(scene: Scene) -> SceneOut:
+def scene_out(scene: Scene, geometry: SceneGeometry | None = None) -> SceneOut:
     return SceneOut(
         id=scene.id,
         name=scene.name,
@@ -152,4 +175,5 @@ def scene_out(scene: Scene) -> SceneOut:
         videos={camera: SceneVideo(**{k: v for k, v in info.items() if k != "key"}) for camera, info in scene.videos.items()},
         n_frames=scene.n_frames,
         fps=scene.fps,
+        geometry=geometry,
     )

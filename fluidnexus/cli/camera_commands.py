@@ -1,8 +1,9 @@
-"""`fluidnexus cameras single | colmap`: a transforms.json for clips that come without calibration.
+"""`fluidnexus cameras single | colmap` and `fluidnexus scene info`: scene geometry.
 
 `single` declares one camera from its field of view (a phone video, a clip shot with one
 camera); `colmap` calibrates a rig of fixed cameras from the static background its videos
 share. Both write nerfstudio's transforms.json with FluidNexus's `scene_box` (docs/cameras.md).
+`scene info` prints where the box, the source and the cameras are, to place a ball.
 """
 
 from __future__ import annotations
@@ -24,6 +25,27 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
     cameras.command("single")(single)
     cameras.command("colmap")(colmap)
     app.add_typer(cameras, name="cameras")
+    scene = typer.Typer(help="Scene geometry in world units.", no_args_is_help=True)
+    scene.command("info")(info)
+    app.add_typer(scene, name="scene")
+
+
+def info(
+    path: Path = typer.Argument(..., exists=True, help="A run folder (box, source, cameras) or a camera file (box, cameras)."),
+) -> None:
+    """Print the scene box, the estimated source and the camera centres (world units) as JSON."""
+    import json
+
+    from fluidcore import scene_info
+    from fluidcore.runs import MANIFEST
+    from fluidnexus.cli.errors import echo_json
+
+    with user_errors(ValueError):
+        manifest = path / MANIFEST
+        if manifest.is_file():
+            echo_json(scene_info.from_run_manifest(json.loads(manifest.read_text())))
+        else:
+            echo_json(scene_info.from_cameras_file(path))
 
 
 def single(

@@ -1,0 +1,66 @@
+"""Where things are in a scene, in world units: the box the smoke lives in, the smoke source the
+reconstruction estimated, the world's up axis and each camera's centre and viewing direction.
+What a client needs to place a ball (it must lie inside the box, usually above the source) or
+aim a wind, served by `fluidnexus scene info` and `GET /v1/scenes/{id}`.
+
+Two readers: a camera file (box declared there, else the cameras' shared view; no source yet)
+and a run manifest (fluidcore.runs: the box, up and source the reconstruction used). Both are
+torch-free JSON/numpy, so the API answers without importing the simulator.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from fluidcore.cameras import Camera, CameraError, frusta_box, load, scene_box
+
+WORLD_UP = (0.0, 1.0, 0.0)  # docs/architecture.md: up is +y unless a run says otherwise
+
+
+def describe(
+    cameras: Mapping[str, Camera], box: tuple[Any, Any] | None, *, up: Any = WORLD_UP,
+    source: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The JSON object both readers return (docs/cameras.md, "Scene box")."""
+    return {
+        "box": None if box is None else {"min": [float(v) for v in box[0]], "max": [float(v) for v in box[1]]},
+        "up": [float(v) for v in up],
+        "source": None if source is None else {
+            "center": [float(v) for v in source["center"]], "radius": float(source["radius"])
+        },
+        "cameras": {
+            name: {"center": camera.center().tolist(), "forward": camera.forward().tolist()}
+            for name, camera in cameras.items()
+        },
+    }
+
+
+def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Geometry of an uploaded capture before any reconstruction: no source estimate yet, and no
+    box when the file declares none and the cameras share no bounded view (a reconstruction
+    would refuse such a capture with the same reason)."""
+    cameras = load(path)
+    box = scene_box(path)
+    if box is None:
+        try:
+            box = frusta_box(cameras)
+        except CameraError:
+            box = None
+    return describe(cameras, box)
+
+
+def from_run_manifest(manifest: Mapping[str, Any]) -> dict[str, Any]:
+    """Geometry a run was made with (its manifest, parsed JSON): box, up, source, cameras."""
+    from fluidcore.runs import RunError, camera_from_json
+
+    try:
+        scene = manifest["scene"]
+        cameras = {name: camera_from_json(name, data) for name, data in manifest["cameras"].items()}
+        box = (np.asarray(scene["box"]["lo"]), np.asarray(scene["box"]["hi"]))
+        return describe(cameras, box, up=scene["up"], source=scene["source"])
+    except (KeyError, TypeError) as exc:
+        raise RunError(f"run manifest: malformed scene or cameras ({exc!r} missing)") from None
