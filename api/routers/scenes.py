@@ -58,6 +58,7 @@ def create_scene(
         if cameras_name is None:
             cameras_name = single_camera_file(folder, sizes, fov, distance, up)
         validated = validate_scene(folder, cameras_name, sizes, settings)
+        geometry = capture_geometry(folder / cameras_name)
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
@@ -70,7 +71,7 @@ def create_scene(
             for key in keys.values():
                 storage.delete(key)
             raise
-    return scene_out(scene)
+    return scene_out(scene, geometry)
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -115,7 +116,14 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
         path = Path(tmp) / Path(scene.cameras_key).name
         storage.get_file(scene.cameras_key, path)
-        return SceneGeometry.model_validate(scene_info.from_cameras_file(path))
+        return capture_geometry(path)
+
+
+def capture_geometry(cameras_path: Path) -> SceneGeometry:
+    """Box and cameras of an uploaded camera file (no source before a reconstruction)."""
+    from fluidcore import scene_info
+
+    return SceneGeometry.model_validate(scene_info.from_cameras_file(cameras_path))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
