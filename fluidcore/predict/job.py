@@ -45,15 +45,19 @@ def run_predict(
     out_dir: str | os.PathLike[str],
     *,
     frames: int,
+    from_frame: int | None = None,
     device: str = "cpu",
     progress: Progress | None = None,
     should_cancel: ShouldCancel | None = None,
     generative: GenerativeSettings | None = None,
 ) -> Path:
-    """Simulate `frames` frames after the parent's last frame (no interventions); then, when the
-    video model's weights exist (`generative`, default: `fluidcore.weights.weights_dir()`),
-    refine and reconstruct them (`priors.refine_future`, Algorithm S2)."""
-    return _continue(parent_run, out_dir, "predict", frames, InteractionParams(), device, progress, should_cancel, generative)
+    """Simulate `frames` frames after the parent's frame `from_frame` (default: its last), no
+    interventions; then, when the video model's weights exist (`generative`, default:
+    `fluidcore.weights.weights_dir()`), refine and reconstruct them (`priors.refine_future`,
+    Algorithm S2)."""
+    return _continue(
+        parent_run, out_dir, "predict", frames, from_frame, InteractionParams(), device, progress, should_cancel, generative
+    )
 
 
 def run_interact(
@@ -63,6 +67,7 @@ def run_interact(
     frames: int,
     wind: WindParams | None = None,
     ball: BallParams | None = None,
+    from_frame: int | None = None,
     device: str = "cpu",
     progress: Progress | None = None,
     should_cancel: ShouldCancel | None = None,
@@ -70,11 +75,16 @@ def run_interact(
     """Like `run_predict`, under a wind and/or with a ball (frames counted from the first new one).
 
     `wind` and `ball` are the validated edge types; the run's scene checks them before anything
-    is written (`InteractionParams.check_scene`)."""
+    is written (`InteractionParams.check_scene`).
+
+    `from_frame` branches the what-if off any finished frame of the parent (default: its last):
+    frame 0 re-simulates the whole clip with the intervention from the start, a mid-clip frame
+    asks "what if the wind had started here".
+    """
     params = InteractionParams(wind=wind, ball=ball)
     if params.wind is None and params.ball is None:
         raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
-    return _continue(parent_run, out_dir, "interact", frames, params, device, progress, should_cancel)
+    return _continue(parent_run, out_dir, "interact", frames, from_frame, params, device, progress, should_cancel)
 
 
 def run_resimulate(
@@ -97,6 +107,7 @@ def _continue(
     out_dir: str | os.PathLike[str],
     kind: str,
     frames: int,
+    from_frame: int | None,
     params: InteractionParams,
     device: str,
     progress: Progress | None,
@@ -106,8 +117,19 @@ def _continue(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise JobInputError(f"frames must be a whole number >= 1, got {frames!r}")
     parent = _open_parent(parent_run)
-    last = parent.frames()[-1]
-    return _write(parent, out_dir, kind, last, (last + 1, last + 1 + frames), params, device, progress, should_cancel, generative)
+    branch = branch_frame(parent, from_frame)
+    return _write(parent, out_dir, kind, branch, (branch + 1, branch + 1 + frames), params, device, progress, should_cancel, generative)
+
+
+def branch_frame(parent: Run, from_frame: int | None) -> int:
+    """The parent's frame a continuation starts from: `from_frame`, which must be a finished frame
+    of the parent, or its last frame."""
+    frames = parent.frames()
+    if from_frame is None:
+        return frames[-1]
+    if isinstance(from_frame, bool) or not isinstance(from_frame, int) or from_frame not in frames:
+        raise JobInputError(f"from_frame must be a finished frame of {parent.path} ({frames[0]}..{frames[-1]}), got {from_frame!r}")
+    return from_frame
 
 
 def _open_parent(path: str | os.PathLike[str]) -> Run:
@@ -155,7 +177,7 @@ def _write(
         background_color=parent.background_color,
         scene=scene,
         settings={
-            "start_frame": start_frame,
+            "branch_frame": start_frame,  # the parent frame this run continues from
             "visual": visual_settings,
             "parent_source_rate": parent.scene.source["rate"],
             "buoyancy_scale": buoyancy_scale,

@@ -19,6 +19,7 @@ RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or
 OUT_OPT = typer.Option(..., "--out", help="Folder for the new run; an unfinished run there is resumed.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="torch device: cpu, cuda, cuda:1, ...")
 JSON_OPT = typer.Option(False, "--json", help="Print one JSON object (run, kind, frames, parent) on stdout.")
+FROM_OPT = typer.Option(None, "--from-frame", min=0, help="Branch off this frame of RUN (default: its last frame).")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
@@ -32,6 +33,7 @@ def predict(
     run: Path = RUN_ARG,
     frames: int = typer.Option(..., "--frames", min=1, help="How many frames to predict after the last one."),
     out: Path = OUT_OPT,
+    from_frame: int | None = FROM_OPT,
     device: str = DEVICE_OPT,
     models: ModelsDir = None,
     as_json: bool = JSON_OPT,
@@ -44,7 +46,8 @@ def predict(
     with user_errors(ValueError):
         check_device(device)
         path = run_predict(
-            run, out, frames=frames, device=device, progress=_ProgressBar(), generative=GenerativeSettings(models_root=models)
+            run, out, frames=frames, from_frame=from_frame, device=device, progress=_ProgressBar(),
+            generative=GenerativeSettings(models_root=models),
         )
         emit(as_json, str(path), **run_fields(path))
 
@@ -61,22 +64,24 @@ def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OP
 
 def interact(
     run: Path = RUN_ARG,
-    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to simulate after the last one."),
+    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to simulate after the branch frame."),
     out: Path = OUT_OPT,
     wind: str | None = typer.Option(
         None,
         "--wind",
-        help='Wind as JSON: {"direction": [x, y, z], "strength": s, "growth": g, "start_frame": f, "end_frame": null}',
+        help='Wind as JSON: {"direction": [x, y, z], "strength": s (units/s^2), "growth": g (per unit height), '
+        '"profile": "exponential|linear|uniform", "start_frame": f, "end_frame": null}',
     ),
     ball: str | None = typer.Option(
         None,
         "--ball",
         help='Ball as JSON: {"center": [x, y, z], "radius": r, "start_frame": f, "velocity": [vx, vy, vz]}',
     ),
+    from_frame: int | None = FROM_OPT,
     device: str = DEVICE_OPT,
     as_json: bool = JSON_OPT,
 ) -> None:
-    """Ask what if: a wind, a ball in the plume's way, or both, after the last reconstructed frame."""
+    """Ask what if: a wind, a ball in the plume's way, or both, from any frame of RUN (default: after its last)."""
     from fluidcore.interaction import parse_interaction
 
     with user_errors(ValueError):
@@ -85,7 +90,8 @@ def interact(
 
         check_device(device)
         path = run_interact(
-            run, out, frames=frames, wind=params.wind, ball=params.ball, device=device, progress=_ProgressBar()
+            run, out, frames=frames, wind=params.wind, ball=params.ball, from_frame=from_frame, device=device,
+            progress=_ProgressBar(),
         )
         emit(as_json, str(path), **run_fields(path))
 
