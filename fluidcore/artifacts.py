@@ -3,7 +3,9 @@ images and videos. The CLI's `render`, the worker's runners and the benchmarks a
 
     render_frames     uint8 frames of a run from one camera (the run's own, or any other)
     render_orbit      one turn around the scene while the run plays
-    render_artifacts  one MP4 per camera plus `orbit.mp4`: what a finished job publishes
+    render_artifacts  one MP4 per camera plus `orbit.mp4` (and for a what-if `side_by_side.mp4`,
+                      factual | what-if): what a finished job publishes
+    render_side_by_side  the factual | what-if picture, the what-if's ball and wind drawn
 """
 
 from __future__ import annotations
@@ -33,9 +35,17 @@ def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: AN
     return run.background_color
 
 
-def render_frames(run, camera, frames: Sequence[int] | None = None, device: str = "cpu") -> np.ndarray:  # noqa: ANN001
-    """uint8 (T, H, W, 3) renders of `frames` (default: all) of a run from `camera`."""
+def render_frames(
+    run, camera, frames: Sequence[int] | None = None, device: str = "cpu", interventions: bool = False  # noqa: ANN001
+) -> np.ndarray:
+    """uint8 (T, H, W, 3) renders of `frames` (default: all) of a run from `camera`.
+
+    `interventions` draws the run's ball and wind over the smoke (fluidcore.overlay): on in the
+    videos made for people (`render_artifacts`, `fluidnexus render` of an interact run), off
+    where renders are scored against footage, in which the ball is invisible."""
     import torch
+
+    from fluidcore.overlay import draw_run_interventions
 
     from fluidcore.render import render
     from fluidcore.smoke import visual_layer
@@ -48,7 +58,10 @@ def render_frames(run, camera, frames: Sequence[int] | None = None, device: str 
         with torch.no_grad():
             image = render(appearance.gaussians(means), camera, background, depth=False).image
         out.append(to_uint8_rgb(image.cpu().numpy()))
-    return np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
+    video = np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
+    if interventions:
+        video = draw_run_interventions(run, camera, frames, video)
+    return video
 
 
 def to_uint8_rgb(image: np.ndarray) -> np.ndarray:
@@ -97,11 +110,41 @@ def render_artifacts(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
+    what_if = run.kind == "interact"
     for name, camera in (cameras or run.cameras()).items():
-        written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera), fps=run.fps))
+        written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera, interventions=what_if), fps=run.fps))
     written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
     if (run.path / REFINED_RUN / MANIFEST).is_file():
         refined = Run.open(run.path / REFINED_RUN)
         for name, camera in (cameras or refined.cameras()).items():
             written.append(write_mp4(out / f"refined_{name}.mp4", render_frames(refined, camera), fps=refined.fps))
+    if what_if:
+        camera = run.cameras()[run.manifest["input_views"][0]]
+        written.append(write_mp4(out / "side_by_side.mp4", render_side_by_side(run, camera), fps=run.fps))
     return written
+
+
+def render_side_by_side(run, camera, device: str = "cpu") -> np.ndarray:  # noqa: ANN001 - Run, Camera
+    """factual | what-if over the what-if run's frames, from `camera`: both start from the same
+    branch frame of the parent, the what-if with its ball and wind drawn."""
+    from fluidcore.overlay import side_by_side
+
+    return side_by_side(factual_frames(run, camera, device), render_frames(run, camera, device=device, interventions=True))
+
+
+def factual_frames(run, camera, device: str = "cpu") -> np.ndarray:  # noqa: ANN001 - Run, Camera
+    """What the parent shows over `run`'s frames without the intervention: its own frames when it
+    holds them all (a what-if branched inside a reconstruction), else a prediction from the same
+    branch frame without intervention (the branch goes past the parent's last frame)."""
+    import tempfile
+
+    from fluidcore.predict import run_predict
+    from fluidcore.runs import Run
+
+    parent, frames = run.parent, run.frames()
+    if set(frames) <= set(parent.frames()):
+        return render_frames(parent, camera, frames, device)
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-factual-") as tmp:
+        branch = int(run.manifest["settings"]["branch_frame"])
+        factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch, device=device))
+        return render_frames(factual, camera, frames, device)

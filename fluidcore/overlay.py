@@ -93,3 +93,30 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels: tuple[str, str] = 
         _label(image, labels[0], (6, 18))
         _label(image, labels[1], (offset + 6, 18))
     return both
+
+
+def run_interventions(run) -> tuple[InteractionParams, int]:  # noqa: ANN001 - fluidcore.runs.Run
+    """The interventions a run was simulated with (none for runs without) and the video frame
+    number of its intervention frame 0 (the frame after the branch frame)."""
+    from fluidcore.interaction import parse_interaction
+
+    settings = run.manifest.get("settings", {})
+    params = parse_interaction(settings.get("wind"), settings.get("ball"))
+    return params, int(settings.get("branch_frame", run.frames()[0] - 1 if run.frames() else 0)) + 1
+
+
+def draw_run_interventions(run, camera: Camera, frame_numbers: Sequence[int], frames: np.ndarray) -> np.ndarray:  # noqa: ANN001
+    """`draw_interventions` with what the run recorded: its wind and ball, its branch frame, its
+    step length; the wind arrow starts above the box centre and is a quarter of the box long."""
+    params, first_new = run_interventions(run)
+    if params.wind is None and params.ball is None:
+        return frames
+    scene = run.scene
+    lo, hi = np.asarray(scene.box_lo), np.asarray(scene.box_hi)
+    up = np.asarray(scene.up) / np.linalg.norm(scene.up)
+    height = float(np.abs(hi - lo) @ np.abs(up))
+    anchor = 0.5 * (lo + hi) + 0.3 * height * up
+    return draw_interventions(
+        frames, camera, frame_numbers, params, first_new_frame=first_new, dt=float(scene.physics["dt"]),
+        anchor=anchor, arrow_length=0.25 * float(np.min(hi - lo)),
+    )

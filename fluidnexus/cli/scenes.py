@@ -102,6 +102,9 @@ def render(
     out: Path | None = typer.Option(None, "--out", help="MP4 to write."),
     png_dir: Path | None = typer.Option(None, "--png-dir", help="Also (or instead) write one PNG per frame here."),
     device: str = typer.Option("cpu", "--device"),
+    interventions: bool | None = typer.Option(
+        None, "--interventions/--no-interventions", help="Draw the ball and the wind arrow (default: on for interact runs)."
+    ),
     as_json: bool = JSON_OPT,
 ) -> None:
     """Render a run's frames from one of its cameras, a camera of another file, or an orbit around the scene."""
@@ -120,16 +123,17 @@ def render(
             raise UserError("--camera NAME is required (or --camera orbit)")
         check_device(device)
         the_run = Run.open(run)
+        draw = the_run.kind == "interact" if interventions is None else interventions
         selected = _select_frames(the_run.frames(), parse_frames(frames))
         if camera == "orbit" and cameras is None:
             video = np.concatenate(
-                [render_frames(the_run, cam, [t], device) for cam, t in zip(orbit_cameras(the_run, len(selected)), selected)]
+                [render_frames(the_run, cam, [t], device, draw) for cam, t in zip(orbit_cameras(the_run, len(selected)), selected)]
             )
         else:
             available = camera_io.load(cameras) if cameras is not None else the_run.cameras()
             if camera not in available:
                 raise UserError(f"--camera: no camera {camera!r}; have {', '.join(available)} (or 'orbit')")
-            video = render_frames(the_run, available[camera], selected, device)
+            video = render_frames(the_run, available[camera], selected, device, draw)
         if out is not None:
             write_mp4(out, video, fps=the_run.fps)
         if png_dir is not None:

@@ -1,0 +1,72 @@
+"""Renders of what-ifs: the ball drawn where it projects (on by default for interact runs, off
+for scoring), and the side-by-side factual | what-if video of an interact job."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from fluidcore import artifacts as pipeline
+from fluidcore import video
+from fluidcore.interaction import parse_interaction
+from fluidcore.predict import run_interact
+from fluidcore.runs import Run
+from fluidnexus.cli import app
+from predict_scenes import plume_run
+
+BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}
+
+
+@pytest.fixture(scope="module")
+def parent(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return plume_run(tmp_path_factory.mktemp("plume") / "parent", frames=6, warmup=30)
+
+
+@pytest.fixture(scope="module")
+def what_if(parent: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
+    ball = parse_interaction(None, BALL).ball
+    return Run.open(run_interact(parent, tmp_path_factory.mktemp("wi") / "run", frames=3, ball=ball, from_frame=2))
+
+
+def test_ball_is_drawn_in_a_render_where_it_projects(what_if: Run) -> None:
+    camera = next(iter(what_if.cameras().values()))
+    plain = pipeline.render_frames(what_if, camera, interventions=False)
+    drawn = pipeline.render_frames(what_if, camera, interventions=True)
+    (u, v), = camera.project_numpy(np.array(BALL["center"]))[0]
+    changed = np.any(plain != drawn, axis=-1)
+    assert changed[:, int(v), int(u)].all()  # at the ball's centre, on every frame (it is there from new frame 0)
+    radius_px = camera.fx * BALL["radius"] / camera.project_numpy(np.array(BALL["center"]))[1][0]
+    ys, xs = np.nonzero(changed[0])
+    assert np.hypot(xs + 0.5 - u, ys + 0.5 - v).max() < radius_px + 3  # and nowhere else
+
+
+def test_cli_render_draws_interventions_of_interact_runs_by_default(what_if: Run, tmp_path: Path) -> None:
+    name = next(iter(what_if.cameras()))
+    runner = CliRunner()
+    for flag, folder in (([], "default"), (["--no-interventions"], "plain")):
+        result = runner.invoke(app, ["render", str(what_if.path), "--camera", name, "--png-dir", str(tmp_path / folder), *flag])
+        assert result.exit_code == 0, result.output
+    default, plain = (sorted((tmp_path / f).iterdir()) for f in ("default", "plain"))
+    assert default[0].read_bytes() != plain[0].read_bytes()
+
+
+@pytest.mark.parametrize("from_frame", [2, 5])  # inside the parent (its own frames are the factual) and at its end
+def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, tmp_path: Path, from_frame: int) -> None:
+    ball = parse_interaction(None, BALL).ball
+    run = Run.open(run_interact(parent, tmp_path / "run", frames=3, ball=ball, from_frame=from_frame))
+    files = pipeline.render_artifacts(run.path, tmp_path / "videos")
+    assert tmp_path / "videos" / "side_by_side.mp4" in files
+    frames = video.read_frames(tmp_path / "videos" / "side_by_side.mp4")
+    camera = run.cameras()[run.manifest["input_views"][0]]
+    assert frames.shape[0] == 3 and frames.shape[2] > 2 * camera.width
+    what_if = pipeline.render_frames(run, camera, interventions=True)
+    right = frames[:, 22:, -camera.width:].astype(float)  # below the labels
+    plain = pipeline.render_frames(run, camera, interventions=False)
+    assert np.abs(right - what_if[:, 22:]).mean() < 0.5 * np.abs(right - plain[:, 22:]).mean()  # the what-if, ball drawn
+    if from_frame == 2:  # the parent holds frames 3..5: they are the factual side
+        factual = pipeline.render_frames(Run.open(parent), camera, [3, 4, 5])
+        assert np.abs(frames[:, 22:, : camera.width].astype(float) - factual[:, 22:]).mean() < 3  # video coding noise
