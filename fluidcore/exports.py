@@ -185,3 +185,18 @@ def export_frame(run_dir: str | os.PathLike[str], frame: int, fmt: str, out: str
     with atomic_output(out, suffix=EXPORTERS[fmt].suffix) as temporary:
         EXPORTERS[fmt].write(run, state, temporary)
     return out
+
+
+def export_name(frame: int, fmt: str) -> str:
+    """The file name of a frame's export: frame_000123.ply, frame_000123.density.npz, ..."""
+    suffix = EXPORTERS[fmt].suffix
+    return f"frame_{frame:06d}{suffix}" if suffix.lstrip(".") == fmt else f"frame_{frame:06d}.{fmt}{suffix}"
+
+
+def export_artifacts(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> list[Path]:
+    """The run's last frame in every registered format, into `out_dir` (what a finished job
+    publishes next to its videos; other frames are one `fluidnexus export` away)."""
+    frames = Run.open(run_dir).frames()
+    if not frames:
+        raise ExportError(f"run: {run_dir} has no finished frames to export")
+    return [export_frame(run_dir, frames[-1], fmt, Path(out_dir) / export_name(frames[-1], fmt)) for fmt in EXPORTERS]

@@ -101,3 +101,13 @@ def test_bad_format_and_frame_are_one_line_errors(run_dir, tmp_path):
     result = runner.invoke(app, ["export", str(run_dir), "--frame", "9", "--format", "ply", "--out", str(tmp_path / "x.ply")])
     assert result.exit_code == 2 and "frame 9 is not a finished frame" in result.output
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_export_artifacts_hold_the_last_frame_in_every_format(run_dir, tmp_path):
+    from fluidcore.exports import export_artifacts
+
+    files = export_artifacts(run_dir, tmp_path / "exports")
+    assert sorted(p.name for p in files) == sorted(
+        ["frame_000001.npz", "frame_000001.ply", "frame_000001.density.npz", "frame_000001.nrrd"]
+    )
+    assert all(p.stat().st_size > 0 for p in files)
