@@ -75,10 +75,13 @@ def _draw_wind(image: np.ndarray, camera: Camera, wind: WindParams, anchor: Sequ
 
 
 def _label(image: np.ndarray, text: str, origin: tuple[int, int]) -> None:
+    """White text on a dark box (readable on smoke and on background alike)."""
     import cv2
 
     scale = max(0.35, image.shape[1] / 900)
-    cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 3, cv2.LINE_AA)
+    (width, height), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
+    x, y = origin
+    cv2.rectangle(image, (x - 2, y - height - 2), (x + width + 2, y + baseline), (0, 0, 0), thickness=-1)
     cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, LABEL_COLOR, 1, cv2.LINE_AA)
 
 
