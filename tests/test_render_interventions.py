@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fluidcore import artifacts as pipeline
+from fluidcore import artifacts
 from fluidcore import video
 from fluidcore.interaction import parse_interaction
 from fluidcore.predict import run_interact
@@ -34,8 +34,8 @@ def what_if(parent: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
 
 def test_ball_is_drawn_in_a_render_where_it_projects(what_if: Run) -> None:
     camera = next(iter(what_if.cameras().values()))
-    plain = pipeline.render_frames(what_if, camera, interventions=False)
-    drawn = pipeline.render_frames(what_if, camera, interventions=True)
+    plain = artifacts.render_frames(what_if, camera, interventions=False)
+    drawn = artifacts.render_frames(what_if, camera, interventions=True)
     (u, v), = camera.project_numpy(np.array(BALL["center"]))[0]
     changed = np.any(plain != drawn, axis=-1)
     assert changed[:, int(v), int(u)].all()  # at the ball's centre, on every frame (it is there from new frame 0)
@@ -58,13 +58,13 @@ def test_cli_render_draws_interventions_of_interact_runs_by_default(what_if: Run
 def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, tmp_path: Path, from_frame: int) -> None:
     ball = parse_interaction(None, BALL).ball
     run = Run.open(run_interact(parent, tmp_path / "run", frames=3, ball=ball, from_frame=from_frame))
-    files = pipeline.render_artifacts(run.path, tmp_path / "videos")
+    files = artifacts.render_artifacts(run.path, tmp_path / "videos")
     assert tmp_path / "videos" / "side_by_side.mp4" in files
     camera = run.cameras()[run.manifest["input_views"][0]]
     assert video.probe(tmp_path / "videos" / "side_by_side.mp4").n_frames == 3
     large = camera.scaled(96, 128)  # the content, without video coding at the test's tiny size
-    both = pipeline.render_side_by_side(run, large)
+    both = artifacts.render_side_by_side(run, large)
     assert both.shape[:2] == (3, 128) and both.shape[2] > 2 * 96
-    np.testing.assert_array_equal(both[:, 30:, -96:], pipeline.render_frames(run, large, interventions=True)[:, 30:])
+    np.testing.assert_array_equal(both[:, 30:, -96:], artifacts.render_frames(run, large, interventions=True)[:, 30:])
     if from_frame == 2:  # the parent holds frames 3..5: they are the factual side
-        np.testing.assert_array_equal(both[:, 30:, :96], pipeline.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
+        np.testing.assert_array_equal(both[:, 30:, :96], artifacts.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
