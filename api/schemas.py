@@ -123,7 +123,7 @@ class JobOut(BaseModel):
 
 class ArtifactOut(BaseModel):
     name: str = Field(description="path inside the job's results, e.g. 'videos/cam02.mp4'")
-    kind: Literal["video", "orbit", "state", "manifest", "file"]
+    kind: Literal["video", "orbit", "side_by_side", "export", "state", "manifest", "file"]
     camera: str | None
     size: int
     content_type: str

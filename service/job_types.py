@@ -46,12 +46,15 @@ class PredictParams(BaseModel):
 
 
 class InteractParams(BaseModel):
-    """A counterfactual continuation of the parent run: wind, a ball, or both, for `frames` new frames."""
+    """A counterfactual continuation of the parent run: wind, a ball, or both, for `frames` new
+    frames after the parent's frame `from_frame` (default: its last; 0 re-simulates the whole clip
+    with the intervention; docs/whatif.md)."""
 
     model_config = _STRICT
     frames: int = Field(default=30, ge=1)
     wind: WindParams | None = None
     ball: BallParams | None = None
+    from_frame: int | None = Field(default=None, ge=0)
 
     @model_validator(mode="after")
     def _something(self) -> InteractParams:

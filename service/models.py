@@ -130,7 +130,7 @@ class Artifact(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     name: Mapped[str] = mapped_column(String(512))
-    kind: Mapped[str] = mapped_column(String(16))  # video | orbit | state | manifest | file
+    kind: Mapped[str] = mapped_column(String(16))  # video | orbit | side_by_side | export | state | manifest | file
     camera: Mapped[str | None] = mapped_column(String(128), default=None)
     key: Mapped[str] = mapped_column(String(1024))
     size: Mapped[int] = mapped_column(BigInteger)

@@ -48,16 +48,13 @@ def scene_prefix(scene_id: str) -> str:
 
 
 def job_prefix(job_id: str) -> str:
-    """A job: `run/` is its run folder (checkpoints, states, manifest), `videos/` its rendered MP4s."""
+    """A job: `run/` is its run folder (checkpoints, states, manifest), `videos/` its rendered
+    MP4s, `exports/` its last frame in every export format."""
     return f"jobs/{job_id}"
 
 
 def run_prefix(job_id: str) -> str:
     return f"{job_prefix(job_id)}/run"
-
-
-def videos_prefix(job_id: str) -> str:
-    return f"{job_prefix(job_id)}/videos"
 
 
 def check_key(key: str) -> str:

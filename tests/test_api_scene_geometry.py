@@ -13,10 +13,10 @@ from fastapi.testclient import TestClient
 
 from api.app import create_app
 from api.auth import create_key
-from api.database import session_scope
-from api.models import Job, JobState, Scene
-from api.settings import Settings
-from api.storage import run_prefix
+from service.database import session_scope
+from service.models import Job, JobState, Scene
+from service.settings import Settings
+from service.storage import run_prefix
 from fluidcore import cameras, scene_info
 from fluidcore.runs import Run
 from fluidcore.runs import Scene as RunScene

@@ -81,6 +81,6 @@ def test_keys_and_serve_share_the_data_folder_from_any_folder(tmp_path: Path) ->
     assert "alice" in listed.stdout
     assert (tmp_path / "home" / ".local" / "share" / "fluidnexus" / "fluidnexus.sqlite3").is_file()
     assert not any(here.iterdir()) and not any(there.iterdir())
-    code = "from api.settings import Settings; print(Settings().resolved_data_dir())"  # what serve uses
+    code = "from service.settings import Settings; print(Settings().resolved_data_dir())"  # what serve uses
     served = subprocess.run([sys.executable, "-c", code], cwd=there, env=env, capture_output=True, text=True, check=True)
     assert served.stdout.strip() == str(tmp_path / "home" / ".local" / "share" / "fluidnexus")

@@ -23,7 +23,7 @@ from service.database import session_scope
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.settings import Settings
-from service.storage import Storage, run_prefix, videos_prefix
+from service.storage import Storage, job_prefix, run_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
@@ -213,17 +213,18 @@ class JobExecutor:
         return {"cameras_path": local[cameras_key], "videos": {c: local[k] for c, k in video_keys.items()}}
 
     def _publish(self, claim: Claim, files: list[Path], reporter: ProgressReporter) -> None:
-        """Upload the rendered videos and record every artifact (videos, manifest, states)."""
+        """Upload the rendered videos and exports and record every artifact (videos, exports,
+        manifest, states)."""
         reporter.report(RUN_SHARE, "publish")
         rows = []
         for path in files:
-            key = f"{videos_prefix(claim.job_id)}/{path.name}"
-            self.storage.put_file(key, path, "video/mp4")
-            orbit = path.stem.startswith("orbit")
+            folder, kind, camera, content_type = _published_as(path)
+            key = f"{job_prefix(claim.job_id)}/{folder}/{path.name}"
+            self.storage.put_file(key, path, content_type)
             rows.append(
                 Artifact(
-                    job_id=claim.job_id, name=f"videos/{path.name}", kind="orbit" if orbit else "video",
-                    camera=None if orbit else path.stem, key=key, size=path.stat().st_size, content_type="video/mp4",
+                    job_id=claim.job_id, name=f"{folder}/{path.name}", kind=kind, camera=camera, key=key,
+                    size=path.stat().st_size, content_type=content_type,
                 )
             )
         prefix = run_prefix(claim.job_id)
@@ -335,3 +336,13 @@ def _transient_errors() -> tuple[type[BaseException], ...]:
 
 
 TRANSIENT_ERRORS = _transient_errors()
+
+
+def _published_as(path: Path) -> tuple[str, str, str | None, str]:
+    """(folder, kind, camera, content type) of a file a runner returned: an MP4 per camera, the
+    orbit, a what-if's side-by-side, or an export (fluidcore.exports)."""
+    if path.suffix != ".mp4":
+        return "exports", "export", None, "application/octet-stream"
+    if path.stem in ("orbit", "side_by_side"):
+        return "videos", path.stem, None, "video/mp4"
+    return "videos", "video", path.stem, "video/mp4"

@@ -3,7 +3,8 @@ docs/architecture.md). fluidcore and torch are imported inside the runner bodies
 the Celery app, the API and the tests of the service logic load without them.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
-files to publish besides the run folder itself (MP4 per camera, orbit video). Each reads its
+files to publish besides the run folder itself (MP4 per camera, orbit video, a what-if's
+side-by-side, and the last frame in every `fluidcore.exports` format). Each reads its
 parameters through its type's model in `service.job_types`, so defaults live there only.
 """
 
@@ -48,10 +49,12 @@ def _callbacks(inputs: RunInputs) -> dict[str, Any]:
 
 
 def _render(inputs: RunInputs) -> list[Path]:
+    """The videos (a what-if adds its side-by-side) and the last frame in every export format."""
     from fluidcore.artifacts import render_artifacts
+    from fluidcore.exports import export_artifacts
 
     inputs.progress(1.0, "render")  # the run itself is complete; rendering fills the rest
-    return list(render_artifacts(inputs.run_dir, inputs.render_dir))
+    return [*render_artifacts(inputs.run_dir, inputs.render_dir), *export_artifacts(inputs.run_dir, inputs.render_dir)]
 
 
 def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
@@ -106,6 +109,7 @@ def interact(inputs: RunInputs) -> None:
         frames=params.frames,
         wind=params.wind,
         ball=params.ball,
+        from_frame=params.from_frame,
         **_callbacks(inputs),
     )
 

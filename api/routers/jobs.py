@@ -181,15 +181,23 @@ def _check_references(
 
 
 def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:
-    """Wind and ball against the parent run's scene (box, time step, speed limit), read from its
-    manifest: a ball outside the box or a wind that tears the smoke apart is a 422 now, not a
-    failed job later."""
+    """Wind and ball against the parent run's scene (box, time step, speed limit), and the branch
+    frame against its finished frames, read from its manifest: a ball outside the box, a wind
+    that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
+    later."""
     from fluidcore.interaction import InteractionError, InteractionParams
 
     try:
         manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
     except ObjectNotFound:
         raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
+    frames = [entry.get("t") for entry in manifest.get("frames") or []]
+    if params.from_frame is not None and params.from_frame not in frames:
+        held = f"{frames[0]}..{frames[-1]}" if frames else "none"
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT,
+            f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
+        )
     try:
         InteractionParams(wind=params.wind, ball=params.ball).check_scene(manifest.get("scene") or {}, params.frames)
     except InteractionError as exc:

@@ -1,0 +1,71 @@
+"""What-ifs through the service: `from_frame` in the interact job's parameters (checked against
+the parent run's finished frames before queueing), and the interact runner's artifacts (the
+side-by-side video and the last frame in every export format) published with their kinds."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from fastapi.testclient import TestClient
+
+from api.app import create_app
+from api.auth import create_key
+from fluidcore.exports import EXPORTERS
+from fluidcore.runs import Run
+from predict_scenes import plume_run
+from service.database import session_scope
+from service.job_types import JobType
+from service.models import Job, JobState
+from service.settings import Settings
+from service_support import RecordingQueue, scene_files, sqlite_url, upload_parts
+from worker.execution import _published_as
+from worker.runners import RunInputs, interact
+
+
+@pytest.fixture
+def client(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
+    settings = Settings(data_dir=tmp_path / "data", database_url=sqlite_url(tmp_path))
+    with TestClient(create_app(settings, queue=RecordingQueue())) as test_client:
+        with session_scope(test_client.app.state.sessionmaker) as session:
+            auth = {"Authorization": f"Bearer {create_key(session, 'alice')}"}
+        yield test_client, auth
+        test_client.app.state.engine.dispose()
+
+
+def test_from_frame_must_be_a_finished_frame_of_the_parent(client, tmp_path: Path) -> None:
+    http, auth = client
+    scene = http.post("/v1/scenes", files=upload_parts(scene_files(tmp_path / "scene")), headers=auth).json()
+    parent = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene["id"]}, headers=auth).json()["id"]
+    manifest = Run.open(plume_run(tmp_path / "parent", frames=3)).manifest  # frames 0..2 of a real run
+    http.app.state.storage.put_bytes(f"jobs/{parent}/run/manifest.json", json.dumps(manifest).encode())
+    with session_scope(http.app.state.sessionmaker) as session:
+        session.get(Job, parent).state = JobState.SUCCEEDED
+    ball = {"center": [0.0, 0.2, 0.0], "radius": 0.05}
+    request = {"type": "interact", "parent_job_id": parent, "params": {"frames": 5, "ball": ball, "from_frame": 1}}
+    created = http.post("/v1/jobs", json=request, headers=auth)
+    assert created.status_code == 202, created.text
+    assert created.json()["params"]["from_frame"] == 1
+    for bad, message in ((7, "params.from_frame: 7 is not a finished frame"), (-1, "from_frame")):
+        request["params"]["from_frame"] = bad
+        response = http.post("/v1/jobs", json=request, headers=auth)
+        assert response.status_code == 422 and message in response.text, response.text
+
+
+def test_interact_runner_branches_and_returns_side_by_side_and_exports(tmp_path: Path) -> None:
+    parent = plume_run(tmp_path / "parent", frames=4)
+    inputs = RunInputs(
+        job_id="j", job_type=JobType.INTERACT, run_dir=tmp_path / "run", render_dir=tmp_path / "out", device="cpu",
+        params={"frames": 2, "from_frame": 1, "wind": {"direction": [1, 0, 0], "strength": 0.3}},
+        progress=lambda fraction, stage: None, should_cancel=lambda: False, parent_run=parent,
+    )
+    files = interact(inputs)
+    run = Run.open(tmp_path / "run")
+    assert run.frames() == [2, 3] and run.manifest["settings"]["branch_frame"] == 1
+    published = {path.name: _published_as(path)[:2] for path in files}
+    assert published["side_by_side.mp4"] == ("videos", "side_by_side")
+    assert published["orbit.mp4"] == ("videos", "orbit")
+    exports = {name for name, (folder, kind) in published.items() if (folder, kind) == ("exports", "export")}
+    assert len(exports) == len(EXPORTERS) and "frame_000003.ply" in exports
