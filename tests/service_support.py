@@ -145,6 +145,24 @@ def upload_parts(files: dict[str, Path]) -> list[tuple[str, tuple[str, bytes, st
     return parts
 
 
+def keyed_client(tmp_path: Path, owner: str = "alice") -> Iterator[tuple[object, dict[str, str]]]:
+    """An app on a fresh SQLite file with a recording queue, and the Bearer header of a key for
+    `owner` (for tests that need one user and nothing else of the service)."""
+    from fastapi.testclient import TestClient
+
+    from api.app import create_app
+    from api.auth import create_key
+    from service.database import session_scope
+    from service.settings import Settings
+
+    settings = Settings(data_dir=tmp_path / "data", database_url=sqlite_url(tmp_path))
+    with TestClient(create_app(settings, queue=RecordingQueue())) as client:
+        with session_scope(client.app.state.sessionmaker) as session:
+            auth = {"Authorization": f"Bearer {create_key(session, owner)}"}
+        yield client, auth
+        client.app.state.engine.dispose()
+
+
 # -- test doubles -----------------------------------------------------------------------------------
 
 class RecordingQueue:

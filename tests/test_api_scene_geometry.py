@@ -11,27 +11,19 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from api.app import create_app
-from api.auth import create_key
-from service.database import session_scope
-from service.models import Job, JobState, Scene
-from service.settings import Settings
-from service.storage import run_prefix
 from fluidcore import cameras, scene_info
+from fluidcore.cameras.single import single_camera
 from fluidcore.runs import Run
 from fluidcore.runs import Scene as RunScene
-from fluidcore.cameras.single import single_camera
-from service_support import RecordingQueue, scene_files, sqlite_url, upload_parts, write_video
+from service.database import session_scope
+from service.models import Job, JobState, Scene
+from service.storage import run_prefix
+from service_support import keyed_client, scene_files, upload_parts, write_video
 
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
-    settings = Settings(data_dir=tmp_path / "data", database_url=sqlite_url(tmp_path))
-    with TestClient(create_app(settings, queue=RecordingQueue())) as test_client:
-        with session_scope(test_client.app.state.sessionmaker) as session:
-            auth = {"Authorization": f"Bearer {create_key(session, 'alice')}"}
-        yield test_client, auth
-        test_client.app.state.engine.dispose()
+    yield from keyed_client(tmp_path)
 
 
 def _clip(tmp_path: Path, name: str = "phone.mp4") -> tuple[str, tuple[str, bytes, str]]:

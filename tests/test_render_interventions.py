@@ -3,7 +3,6 @@ for scoring), and the side-by-side factual | what-if video of an interact job.""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

@@ -11,28 +11,20 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from api.app import create_app
-from api.auth import create_key
 from fluidcore.exports import EXPORTERS
 from fluidcore.runs import Run
 from predict_scenes import plume_run
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Job, JobState
-from service.settings import Settings
-from service_support import RecordingQueue, scene_files, sqlite_url, upload_parts
+from service_support import keyed_client, scene_files, upload_parts
 from worker.execution import _published_as
 from worker.runners import RunInputs, interact
 
 
 @pytest.fixture
 def client(tmp_path: Path) -> Iterator[tuple[TestClient, dict[str, str]]]:
-    settings = Settings(data_dir=tmp_path / "data", database_url=sqlite_url(tmp_path))
-    with TestClient(create_app(settings, queue=RecordingQueue())) as test_client:
-        with session_scope(test_client.app.state.sessionmaker) as session:
-            auth = {"Authorization": f"Bearer {create_key(session, 'alice')}"}
-        yield test_client, auth
-        test_client.app.state.engine.dispose()
+    yield from keyed_client(tmp_path)
 
 
 def test_from_frame_must_be_a_finished_frame_of_the_parent(client, tmp_path: Path) -> None:
