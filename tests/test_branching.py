@@ -48,6 +48,8 @@ def test_branch_at_frame_zero_resimulates_the_clip_with_the_ball(parent: Path, t
     factual = Run.open(run_predict(parent, tmp_path / "factual0", frames=7, from_frame=0))
     ball = Run.open(run_interact(parent, tmp_path / "ball0", frames=7, ball=BALL, from_frame=0))
     assert ball.frames() == list(range(1, 8)) and ball.manifest["settings"]["branch_frame"] == 0
+    # buoyancy and look are identified on the whole observed window, not on the single frame 0
+    assert ball.manifest["settings"]["identified_on_frame"] == Run.open(parent).frames()[-1]
     centre = torch.tensor(BALL.center)
     for t in ball.frames():
         assert float(torch.linalg.vector_norm(live(ball.read_frame(t)) - centre, dim=1).min()) >= BALL.radius - 1e-5

@@ -156,11 +156,16 @@ def _write(
     prediction is then refined (Algorithm S2), other kinds are not."""
     scene = continued_scene(parent.scene)
     start = SmokeState.from_frame(parent.read_frame(start_frame), device)
-    buoyancy_scale, calibration, profile = 1.0, {}, None
+    buoyancy_scale, calibration, profile, observed = 1.0, {}, None, None
     if kind != "resimulate" and parent.kind == "reconstruct":
-        buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, start_frame, device)
+        # Identified on the reconstruction's last frames even for a branch from an earlier one:
+        # the whole window is observed footage, and at an early branch frame (frame 0 above
+        # all) the plume has not risen yet to show its speed or its look higher up.
+        observed = parent.frames()[-1]
+        buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
         scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
-        profile = HeightProfile.observe(start, scene.up)
+        look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
+        profile = HeightProfile.observe(look, scene.up)
     elif kind != "resimulate" and parent.manifest["settings"].get("appearance_profile"):
         profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
@@ -180,6 +185,7 @@ def _write(
             "branch_frame": start_frame,  # the parent frame this run continues from
             "visual": visual_settings,
             "parent_source_rate": parent.scene.source["rate"],
+            "identified_on_frame": observed,
             "buoyancy_scale": buoyancy_scale,
             "buoyancy_calibration_error": calibration,
             "appearance_profile": None if profile is None else profile.to_json(),
