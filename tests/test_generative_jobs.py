@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from fluidcore import artifacts, jobs, synth, video
+from fluidcore.exports import EXPORTERS
 from fluidcore.generative import models, stages
 from fluidcore.generative.novel_view import to_square
 from fluidcore.generative.refine import to_model_frames
@@ -174,7 +175,9 @@ def test_the_worker_runs_the_generative_stages_from_the_models_variable(
     assert {"novel views", "refine views", "reconstruct", "render"} <= set(seen)
     assert seen.index("novel views") < seen.index("refine views") < seen.index("reconstruct") < seen.index("render")
     assert [v["kind"] for v in Run.open(tmp_path / "run").manifest["settings"]["views"]] == ["input", "generated", "generated"]
-    assert sorted(f.name for f in files) == ["orbit.mp4", *(f"{name}.mp4" for name in sorted((INPUT, *HELD_OUT)))]
+    videos = sorted(f.name for f in files if f.suffix == ".mp4")
+    assert videos == ["orbit.mp4", *(f"{name}.mp4" for name in sorted((INPUT, *HELD_OUT)))]
+    assert len(files) - len(videos) == len(EXPORTERS)  # and the last frame in every export format
 
 
 def test_a_resumed_reconstruction_reads_its_generated_views_back(
