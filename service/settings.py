@@ -47,9 +47,23 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="whole multipart request")
     max_video_bytes: int = Field(default=1024**3, gt=0)
     max_video_seconds: float = Field(default=120.0, gt=0)
-    max_video_pixels: int = Field(default=3840 * 2160, gt=0)
     max_videos: int = Field(default=16, gt=0)
     max_predict_frames: int = Field(default=600, gt=0)
+
+    # Limits against overload and oversized input (issue 16; docs/service.md "Limits").
+    max_concurrent_requests: int = Field(
+        default=16, gt=0, description="API requests inside the app at once; more wait, holding nothing"
+    )
+    max_concurrent_uploads: int = Field(default=4, gt=0, description="scene uploads inside the app at once")
+    max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")
+    max_cameras_bytes: int = Field(default=4 * 1024**2, gt=0, description="the uploaded cameras file")
+    max_cameras: int = Field(default=64, gt=0, description="cameras in one cameras file")
+    max_camera_pixels: int = Field(
+        default=3840 * 2160, gt=0, description="width x height of one camera (its video has the same size)"
+    )
+    max_scene_pixels: int = Field(
+        default=4 * 3840 * 2160, gt=0, description="width x height summed over a scene's cameras"
+    )
 
     # Worker.
     work_dir: Path | None = Field(default=None, description="worker-local run cache; default data_dir/work")

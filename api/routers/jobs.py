@@ -7,12 +7,13 @@ import json
 from datetime import UTC, datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Header, HTTPException, Query, Response, status
+from fastapi import APIRouter, Body, Header, HTTPException, Response, status
 from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import owned_scene
 from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
 from service.job_types import InteractParams, JobType
@@ -21,9 +22,13 @@ from service.queue import QueueUnavailable
 from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, job_prefix, run_prefix
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(
+    prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute, responses=error_responses(401, 422, 503)
+)
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+@router.post(
+    "", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409, 413)
+)
 def create_job(
     request: Annotated[JobRequest, Body()],
     owner: OwnerDep,
@@ -35,6 +40,7 @@ def create_job(
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> JobOut:
     """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job."""
+    idempotency_key = idempotency_key or None  # an empty header is no key
     body = request.model_dump(mode="json")
     request_hash = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
     if idempotency_key is not None:
@@ -82,8 +88,8 @@ def list_jobs(
     type: JobType | None = None,
     scene_id: str | None = None,
     parent_job_id: str | None = None,
-    limit: Annotated[int, Query(ge=1, le=100)] = 20,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: PageLimit = 20,
+    offset: PageOffset = 0,
 ) -> Page[JobOut]:
     """The caller's jobs, newest first, optionally filtered."""
     query = select(Job).where(Job.owner == owner)
@@ -96,12 +102,14 @@ def list_jobs(
     return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset, next_offset=next_offset)
 
 
-@router.get("/{job_id}", response_model=JobOut)
+@router.get("/{job_id}", response_model=JobOut, responses=error_responses(404))
 def get_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     return job_out(owned_job(session, job_id, owner))
 
 
-@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+@router.post(
+    "/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409)
+)
 def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     """A queued job is cancelled at once; a running one stops at its next frame boundary."""
     job = owned_job(session, job_id, owner, for_update=True)
@@ -114,7 +122,7 @@ def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     return job_out(job)
 
 
-@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
 def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
     """Delete a finished job, its run folder and its artifacts; refused (409) while it runs or has
     continuations."""
