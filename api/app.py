@@ -9,9 +9,10 @@ from contextlib import asynccontextmanager
 
 import anyio.to_thread
 from fastapi import FastAPI
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 
-from api.errors import HANDLERS
+from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, scenes
 from service.database import make_engine, make_sessionmaker, migrate
@@ -52,8 +53,10 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)
-    for router in (scenes.router, jobs.router, artifacts.router, health.router):
+    routers = (scenes.router, jobs.router, artifacts.router, health.router)
+    for router in routers:
         app.include_router(router)
+    add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])
     if settings.web_dir.is_dir():  # mounted last: API routes take precedence over files
         app.mount("/", StaticFiles(directory=settings.web_dir, html=True), name="web")
     return app

@@ -1,7 +1,7 @@
 """Error answers: one body shape for every 4xx/5xx, documented per route in the OpenAPI schema,
 and the handlers that produce it.
 
-Every error is `{"detail": ...}`: a sentence for 401/403/404/409/413/416/503, and for 422 either a
+Every error is `{"detail": ...}`: a sentence for 400/401/403/404/405/409/413/416/503, and for 422 either a
 sentence (checks the API makes itself, e.g. "params.frames: end 90 is past the scene's 60
 frames") or pydantic's list of field errors. Clients and schema-driven fuzzers can rely on it
 because `error_responses` puts exactly that shape into the schema.
@@ -18,13 +18,14 @@ import math
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from fastapi import Request, Response
+from fastapi import FastAPI, Request, Response
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.exc import TimeoutError as PoolTimeout
+from starlette.routing import Match
 
 from service.storage import StorageError
 from api.uploads import UploadRejected
@@ -48,6 +49,7 @@ class ValidationFailure(BaseModel):
 
 
 _DESCRIPTIONS = {
+    400: "malformed multipart body",
     401: "missing or invalid API key",
     403: "signed download link invalid or expired",
     404: "no such resource for this API key",
@@ -145,3 +147,27 @@ HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, An
     StorageError: storage_unavailable,
     PoolTimeout: database_busy,
 }
+
+
+API_PATHS = ("/v1/{rest:path}", "/healthz", "/readyz")
+ALL_METHODS = ["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"]
+
+
+def add_unmatched_routes(app: FastAPI, routes: list[APIRoute]) -> None:
+    """Answer an unknown path (404) or method (405 with the route's real `Allow`) under the API's
+    paths in the API's own shape. Without this the web folder mounted at `/` takes every such
+    request and answers 405 `Allow: GET, HEAD` for, say, OPTIONS /v1/jobs. Add it after the API
+    routers (whose `routes` it is given) and before that mount: the router tries routes in order."""
+
+    async def unmatched(request: Request) -> JSONResponse:
+        allowed = sorted({m for r in routes if r.matches(request.scope)[0] == Match.PARTIAL for m in r.methods})
+        if allowed:
+            return JSONResponse(
+                {"detail": f"method {request.method} not allowed; use {', '.join(allowed)}"},
+                status_code=405,
+                headers={"Allow": ", ".join(allowed)},
+            )
+        return JSONResponse({"detail": f"no route {request.url.path}"}, status_code=404)
+
+    for path in API_PATHS:
+        app.add_api_route(path, unmatched, methods=ALL_METHODS, include_in_schema=False)

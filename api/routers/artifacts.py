@@ -84,6 +84,7 @@ def list_artifacts(
         206: {"description": "a byte range"},
         **error_responses(403, 404, 416),
     },
+    openapi_extra={"security": [{"HTTPBearer": []}, {}]},  # the key, or none with a signed link
 )
 def download_artifact(
     job_id: str,

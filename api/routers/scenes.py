@@ -20,7 +20,7 @@ from service.storage import scene_prefix
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut, responses=error_responses(413))
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut, responses=error_responses(400, 413))
 def create_scene(
     owner: OwnerDep,
     session: SessionDep,

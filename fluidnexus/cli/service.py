@@ -30,6 +30,9 @@ DataDir = Annotated[
     typer.Option("--data-dir", help="database, storage and broker folder (default ./data or FLUIDNEXUS_DATA_DIR)"),
 ]
 WORKER_STOP_TIMEOUT_S = 30
+# Longer than clients keep an idle connection (httpx and browsers: 5 s or more), so the server
+# never closes one just as a client reuses it (a "server disconnected" error under load).
+KEEP_ALIVE_S = 20
 
 
 def _settings(data_dir: Path | None) -> Settings:
@@ -65,7 +68,7 @@ def serve(
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         app = create_app(settings.model_copy(update={"migrate_on_start": False}), queue=queue)  # migrated above
-        uvicorn.run(app, host=host, port=port)
+        uvicorn.run(app, host=host, port=port, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
         if process is not None:
             _stop_worker(process)
