@@ -52,7 +52,7 @@ class Settings(BaseSettings):
 
     # Limits against overload and oversized input (issue 16; docs/service.md "Limits").
     max_concurrent_requests: int = Field(
-        default=16, gt=0, description="API requests inside the app at once; more wait, holding nothing"
+        default=8, gt=0, description="API requests inside the app at once; more wait, holding nothing"
     )
     max_concurrent_uploads: int = Field(default=4, gt=0, description="scene uploads inside the app at once")
     max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")

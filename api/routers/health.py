@@ -3,7 +3,7 @@
 Both are async and skip the admission queue (api.middleware), so they answer while the request
 threads and the connection pool are busy. `/readyz` opens its own database connection (outside
 the pool) and runs each check on a small thread pool of its own, reporting a check that takes
-longer than CHECK_TIMEOUT_S as failed instead of waiting for it.
+longer than CHECK_TIMEOUT_S as failed (503) instead of waiting for it.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from service.database import ping
 
 router = APIRouter(tags=["health"])
 
-CHECK_TIMEOUT_S = 0.8
+CHECK_TIMEOUT_S = 0.5  # the whole answer stays under 1 s on a loaded machine
 _checks = ThreadPoolExecutor(max_workers=3, thread_name_prefix="readyz")
 
 
