@@ -19,9 +19,11 @@ from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from service.chaining import release_children
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import Storage, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
@@ -86,7 +88,11 @@ class JobExecutor:
         runners: dict[str, Runner],
         device: str = "cpu",
         worker_name: str | None = None,
+        queue: JobQueue | None = None,
     ) -> None:
+        """`queue` sends the jobs waiting on a job that succeeded (service.chaining); without one,
+        they stay waiting (tests that drive single jobs)."""
+        self.queue = queue
         self.settings = settings
         self.sessions = sessions
         self.storage = storage
@@ -256,6 +262,9 @@ class JobExecutor:
             if state == JobState.SUCCEEDED:
                 job.progress = 1.0
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
+        if self.queue is not None:
+            with self.sessions() as session:
+                release_children(session, job_id, self.queue)
         return state.value
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:

@@ -16,6 +16,7 @@ from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, Sett
 from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import owned_scene
 from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
+from service.chaining import release_children, waiting_stage
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
 from service.queue import QueueUnavailable
@@ -39,7 +40,11 @@ def create_job(
     response: Response,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> JobOut:
-    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job."""
+    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job.
+
+    A continuation may name a parent that is still queued or running: it waits (stage "waiting
+    for job PARENT") and starts when the parent succeeds, or fails saying why the parent did not.
+    """
     idempotency_key = idempotency_key or None  # an empty header is no key
     body = request.model_dump(mode="json")
     request_hash = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
@@ -49,7 +54,7 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
-    _check_references(session, storage, owner, request, settings)
+    waits_for = _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
         type=request.type,
@@ -58,6 +63,7 @@ def create_job(
         params=body["params"],
         idempotency_key=idempotency_key,
         request_hash=request_hash,
+        stage=waiting_stage(waits_for) if waits_for else "queued",
     )
     session.add(job)
     try:
@@ -70,6 +76,10 @@ def create_job(
         response.headers["Idempotent-Replayed"] = "true"
         return job_out(existing)
 
+    if waits_for:  # sent by whoever sees the parent end; it may have ended since the check above
+        release_children(session, waits_for, queue)
+        session.refresh(job)
+        return job_out(job)
     try:
         job.task_id = queue.enqueue(job.id, job.type)
     except QueueUnavailable as exc:
@@ -161,8 +171,10 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
 
 def _check_references(
     session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
-) -> None:
-    """The scene or parent job exists, belongs to the caller, and fits the parameters."""
+) -> str | None:
+    """The scene or parent job exists, belongs to the caller, and fits the parameters.
+
+    Returns the parent's id when the new job has to wait for it (queued or running)."""
     if JobType(request.type).starts_from == "scene":
         scene = owned_scene(session, request.scene_id, owner)
         frames = request.params.frames
@@ -171,12 +183,12 @@ def _check_references(
                 status.HTTP_422_UNPROCESSABLE_CONTENT,
                 f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
             )
-        return
-    # Any succeeded job can be continued: every job type leaves the same run-folder format.
+        return None
+    # Any job can be continued: every job type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
-    if parent.state != JobState.SUCCEEDED:
+    if parent.state in (JobState.FAILED, JobState.CANCELLED):
         raise HTTPException(
-            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it must have succeeded first"
+            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it cannot be continued"
         )
     frames = getattr(request.params, "frames", None)
     if frames is not None and frames > settings.max_predict_frames:
@@ -184,8 +196,11 @@ def _check_references(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
             f"params.frames: at most {settings.max_predict_frames} new frames per job",
         )
+    if parent.state != JobState.SUCCEEDED:
+        return parent.id  # the run scene is checked by the worker once the parent's run exists
     if isinstance(request.params, InteractParams):
         _check_in_run_scene(storage, parent.id, request.params)
+    return None
 
 
 def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:
