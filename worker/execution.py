@@ -178,6 +178,8 @@ class JobExecutor:
 
         def progress(fraction: float, stage: str) -> None:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
+            if reporter.cancelled:  # honoured at every report, so in stages without frames too
+                raise JobCancelled(f"cancelled during {stage}")
             mirror.push()
 
         inputs = RunInputs(
@@ -191,8 +193,12 @@ class JobExecutor:
             should_cancel=reporter.cancel_requested,
             **self._fetch_inputs(claim, folder),
         )
+        if reporter.cancel_requested():  # fetching the inputs can take a while
+            raise JobCancelled("cancelled while preparing")
         files = self.runners[claim.job_type](inputs)
         mirror.push()
+        if reporter.cancel_requested():
+            raise JobCancelled("cancelled before publishing")
         return files
 
     def _fetch_inputs(self, claim: Claim, folder: JobFolder) -> dict[str, object]:
@@ -222,9 +228,18 @@ class JobExecutor:
         """Upload the rendered videos and record every artifact (videos, manifest, states)."""
         reporter.report(RUN_SHARE, "publish")
         rows = []
+        uploaded: list[str] = []
+        try:
+            for path in files:
+                key = f"{videos_prefix(claim.job_id)}/{path.name}"
+                self.storage.put_file(key, path, "video/mp4")
+                uploaded.append(key)
+        except BaseException:  # no half-published set: the retry uploads them all again
+            for key in uploaded:
+                self.storage.delete(key)
+            raise
         for path in files:
             key = f"{videos_prefix(claim.job_id)}/{path.name}"
-            self.storage.put_file(key, path, "video/mp4")
             orbit = path.stem.startswith("orbit")
             rows.append(
                 Artifact(
@@ -299,6 +314,7 @@ class ProgressReporter:
         self._stage: str | None = stage
         self._stage_started = time.monotonic()
         self._last_write = 0.0
+        self.cancelled = False  # cancel_requested as of the last write
         with session_scope(sessions) as session:
             job = session.get(Job, job_id)
             self._seconds: dict[str, float] = dict(job.stage_seconds or {}) if job else {}
@@ -317,6 +333,7 @@ class ProgressReporter:
                 return
             job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
+            self.cancelled = job.cancel_requested
 
     def cancel_requested(self) -> bool:
         with session_scope(self.sessions) as session:
