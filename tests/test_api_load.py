@@ -12,15 +12,15 @@ from pathlib import Path
 
 import pytest
 
-import api.database
 import fluidnexus.cli  # noqa: F401  registers the benchmarks, bench.load among them, before it is imported here
+import service.database
 from bench.load import live_server, run_load
 from test_api import Service, make_service
 
 
 @pytest.fixture
 def small_pool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Service]:
-    monkeypatch.setattr(api.database, "POOL_TIMEOUT_S", 0.5)
+    monkeypatch.setattr(service.database, "POOL_TIMEOUT_S", 0.5)
     yield from make_service(tmp_path, max_concurrent_requests=2, max_concurrent_uploads=1)
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from api.database import session_scope
-from api.models import Job, JobState
-from api.storage import LocalStorage, StorageError, videos_prefix
+from service.database import session_scope
+from service.models import Job, JobState
+from service.storage import LocalStorage, StorageError, videos_prefix
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, fake_job, sqlite_url
 from test_worker import World
@@ -47,10 +47,10 @@ def test_a_cancel_while_fetching_inputs_stops_before_the_runner(world: World) ->
     executor = world.executor(runners={**FAKE_RUNNERS, "reconstruct": lambda inputs: pytest.fail("ran")})
     fetch = executor._fetch_inputs
 
-    def slow_fetch(claim):  # type: ignore[no-untyped-def]
+    def slow_fetch(*args):  # type: ignore[no-untyped-def]
         with session_scope(world.sessions) as session:
             session.get(Job, job_id).cancel_requested = True
-        return fetch(claim)
+        return fetch(*args)
 
     executor._fetch_inputs = slow_fetch  # type: ignore[method-assign]
     assert executor.run(job_id) == "cancelled"
