@@ -4,6 +4,8 @@ queue onto `app.state`; routers read them through `api.deps`. Run it with
 
 from __future__ import annotations
 
+import asyncio
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -16,9 +18,11 @@ from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, scenes
 from service.database import make_engine, make_sessionmaker, migrate
-from service.queue import CeleryQueue, JobQueue
+from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
 from service.storage import make_storage
+
+log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
@@ -32,7 +36,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
             migrate(url)
         # One thread per admitted request (its key check, route and response run one after another).
         anyio.to_thread.current_default_thread_limiter().total_tokens = admitted
+        reaper = asyncio.create_task(_reap_forever(app))
         yield
+        reaper.cancel()
         app.state.engine.dispose()
 
     app = FastAPI(
@@ -42,7 +48,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         lifespan=lifespan,
     )
     app.state.settings = settings
-    app.state.engine = make_engine(url, pool_size=admitted)
+    app.state.engine = make_engine(url, pool_size=admitted + 1)  # + the reaper's
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
@@ -60,3 +66,18 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     if settings.web_dir.is_dir():  # mounted last: API routes take precedence over files
         app.mount("/", StaticFiles(directory=settings.web_dir, html=True), name="web")
     return app
+
+
+async def _reap_forever(app: FastAPI) -> None:
+    """Every quarter lease, send again the running jobs whose heartbeat stopped (service.queue.reap_stale),
+    so a job whose worker died is picked up within about 1.25 leases, whatever the broker does."""
+    lease = app.state.settings.job_lease_seconds
+    while True:
+        await asyncio.sleep(lease / 4)
+        try:
+            reaped = await anyio.to_thread.run_sync(reap_stale, app.state.sessionmaker, app.state.queue, lease)
+        except Exception:  # database or broker down: the next round tries again
+            log.warning("reaper: could not check for stale jobs", exc_info=True)
+            continue
+        if reaped:
+            log.warning("reaper: sent again %d job(s) whose worker stopped: %s", len(reaped), ", ".join(reaped))

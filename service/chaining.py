@@ -16,6 +16,7 @@ import logging
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
+from service.job_types import JobType
 from service.models import Job, JobState, utcnow
 from service.queue import JobQueue, QueueUnavailable
 
@@ -60,7 +61,7 @@ def _send(session: Session, job_id: str, queue: JobQueue) -> None:
     job = session.get(Job, job_id)
     assert job is not None
     try:
-        job.task_id = queue.enqueue(job.id, job.type)
+        job.task_id = queue.enqueue(job.id, JobType(job.type))
         job.stage = "queued"
     except QueueUnavailable as exc:
         job.state, job.error, job.finished_at = JobState.FAILED, str(exc), utcnow()

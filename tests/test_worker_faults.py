@@ -1,16 +1,21 @@
 """Faults inside one job's run (issue 16): a cancel in a stage without frames (prepare) is
-honoured, and a storage error while publishing leaves nothing half-published."""
+honoured, a storage error while publishing leaves nothing half-published, a runner whose job
+was taken over stops (fencing token), heartbeats keep a silent job alive, and the reaper sends a
+dead worker's job again."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from datetime import timedelta
 from pathlib import Path
 
 import pytest
 
 from service.database import session_scope
-from service.models import Job, JobState
+from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, videos_prefix
+from worker.execution import JobBusy
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, fake_job, sqlite_url
 from test_worker import World
@@ -79,3 +84,66 @@ def test_a_storage_error_while_publishing_lists_and_keeps_nothing_half_written(w
     world.storage.put_file = put_file  # type: ignore[method-assign]
     assert world.executor("retry").run(job_id) == "succeeded"
     assert {a.kind for a in world.artifacts(job_id).values()} >= {"video", "orbit", "manifest"}
+
+
+def test_a_runner_whose_job_was_taken_over_stops_and_writes_nothing(world: World) -> None:
+    """One job never runs twice at once: once a second runner claims it (after the first one's
+    heartbeats stopped for a lease), the first stops at its next report, and the second finishes."""
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 4]})
+    first, second = world.executor("first"), world.executor("second")
+    outcomes = []
+
+    def taken_over_after_one_frame(inputs: RunInputs) -> list[Path]:
+        def progress(fraction: float, stage: str) -> None:
+            inputs.progress(fraction, stage)
+            if not outcomes:  # the first runner looks dead (e.g. its database link dropped for a lease)
+                with session_scope(world.sessions) as session:
+                    session.get(Job, job_id).heartbeat_at -= timedelta(seconds=world.settings.job_lease_seconds + 1)
+                outcomes.append(second.run(job_id))  # meanwhile, another worker takes the job over
+
+        return fake_job(RunInputs(**{**inputs.__dict__, "progress": progress}))
+
+    first.runners = {**FAKE_RUNNERS, "reconstruct": taken_over_after_one_frame}
+    assert first.run(job_id) is None  # stopped: LeaseLost at its next report
+    assert outcomes == ["succeeded"]
+    job = world.get(job_id)
+    assert job.state == JobState.SUCCEEDED and job.lease_token == 2 and job.worker == "second"
+    computed = world.tmp_path / "cache-first" / f"computed-{job_id}.txt"
+    assert computed.read_text().split() == ["0", "1"]  # stopped at the report of the frame in flight, unpushed
+
+
+def test_heartbeats_keep_a_job_without_progress_alive(world: World) -> None:
+    world.settings = world.settings.model_copy(update={"job_lease_seconds": 4})
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 1]})
+    claims = []
+
+    def silent_for_two_leases(inputs: RunInputs) -> list[Path]:
+        time.sleep(6)  # no progress report: only the heartbeat thread says the job is alive
+        try:
+            world.executor("second").claim(job_id)
+            claims.append("claimed")
+        except JobBusy as busy:
+            claims.append(f"busy {busy.retry_in:.0f}")
+        return fake_job(inputs)
+
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": silent_for_two_leases}).run(job_id) == "succeeded"
+    assert claims and claims[0].startswith("busy")
+
+
+def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
+    from service.queue import RESUME_STAGE, reap_stale
+    from service_support import RecordingQueue
+
+    lease = world.settings.job_lease_seconds
+    stale = world.job(scene_id=world.scene(), state=JobState.RUNNING, heartbeat_at=utcnow() - timedelta(seconds=lease + 1))
+    alive = world.job(scene_id="s1", state=JobState.RUNNING, heartbeat_at=utcnow())
+    spent = world.job(scene_id="s1", state=JobState.RUNNING, attempts=3,
+                      heartbeat_at=utcnow() - timedelta(seconds=lease + 1))
+    queue = RecordingQueue()
+    assert sorted(reap_stale(world.sessions, queue, lease)) == sorted([stale, spent])
+    assert reap_stale(world.sessions, queue, lease) == []  # taken once
+    assert world.get(stale).state == JobState.QUEUED and world.get(stale).stage == RESUME_STAGE
+    assert world.get(alive).state == JobState.RUNNING
+    assert world.executor().run(stale) == "succeeded"  # resumes
+    assert world.executor().run(spent) is None  # out of attempts: failed, not run again
+    assert "gave up after 3 attempts" in world.get(spent).error

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import shutil
 import socket
+import threading
 import time
 from dataclasses import dataclass
 from datetime import timedelta
@@ -23,7 +24,7 @@ from service.chaining import release_children
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
-from service.queue import JobQueue
+from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings
 from service.storage import Storage, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
@@ -33,6 +34,11 @@ log = logging.getLogger(__name__)
 
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
+
+
+class LeaseLost(Exception):
+    """Another runner claimed the job (our heartbeats stopped reaching the database for longer
+    than the lease): stop at once and write nothing more; the job is the new runner's."""
 
 
 class JobBusy(Exception):
@@ -77,6 +83,7 @@ class Claim:
     params: dict
     scene_id: str | None
     ancestors: tuple[str, ...]  # parent job first, then its parent, ...: the runs this one continues
+    token: int  # the job's lease_token this claim set
 
 
 class JobExecutor:
@@ -114,18 +121,29 @@ class JobExecutor:
             return None
         try:
             return self._run_claimed(claim)
+        except LeaseLost:  # the folder may be the new runner's too (same machine): leave it
+            log.warning("job %s: lease lost to another runner; stopped", job_id)
+            return None
         finally:  # storage holds the checkpoints and results; the local copies would only pile up
-            shutil.rmtree(self._folder(claim.job_id).root, ignore_errors=True)
+            if self._holds(claim):
+                shutil.rmtree(self._folder(claim.job_id).root, ignore_errors=True)
+
+    def _holds(self, claim: Claim) -> bool:
+        with session_scope(self.sessions) as session:
+            return session.scalar(select(Job.lease_token).where(Job.id == claim.job_id)) == claim.token
 
     def _folder(self, job_id: str) -> JobFolder:
         return JobFolder(self.work_dir / "jobs" / job_id)
 
     def _run_claimed(self, claim: Claim) -> str:
         job_id = claim.job_id
-        reporter = ProgressReporter(self.sessions, job_id)
+        reporter = ProgressReporter(self.sessions, job_id, claim.token)
+        reporter.start_heartbeat(self.settings.job_lease_seconds / 4)
         try:
             files = self._execute(claim, reporter)
             self._publish(claim, files, reporter)
+        except LeaseLost:
+            raise
         except JobCancelled:
             return self.finish(job_id, JobState.CANCELLED, reporter, stage="cancelled")
         except ValueError as exc:  # fluidcore's bad-input errors name the field: show them as they are
@@ -139,6 +157,8 @@ class JobExecutor:
         except Exception as exc:
             log.exception("job %s failed", job_id)
             return self.finish(job_id, JobState.FAILED, reporter, error=f"{type(exc).__name__}: {exc}")
+        finally:
+            reporter.stop_heartbeat()
         return self.finish(job_id, JobState.SUCCEEDED, reporter, stage="done")
 
     def claim(self, job_id: str) -> Claim | None:
@@ -157,16 +177,19 @@ class JobExecutor:
             lease = timedelta(seconds=self.settings.job_lease_seconds)
             if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
                 raise JobBusy((job.heartbeat_at + lease - now).total_seconds())
-            # Found running with an expired lease: the last attempt died (e.g. hard time limit, OOM kill).
-            if job.state == JobState.RUNNING and job.attempts >= self.settings.max_job_attempts:
+            # Found running with an expired lease, or sent again by the reaper (service.queue): the
+            # last attempt died (e.g. hard time limit, OOM kill).
+            lost = job.state == JobState.RUNNING or job.stage == RESUME_STAGE
+            if lost and job.attempts >= self.settings.max_job_attempts:
                 job.state, job.finished_at = JobState.FAILED, now
                 job.error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
                 return None
             job.state, job.stage, job.error = JobState.RUNNING, "preparing", None
             job.started_at = job.started_at or now
             job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
+            job.lease_token += 1
             log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
-            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job))
+            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job), job.lease_token)
 
     def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
         folder = self._folder(claim.job_id)
@@ -180,6 +203,8 @@ class JobExecutor:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
             if reporter.cancelled:  # honoured at every report, so in stages without frames too
                 raise JobCancelled(f"cancelled during {stage}")
+            with session_scope(self.sessions) as session:  # a superseded runner must not push checkpoints
+                reporter.owned(session)
             mirror.push()
 
         inputs = RunInputs(
@@ -257,6 +282,7 @@ class JobExecutor:
                          content_type=content_type)
             )
         with session_scope(self.sessions) as session:
+            reporter.owned(session)  # still ours: a superseded runner must not publish
             session.execute(delete(Artifact).where(Artifact.job_id == claim.job_id))
             session.add_all(rows)
 
@@ -268,7 +294,7 @@ class JobExecutor:
     ) -> str:
         """Put the job in an end state (also used by the task when transient retries run out)."""
         with session_scope(self.sessions) as session:
-            job = session.get(Job, job_id)
+            job = reporter.owned(session) if reporter is not None else session.get(Job, job_id)
             assert job is not None
             job.state, job.error, job.finished_at = state, error, utcnow()
             job.stage = stage or job.stage
@@ -286,8 +312,8 @@ class JobExecutor:
         """A transient fault: give the job back (no live lease) so the retry can claim it at once."""
         try:
             with session_scope(self.sessions) as session:
-                job = session.get(Job, job_id)
-                if job is not None and job.state == JobState.RUNNING:
+                job = reporter.owned(session)
+                if job.state == JobState.RUNNING:
                     job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to retry", None
                     job.stage_seconds = reporter.final_stage_seconds()
         except Exception:  # the database itself may be what failed; the lease then expires on its own
@@ -309,8 +335,13 @@ class ProgressReporter:
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
 
-    def __init__(self, sessions: sessionmaker[Session], job_id: str, stage: str = "preparing") -> None:
-        self.sessions, self.job_id = sessions, job_id
+    def __init__(
+        self, sessions: sessionmaker[Session], job_id: str, token: int | None = None, stage: str = "preparing"
+    ) -> None:
+        self.sessions, self.job_id, self.token = sessions, job_id, token
+        self._lost = False
+        self._stop = threading.Event()
+        self._heartbeat: threading.Thread | None = None
         self._stage: str | None = stage
         self._stage_started = time.monotonic()
         self._last_write = 0.0
@@ -328,12 +359,39 @@ class ProgressReporter:
             return
         self._last_write = now
         with session_scope(self.sessions) as session:
-            job = session.get(Job, self.job_id)
-            if job is None:
-                return
+            job = self.owned(session)
             job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
             self.cancelled = job.cancel_requested
+
+    def owned(self, session: Session) -> Job:
+        """The job row, if this runner still holds its lease token; else LeaseLost."""
+        job = session.get(Job, self.job_id)
+        if self._lost or job is None or (self.token is not None and job.lease_token != self.token):
+            self._lost = True
+            raise LeaseLost(f"job {self.job_id} was claimed by another runner")
+        return job
+
+    def start_heartbeat(self, period_s: float) -> None:
+        """Refresh `heartbeat_at` every `period_s` from a thread, so a stage that reports no
+        progress for a long time (a big prepare, one slow frame) never looks dead."""
+        self._heartbeat = threading.Thread(target=self._beat, args=(period_s,), name=f"heartbeat-{self.job_id}", daemon=True)
+        self._heartbeat.start()
+
+    def stop_heartbeat(self) -> None:
+        self._stop.set()
+        if self._heartbeat is not None:
+            self._heartbeat.join()
+
+    def _beat(self, period_s: float) -> None:
+        while not self._stop.wait(period_s):
+            try:
+                with session_scope(self.sessions) as session:
+                    self.owned(session).heartbeat_at = utcnow()
+            except LeaseLost:
+                return  # the runner finds out at its next report
+            except Exception:  # database unreachable: keep trying; the lease decides who runs
+                log.warning("job %s: heartbeat failed", self.job_id, exc_info=True)
 
     def cancel_requested(self) -> bool:
         with session_scope(self.sessions) as session:
