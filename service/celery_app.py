@@ -12,7 +12,7 @@ Production choices, each for a reason:
 - the broker's visibility timeout outlasts the hard time limit, otherwise Redis would
   hand a still-running job to a second worker. A dead worker's job does not wait for it: the
   job's heartbeat stops, and the API's reaper (service.queue.reap_stale) sends it again once the
-  lease (20 s) has passed; the message Redis hands out hours later finds the job finished, or
+  lease (16 s) has passed; the message Redis hands out hours later finds the job finished, or
   running under a newer lease token, and is dropped.
 """
 

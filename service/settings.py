@@ -72,7 +72,7 @@ class Settings(BaseSettings):
     job_soft_time_limit: int = Field(default=6 * 3600, gt=0, description="seconds; the job fails cleanly")
     job_hard_time_limit: int = Field(default=6 * 3600 + 300, gt=0, description="seconds; the child is killed")
     job_lease_seconds: int = Field(
-        default=20, ge=4, description="a running job without a heartbeat this long is taken over (heartbeat: a quarter of it)"
+        default=16, ge=4, description="a running job without a heartbeat this long is taken over (heartbeat: a quarter of it)"
     )
     max_transient_retries: int = Field(default=3, ge=0)
     max_job_attempts: int = Field(

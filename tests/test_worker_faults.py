@@ -5,6 +5,7 @@ dead worker's job again."""
 
 from __future__ import annotations
 
+import signal
 import time
 from collections.abc import Iterator
 from datetime import timedelta
@@ -17,8 +18,10 @@ from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, videos_prefix
 from worker.execution import JobBusy
 from worker.runners import RunInputs
+from service.queue import reap_stale
 from service_support import FAKE_RUNNERS, fake_job, sqlite_url
 from test_worker import World
+from test_worker_celery import Deployment, redis_postgres, start_worker, stop, wait_for  # noqa: F401  fixture
 
 
 @pytest.fixture
@@ -131,7 +134,7 @@ def test_heartbeats_keep_a_job_without_progress_alive(world: World) -> None:
 
 
 def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
-    from service.queue import RESUME_STAGE, reap_stale
+    from service.queue import RESUME_STAGE
     from service_support import RecordingQueue
 
     lease = world.settings.job_lease_seconds
@@ -147,3 +150,31 @@ def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
     assert world.executor().run(stale) == "succeeded"  # resumes
     assert world.executor().run(spent) is None  # out of attempts: failed, not run again
     assert "gave up after 3 attempts" in world.get(spent).error
+
+
+def test_a_killed_workers_job_is_picked_up_within_30_s(redis_postgres: Deployment) -> None:
+    """Redis + PostgreSQL, real worker processes: the whole first worker is killed mid-job; its
+    message stays unacknowledged in Redis (visibility timeout: hours), so what brings the job back
+    is the lease (16 s) and the reaper, run here every quarter lease as the API runs it."""
+    deployment = redis_postgres
+    lease = deployment.settings.job_lease_seconds
+    first = start_worker(deployment.settings, frame_seconds=0.4)
+    second = None
+    try:
+        job_id = deployment.submit(frames=30)
+        wait_for(lambda: len(deployment.storage.list(f"jobs/{job_id}/run/states/")) >= 3, 120, "three checkpoints")
+        stop(first, signal.SIGKILL)
+        killed = time.monotonic()
+        second = start_worker(deployment.settings, frame_seconds=0.4)
+        while (job := deployment.job(job_id)).lease_token < 2 and time.monotonic() - killed < 60:
+            reap_stale(deployment.sessions, deployment.queue, lease)
+            time.sleep(lease / 4)
+        picked_up = time.monotonic() - killed
+        assert job.lease_token == 2 and job.state == JobState.RUNNING, job.state
+        assert picked_up < 30, f"picked up {picked_up:.1f} s after the kill"
+        print(f"picked up {picked_up:.1f} s after the kill (lease {lease} s)")
+        wait_for(lambda: deployment.job(job_id).state == JobState.SUCCEEDED, 120, "the resumed job to succeed")
+    finally:
+        stop(first, signal.SIGKILL)
+        if second is not None:
+            stop(second)
