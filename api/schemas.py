@@ -75,6 +75,12 @@ class JobLinks(BaseModel):
     cancel: str
 
 
+class JobLogs(BaseModel):
+    job_id: str
+    lines: list[str] = Field(description="log lines from the requested offset on, oldest first")
+    next_offset: int = Field(description="the offset to ask for next time (lines seen so far)")
+
+
 class JobOut(BaseModel):
     id: str
     type: JobType

@@ -1,5 +1,6 @@
 """Continuations of unfinished jobs (service.chaining): queued through the API while the parent is
-queued or running, sent when it succeeds, failed with the reason when it fails or is cancelled.
+queued or running, sent when it succeeds, failed with the reason when it fails or is cancelled;
+and a job's log lines over the API (GET /v1/jobs/{id}/logs).
 The API runs in-process with a recording queue; the jobs run on a real JobExecutor with
 test-double runners, against the same database and storage."""
 
@@ -96,3 +97,32 @@ def test_a_parent_that_ends_between_the_check_and_the_commit_still_releases_the_
     service.set_job(parent, state=JobState.FAILED, error="boom")
     refused = service.client.post("/v1/jobs", json={"type": "predict", "parent_job_id": parent}, headers=alice)
     assert refused.status_code == 409 and "cannot be continued" in refused.json()["detail"]
+
+
+def test_a_jobs_log_lines_are_served_while_and_after_it_runs(service: Service, tmp_path: Path) -> None:
+    import logging
+
+    alice, parent, child, _ = chain(service, tmp_path)
+    assert service.client.get(f"/v1/jobs/{parent}/logs", headers=alice).json() == {
+        "job_id": parent, "lines": [], "next_offset": 0,
+    }
+    seen_while_running = []
+
+    def talkative(inputs):  # type: ignore[no-untyped-def]
+        logging.getLogger("fluidcore.test").info("fitting frame %d", 0)
+        inputs.progress(0.5, "fit")  # a report flushes the log to storage
+        seen_while_running.extend(service.client.get(f"/v1/jobs/{parent}/logs", headers=alice).json()["lines"])
+        return FAKE_RUNNERS["reconstruct"](inputs)
+
+    worker = executor(service, tmp_path)
+    worker.runners = {**FAKE_RUNNERS, "reconstruct": talkative}
+    assert worker.run(parent) == "succeeded"
+    assert any("fitting frame 0" in line for line in seen_while_running)
+    logs = service.client.get(f"/v1/jobs/{parent}/logs", headers=alice).json()
+    assert any("lease token 1" in line for line in logs["lines"])
+    assert any(line.endswith(f"job {parent} succeeded") for line in logs["lines"])
+    assert any(f"job {child}: parent done, sent" in line for line in logs["lines"])
+    later = service.client.get(f"/v1/jobs/{parent}/logs", params={"offset": logs["next_offset"]}, headers=alice).json()
+    assert later["lines"] == [] and later["next_offset"] == logs["next_offset"]
+    other = service.key("bob")
+    assert service.client.get(f"/v1/jobs/{parent}/logs", headers=other).status_code == 404

@@ -26,7 +26,7 @@ from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings
-from service.storage import Storage, run_prefix, videos_prefix
+from service.storage import ObjectNotFound, Storage, StorageError, log_key, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
+MAX_LOG_BYTES = 1024 * 1024
 
 
 class LeaseLost(Exception):
@@ -120,7 +121,10 @@ class JobExecutor:
         if claim is None:
             return None
         try:
-            return self._run_claimed(claim)
+            with JobLog(self.storage, job_id) as job_log:
+                log.info("job %s (%s): attempt with lease token %d on %s", job_id, claim.job_type, claim.token,
+                         self.worker_name)
+                return self._run_claimed(claim, job_log)
         except LeaseLost:  # the folder may be the new runner's too (same machine): leave it
             log.warning("job %s: lease lost to another runner; stopped", job_id)
             return None
@@ -135,12 +139,12 @@ class JobExecutor:
     def _folder(self, job_id: str) -> JobFolder:
         return JobFolder(self.work_dir / "jobs" / job_id)
 
-    def _run_claimed(self, claim: Claim) -> str:
+    def _run_claimed(self, claim: Claim, job_log: JobLog) -> str:
         job_id = claim.job_id
         reporter = ProgressReporter(self.sessions, job_id, claim.token)
         reporter.start_heartbeat(self.settings.job_lease_seconds / 4)
         try:
-            files = self._execute(claim, reporter)
+            files = self._execute(claim, reporter, job_log)
             self._publish(claim, files, reporter)
         except LeaseLost:
             raise
@@ -191,7 +195,7 @@ class JobExecutor:
             log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
             return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job), job.lease_token)
 
-    def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
+    def _execute(self, claim: Claim, reporter: ProgressReporter, job_log: JobLog) -> list[Path]:
         folder = self._folder(claim.job_id)
         mirror = FolderMirror(self.storage, folder.run(claim.job_id), run_prefix(claim.job_id))
         resumed = mirror.pull()
@@ -206,6 +210,7 @@ class JobExecutor:
             with session_scope(self.sessions) as session:  # a superseded runner must not push checkpoints
                 reporter.owned(session)
             mirror.push()
+            job_log.flush()
 
         inputs = RunInputs(
             job_id=claim.job_id,
@@ -329,6 +334,60 @@ def _ancestors(session: Session, job: Job) -> tuple[str, ...]:
     return tuple(chain)
 
 
+class JobLog(logging.Handler):
+    """The job's log lines, kept in storage (`log_key`) so the API can show them while it runs.
+
+    Captures INFO and above from the `worker`, `service` and `fluidcore` loggers while the job
+    runs (one job per process), appended to the lines of earlier attempts. `flush` uploads the
+    whole text when something new arrived; at most MAX_LOG_BYTES are kept (a runaway loop must
+    not fill storage), then one line says the rest was dropped."""
+
+    LOGGERS = ("worker", "service", "fluidcore")
+
+    def __init__(self, storage: Storage, job_id: str) -> None:
+        super().__init__(logging.INFO)
+        self.storage, self.key = storage, log_key(job_id)
+        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        try:
+            self.text = storage.read_bytes(self.key).decode(errors="replace")
+        except ObjectNotFound:
+            self.text = ""
+        self._dirty = False
+        self._levels: dict[str, int] = {}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if len(self.text) >= MAX_LOG_BYTES:
+            return
+        line = self.format(record) + "\n"
+        if len(self.text) + len(line) > MAX_LOG_BYTES:
+            line = f"... log truncated at {MAX_LOG_BYTES} bytes\n"
+        self.text += line
+        self._dirty = True
+
+    def __enter__(self) -> JobLog:
+        for name in self.LOGGERS:
+            logger = logging.getLogger(name)
+            self._levels[name] = logger.level
+            if logger.level == logging.NOTSET or logger.level > logging.INFO:
+                logger.setLevel(logging.INFO)
+            logger.addHandler(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for name, level in self._levels.items():
+            logging.getLogger(name).removeHandler(self)
+            logging.getLogger(name).setLevel(level)
+        try:
+            self.flush()
+        except StorageError:  # the job's outcome is in the database already; only lines are lost
+            log.warning("job log %s: could not be stored", self.key, exc_info=True)
+
+    def flush(self) -> None:
+        if self._dirty:
+            self._dirty = False
+            self.storage.put_bytes(self.key, self.text.encode(), "text/plain")
+
+
 class ProgressReporter:
     """Writes progress, stage, per-stage seconds and the lease heartbeat to the job row.
 
@@ -355,6 +414,8 @@ class ProgressReporter:
         stage_changed = stage != self._stage
         self._accumulate(now)
         self._stage = stage
+        if stage_changed:
+            log.info("job %s: stage %s (progress %.0f%%)", self.job_id, stage, 100 * fraction)
         if not stage_changed and now - self._last_write < DB_WRITE_INTERVAL_S:
             return
         self._last_write = now

@@ -15,13 +15,13 @@ from sqlalchemy.orm import Session
 from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import owned_scene
-from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
+from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
 from service.chaining import release_children, waiting_stage
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
 from service.queue import QueueUnavailable
 from service.settings import Settings
-from service.storage import ObjectNotFound, Storage, job_prefix, run_prefix
+from service.storage import ObjectNotFound, Storage, job_prefix, log_key, run_prefix
 
 router = APIRouter(
     prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute, responses=error_responses(401, 422, 503)
@@ -115,6 +115,17 @@ def list_jobs(
 @router.get("/{job_id}", response_model=JobOut, responses=error_responses(404))
 def get_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     return job_out(owned_job(session, job_id, owner))
+
+
+@router.get("/{job_id}/logs", response_model=JobLogs, responses=error_responses(404))
+def get_job_logs(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, offset: PageOffset = 0) -> JobLogs:
+    """The job's log lines so far (every attempt), from line `offset` on: poll with `next_offset`."""
+    job = owned_job(session, job_id, owner)
+    try:
+        lines = storage.read_bytes(log_key(job.id)).decode(errors="replace").splitlines()
+    except ObjectNotFound:
+        lines = []
+    return JobLogs(job_id=job.id, lines=lines[offset:], next_offset=max(offset, len(lines)))
 
 
 @router.post(
