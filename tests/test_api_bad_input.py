@@ -11,18 +11,13 @@ import pytest
 
 from service.models import Job, Scene
 from fluidcore.interaction import WindParams
-from service_support import camera_entry, scene_files, upload_parts, write_video
-from test_api import Service, make_service
+from service_support import camera_entry, upload_parts, write_video
+from test_api import Service, make_service, scene_dir  # noqa: F401  scene_dir: a fixture
 
 
 @pytest.fixture
 def service(tmp_path: Path) -> Iterator[Service]:
     yield from make_service(tmp_path)
-
-
-@pytest.fixture(scope="module")
-def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    return scene_files(tmp_path_factory.mktemp("scene"))
 
 
 def stored(service: Service) -> tuple[int, int, list[str]]:
