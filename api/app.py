@@ -16,7 +16,7 @@ from fastapi.staticfiles import StaticFiles
 
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
-from api.routers import artifacts, health, jobs, scenes
+from api.routers import artifacts, health, jobs, scenes, webhooks
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
@@ -59,7 +59,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)
-    routers = (scenes.router, jobs.router, artifacts.router, health.router)
+    routers = (scenes.router, jobs.router, artifacts.router, webhooks.router, health.router)
     for router in routers:
         app.include_router(router)
     add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])

@@ -7,7 +7,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
 from service.job_types import JobType
 from service.models import JobState
@@ -25,6 +25,10 @@ def job_request_model(job_type: JobType) -> type[BaseModel]:
         type=(Literal[job_type.value], ...),
         **{job_type.input_field: (str, ...)},
         params=(job_type.params, ... if default is None else default),
+        webhook=(
+            Annotated[HttpUrl, UrlConstraints(max_length=2048)] | None,
+            Field(default=None, description="POSTed, signed, when the job ends (service.webhooks)"),
+        ),
     )
 
 

@@ -7,6 +7,8 @@ folder and a kombu filesystem broker. Pointing `database_url`, `broker_url` or
 
 from __future__ import annotations
 
+import os
+import secrets
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -115,3 +117,22 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process-wide settings (tests build their own `Settings` and pass them to `create_app`)."""
     return Settings()
+
+
+KEY_FILE = "signing.key"
+
+
+def signing_key(settings: Settings) -> bytes:
+    """The configured key, else the data dir's key file (created on first use, readable by the owner only)."""
+    if settings.signing_key:
+        return settings.signing_key.encode()
+    path = settings.resolved_data_dir() / KEY_FILE
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:  # another process created it first
+            return Path(path).read_text().strip().encode()
+        with os.fdopen(fd, "w") as handle:
+            handle.write(secrets.token_hex(32))
+    return path.read_text().strip().encode()

@@ -25,7 +25,8 @@ from service.database import session_scope
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.queue import RESUME_STAGE, JobQueue
-from service.settings import Settings
+from service import webhooks
+from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, log_key, run_prefix, videos_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
@@ -307,7 +308,12 @@ class JobExecutor:
                 job.stage_seconds = reporter.final_stage_seconds()
             if state == JobState.SUCCEEDED:
                 job.progress = 1.0
+            webhook = (job.webhook_url, job.owner, webhooks.payload(job)) if job.webhook_url else None
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
+        if webhook is not None:
+            url, owner, body = webhook
+            secret = webhooks.owner_secret(signing_key(self.settings), owner)
+            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body)
         if self.queue is not None:
             with self.sessions() as session:
                 release_children(session, job_id, self.queue)

@@ -64,6 +64,7 @@ def create_job(
         idempotency_key=idempotency_key,
         request_hash=request_hash,
         stage=waiting_stage(waits_for) if waits_for else "queued",
+        webhook_url=body.get("webhook"),
     )
     session.add(job)
     try:
