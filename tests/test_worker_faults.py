@@ -5,7 +5,9 @@ dead worker's job again."""
 
 from __future__ import annotations
 
+import shutil
 import signal
+import subprocess
 import time
 from collections.abc import Iterator
 from datetime import timedelta
@@ -19,7 +21,7 @@ from service.storage import LocalStorage, StorageError, videos_prefix
 from worker.execution import JobBusy
 from worker.runners import RunInputs
 from service.queue import reap_stale
-from service_support import FAKE_RUNNERS, fake_job, sqlite_url
+from service_support import FAKE_RUNNERS, fake_job, free_port, sqlite_url
 from test_worker import World
 from test_worker_celery import Deployment, redis_postgres, start_worker, stop, wait_for  # noqa: F401  fixture
 
@@ -178,3 +180,31 @@ def test_a_killed_workers_job_is_picked_up_within_30_s(redis_postgres: Deploymen
         stop(first, signal.SIGKILL)
         if second is not None:
             stop(second)
+
+
+@pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server")
+def test_a_redis_restart_during_a_run_loses_no_job(tmp_path: Path) -> None:
+    """A private Redis (append-only file, as docker-compose.yml runs it) is restarted while one job
+    runs and another waits in its queue: both finish, none is left running."""
+    port = free_port()
+    command = ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--appendonly", "yes", "--save", "",
+               "--dir", str(tmp_path), "--logfile", str(tmp_path / "redis.log")]
+    redis = subprocess.Popen(command)
+    deployment = Deployment(tmp_path, sqlite_url(tmp_path), f"redis://127.0.0.1:{port}/0")
+    worker = start_worker(deployment.settings, frame_seconds=0.3)
+    try:
+        running, waiting = deployment.submit(frames=16), deployment.submit(frames=2)
+        wait_for(lambda: len(deployment.storage.list(f"jobs/{running}/run/states/")) >= 3, 120, "three checkpoints")
+        redis.terminate()
+        redis.wait(30)
+        redis = subprocess.Popen(command)
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and {deployment.job(j).state for j in (running, waiting)} != {JobState.SUCCEEDED}:
+            reap_stale(deployment.sessions, deployment.queue, deployment.settings.job_lease_seconds)
+            time.sleep(1)
+        assert [deployment.job(j).state for j in (running, waiting)] == [JobState.SUCCEEDED] * 2
+    finally:
+        stop(worker)
+        redis.terminate()
+        redis.wait(30)
+        deployment.engine.dispose()
