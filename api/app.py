@@ -4,31 +4,41 @@ queue onto `app.state`; routers read them through `api.deps`. Run it with
 
 from __future__ import annotations
 
+import asyncio
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+import anyio.to_thread
+from fastapi import FastAPI
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from api.routers import artifacts, health, jobs, scenes
-from api.uploads import UploadRejected
+from api.errors import HANDLERS, add_unmatched_routes
+from api.middleware import AdmissionLimit, BodySizeLimit
+from api.routers import artifacts, health, jobs, scenes, webhooks
 from service.database import make_engine, make_sessionmaker, migrate
-from service.queue import CeleryQueue, JobQueue
+from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
-from service.storage import StorageError, make_storage
+from service.storage import make_storage
+
+log = logging.getLogger(__name__)
 
 
 def create_app(settings: Settings | None = None, queue: JobQueue | None = None) -> FastAPI:
     settings = settings or get_settings()
     url = settings.resolved_database_url()
+    admitted = settings.max_concurrent_requests + settings.max_concurrent_uploads
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if settings.migrate_on_start:
             migrate(url)
+        # One thread per admitted request (its key check, route and response run one after another).
+        anyio.to_thread.current_default_thread_limiter().total_tokens = admitted
+        reaper = asyncio.create_task(_reap_forever(app))
         yield
+        reaper.cancel()
         app.state.engine.dispose()
 
     app = FastAPI(
@@ -38,71 +48,36 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         lifespan=lifespan,
     )
     app.state.settings = settings
-    app.state.engine = make_engine(url)
+    app.state.engine = make_engine(url, pool_size=admitted + 1)  # + the reaper's
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
 
-    app.add_middleware(BodySizeLimit, limit=settings.max_upload_bytes)
-    app.add_exception_handler(UploadRejected, _upload_rejected)
-    app.add_exception_handler(StorageError, _storage_unavailable)
-    for router in (scenes.router, jobs.router, artifacts.router, health.router):
+    app.add_middleware(BodySizeLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes)
+    app.add_middleware(
+        AdmissionLimit, requests=settings.max_concurrent_requests, uploads=settings.max_concurrent_uploads
+    )
+    for exception, handler in HANDLERS.items():
+        app.add_exception_handler(exception, handler)
+    routers = (scenes.router, jobs.router, artifacts.router, webhooks.router, health.router)
+    for router in routers:
         app.include_router(router)
+    add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])
     if settings.web_dir.is_dir():  # mounted last: API routes take precedence over files
         app.mount("/", StaticFiles(directory=settings.web_dir, html=True), name="web")
     return app
 
 
-async def _storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
-    """Object storage down or full: the request may succeed later, nothing was half-written."""
-    return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503)
-
-
-async def _upload_rejected(request: Request, exc: Exception) -> JSONResponse:
-    assert isinstance(exc, UploadRejected)
-    return JSONResponse({"detail": str(exc)}, status_code=exc.status_code)
-
-
-class BodySizeLimit:
-    """Refuse request bodies over `limit` bytes with 413, by Content-Length or while streaming,
-    before the multipart parser writes them to disk."""
-
-    def __init__(self, app: ASGIApp, limit: int) -> None:
-        self.app, self.limit = app, limit
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        declared = dict(scope["headers"]).get(b"content-length")
-        if declared is not None and declared.isdigit() and int(declared) > self.limit:
-            await self._reject(send)
-            return
-        received = 0
-
-        async def counting_receive() -> Message:
-            nonlocal received
-            message = await receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > self.limit:
-                    raise _TooLarge
-            return message
-
+async def _reap_forever(app: FastAPI) -> None:
+    """Every quarter lease, send again the running jobs whose heartbeat stopped (service.queue.reap_stale),
+    so a job whose worker died is picked up within about 1.25 leases, whatever the broker does."""
+    lease = app.state.settings.job_lease_seconds
+    while True:
+        await asyncio.sleep(lease / 4)
         try:
-            await self.app(scope, counting_receive, send)
-        except _TooLarge:
-            await self._reject(send)
-
-    async def _reject(self, send: Send) -> None:
-        response = JSONResponse({"detail": f"request body larger than {self.limit} bytes"}, status_code=413)
-        await response({"type": "http"}, _no_receive, send)
-
-
-class _TooLarge(Exception):
-    pass
-
-
-async def _no_receive() -> Message:
-    return {"type": "http.disconnect"}
-
+            reaped = await anyio.to_thread.run_sync(reap_stale, app.state.sessionmaker, app.state.queue, lease)
+        except Exception:  # database or broker down: the next round tries again
+            log.warning("reaper: could not check for stale jobs", exc_info=True)
+            continue
+        if reaped:
+            log.warning("reaper: sent again %d job(s) whose worker stopped: %s", len(reaped), ", ".join(reaped))

@@ -6,10 +6,10 @@ settings (database, storage folder, queue) and nothing is global.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import AsyncIterator
 from typing import Annotated
 
-from fastapi import Depends, HTTPException, Request, status
+from fastapi import Depends, HTTPException, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
@@ -25,7 +25,10 @@ def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_session(request: Request) -> Iterator[Session]:
+async def get_session(request: Request) -> AsyncIterator[Session]:
+    """The route's session. Async so that closing it (returning its connection to the pool) runs
+    on the event loop the moment the response is ready, instead of queueing for a worker thread
+    while the connection stays checked out (issue 16: under load that wait emptied the pool)."""
     session = request.app.state.sessionmaker()
     try:
         yield session
@@ -50,13 +53,17 @@ def unauthorized() -> HTTPException:
 
 
 def optional_owner(
-    session: Annotated[Session, Depends(get_session)],
+    request: Request,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> str | None:
-    """The owner of the Bearer key; None without one; 401 for a key that is not valid."""
+    """The owner of the Bearer key; None without one; 401 for a key that is not valid.
+
+    The key is checked in a session of its own, closed before this returns, so no pooled
+    connection is held while the request waits for a thread to run its route."""
     if credentials is None:
         return None
-    owner = owner_for_key(session, credentials.credentials)
+    with request.app.state.sessionmaker() as session:
+        owner = owner_for_key(session, credentials.credentials)
     if owner is None:
         raise unauthorized()
     return owner
@@ -69,6 +76,10 @@ def current_owner(owner: Annotated[str | None, Depends(optional_owner)]) -> str:
     return owner
 
 
+MAX_PAGE_OFFSET = 1_000_000_000  # far past any real listing; keeps OFFSET inside every database's integer
+
+PageLimit = Annotated[int, Query(ge=1, le=100, description="items per page")]
+PageOffset = Annotated[int, Query(ge=0, le=MAX_PAGE_OFFSET, description="items to skip")]
 SessionDep = Annotated[Session, Depends(get_session)]
 StorageDep = Annotated[Storage, Depends(get_storage)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]

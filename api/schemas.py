@@ -7,7 +7,7 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 
-from pydantic import BaseModel, ConfigDict, Field, create_model
+from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
 from service.job_types import JobType
 from service.models import JobState
@@ -25,6 +25,10 @@ def job_request_model(job_type: JobType) -> type[BaseModel]:
         type=(Literal[job_type.value], ...),
         **{job_type.input_field: (str, ...)},
         params=(job_type.params, ... if default is None else default),
+        webhook=(
+            Annotated[HttpUrl, UrlConstraints(max_length=2048)] | None,
+            Field(default=None, description="POSTed, signed, when the job ends (service.webhooks)"),
+        ),
     )
 
 
@@ -103,6 +107,12 @@ class JobLinks(BaseModel):
     self: str
     artifacts: str
     cancel: str
+
+
+class JobLogs(BaseModel):
+    job_id: str
+    lines: list[str] = Field(description="log lines from the requested offset on, oldest first")
+    next_offset: int = Field(description="the offset to ask for next time (lines seen so far)")
 
 
 class JobOut(BaseModel):

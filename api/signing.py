@@ -10,31 +10,12 @@ from __future__ import annotations
 
 import hashlib
 import hmac
-import os
-import secrets
 import time
-from pathlib import Path
 from urllib.parse import urlencode
 
-from service.settings import Settings
+from service.settings import signing_key
 
-KEY_FILE = "signing.key"
-
-
-def signing_key(settings: Settings) -> bytes:
-    """The configured key, else the data dir's key file (created on first use, readable by the owner only)."""
-    if settings.signing_key:
-        return settings.signing_key.encode()
-    path = settings.resolved_data_dir() / KEY_FILE
-    if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:  # another process created it first
-            return Path(path).read_text().strip().encode()
-        with os.fdopen(fd, "w") as handle:
-            handle.write(secrets.token_hex(32))
-    return path.read_text().strip().encode()
+__all__ = ["signed_url", "signing_key", "verify"]
 
 
 def _signature(key: bytes, path: str, expires: int) -> str:

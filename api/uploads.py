@@ -121,6 +121,7 @@ def validate_scene(
         cameras = load(folder / cameras_file)
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
+    _check_cameras(cameras, settings)
     if not video_sizes:
         raise UploadRejected("video: at least one video part is required")
     if len(video_sizes) > settings.max_videos:
@@ -156,6 +157,32 @@ def validate_scene(
     )
 
 
+def _check_cameras(cameras: dict[str, Camera], settings: Settings) -> None:
+    """Count, size and plausible intrinsics/extrinsics of every camera, with or without a video:
+    the worker renders every camera, so a camera's pixels cost memory even with no footage."""
+    from fluidcore.cameras import CameraError, check_ranges
+
+    if len(cameras) > settings.max_cameras:
+        raise UploadRejected(f"cameras: {len(cameras)} cameras, more than the limit of {settings.max_cameras}")
+    total = 0
+    for camera in cameras.values():
+        pixels = camera.width * camera.height
+        if pixels > settings.max_camera_pixels:
+            raise UploadRejected(
+                f"cameras: camera {camera.name!r} is {camera.width}x{camera.height}, more than the limit of "
+                f"{settings.max_camera_pixels} pixels per camera"
+            )
+        total += pixels
+        try:
+            check_ranges(camera)
+        except CameraError as exc:
+            raise UploadRejected(f"cameras: {exc}") from None
+    if total > settings.max_scene_pixels:
+        raise UploadRejected(
+            f"cameras: {total} pixels over all cameras, more than the limit of {settings.max_scene_pixels} per scene"
+        )
+
+
 def _check_video(filename: str, info: VideoInfo, camera: Camera, settings: Settings) -> None:
     """Limits from the settings, and exactly the camera's frame size (its intrinsics are in those pixels)."""
     from fluidcore.cameras import CameraError, check_video_size
@@ -167,11 +194,7 @@ def _check_video(filename: str, info: VideoInfo, camera: Camera, settings: Setti
         raise UploadRejected(
             f"video: {filename} lasts {seconds:.1f} s, longer than the limit of {settings.max_video_seconds:g} s"
         )
-    if info.width * info.height > settings.max_video_pixels:
-        raise UploadRejected(
-            f"video: {filename} is {info.width}x{info.height}, more than {settings.max_video_pixels} pixels"
-        )
-    try:
+    try:  # the camera's size is within the pixel limits (_check_cameras), so then is the video's
         check_video_size(camera, filename, info.width, info.height)
     except CameraError as exc:
         raise UploadRejected(str(exc)) from None

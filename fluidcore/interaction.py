@@ -61,9 +61,10 @@ class WindParams(BaseModel):
     @field_validator("direction")
     @classmethod
     def _unit_direction(cls, direction: Vec3) -> Vec3:
-        norm = math.sqrt(sum(c * c for c in direction))
-        if norm < 1e-9:
-            raise ValueError("direction must be a non-zero vector")
+        # hypot, not sqrt(sum of squares): squaring 1e300 overflows and the "unit" vector became 0.
+        norm = math.hypot(*direction)
+        if not norm >= 1e-9:
+            raise ValueError(f"direction must be a non-zero vector, got {list(direction)}")
         return (direction[0] / norm, direction[1] / norm, direction[2] / norm)
 
     @model_validator(mode="after")

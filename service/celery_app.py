@@ -10,7 +10,10 @@ Production choices, each for a reason:
 - soft limit (the job fails cleanly with a message) below the hard limit (the child is killed);
 - no result backend: job state lives in the service's own database;
 - the broker's visibility timeout outlasts the hard time limit, otherwise Redis would
-  hand a still-running job to a second worker.
+  hand a still-running job to a second worker. A dead worker's job does not wait for it: the
+  job's heartbeat stops, and the API's reaper (service.queue.reap_stale) sends it again once the
+  lease (16 s) has passed; the message Redis hands out hours later finds the job finished, or
+  running under a newer lease token, and is dropped.
 """
 
 from __future__ import annotations

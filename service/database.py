@@ -12,18 +12,28 @@ from sqlalchemy.orm import Session, sessionmaker
 
 ROOT = Path(__file__).resolve().parents[1]
 SQLITE_BUSY_MS = 30_000
+POOL_TIMEOUT_S = 10
 
 
-def make_engine(url: str) -> Engine:
-    """An engine; SQLite gets WAL, a busy timeout and foreign keys, since API and worker write at once."""
+def make_engine(url: str, pool_size: int = 5) -> Engine:
+    """An engine; SQLite gets WAL, a busy timeout and foreign keys, since API and worker write at once.
+
+    `pool_size` connections at most, no overflow: the API admits that many requests at once
+    (api.middleware.AdmissionLimit), so a wait for a connection means something is wrong and
+    ends after POOL_TIMEOUT_S with a 503 rather than stalling every request behind it."""
+    pool = {"pool_size": pool_size, "max_overflow": 0, "pool_timeout": POOL_TIMEOUT_S}
     if url.startswith("sqlite"):
         path = url.split("///", 1)[-1]
         if path and path != ":memory:":
             Path(path).parent.mkdir(parents=True, exist_ok=True)
-        engine = create_engine(url, connect_args={"timeout": SQLITE_BUSY_MS / 1000, "check_same_thread": False})
+        else:
+            pool = {}  # an in-memory database is one connection, not a pool
+        engine = create_engine(
+            url, connect_args={"timeout": SQLITE_BUSY_MS / 1000, "check_same_thread": False}, **pool
+        )
         event.listen(engine, "connect", _sqlite_pragmas)
         return engine
-    return create_engine(url, pool_pre_ping=True)
+    return create_engine(url, pool_pre_ping=True, **pool)
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

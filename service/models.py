@@ -114,6 +114,10 @@ class Job(Base):
     task_id: Mapped[str | None] = mapped_column(String(64), default=None)
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    # Fencing token: raised by every claim; a runner writes to the job only while it still holds
+    # the token it claimed with, so a runner whose lease was taken over stops instead of racing.
+    lease_token: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    webhook_url: Mapped[str | None] = mapped_column(String(2048), default=None)  # service.webhooks
 
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)

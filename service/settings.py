@@ -9,6 +9,7 @@ folder and a kombu filesystem broker. Pointing `database_url`, `broker_url` or
 from __future__ import annotations
 
 import os
+import secrets
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal
@@ -59,9 +60,23 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="whole multipart request")
     max_video_bytes: int = Field(default=1024**3, gt=0)
     max_video_seconds: float = Field(default=120.0, gt=0)
-    max_video_pixels: int = Field(default=3840 * 2160, gt=0)
     max_videos: int = Field(default=16, gt=0)
     max_predict_frames: int = Field(default=600, gt=0)
+
+    # Limits against overload and oversized input (issue 16; docs/service.md "Limits").
+    max_concurrent_requests: int = Field(
+        default=8, gt=0, description="API requests inside the app at once; more wait, holding nothing"
+    )
+    max_concurrent_uploads: int = Field(default=4, gt=0, description="scene uploads inside the app at once")
+    max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")
+    max_cameras_bytes: int = Field(default=4 * 1024**2, gt=0, description="the uploaded cameras file")
+    max_cameras: int = Field(default=64, gt=0, description="cameras in one cameras file")
+    max_camera_pixels: int = Field(
+        default=3840 * 2160, gt=0, description="width x height of one camera (its video has the same size)"
+    )
+    max_scene_pixels: int = Field(
+        default=4 * 3840 * 2160, gt=0, description="width x height summed over a scene's cameras"
+    )
 
     # Worker.
     work_dir: Path | None = Field(default=None, description="worker-local run cache; default data_dir/work")
@@ -70,7 +85,7 @@ class Settings(BaseSettings):
     job_soft_time_limit: int = Field(default=6 * 3600, gt=0, description="seconds; the job fails cleanly")
     job_hard_time_limit: int = Field(default=6 * 3600 + 300, gt=0, description="seconds; the child is killed")
     job_lease_seconds: int = Field(
-        default=900, gt=0, description="a running job silent this long is taken over by another worker"
+        default=16, ge=4, description="a running job without a heartbeat this long is taken over (heartbeat: a quarter of it)"
     )
     max_transient_retries: int = Field(default=3, ge=0)
     max_job_attempts: int = Field(
@@ -113,3 +128,22 @@ class Settings(BaseSettings):
 def get_settings() -> Settings:
     """The process-wide settings (tests build their own `Settings` and pass them to `create_app`)."""
     return Settings()
+
+
+KEY_FILE = "signing.key"
+
+
+def signing_key(settings: Settings) -> bytes:
+    """The configured key, else the data dir's key file (created on first use, readable by the owner only)."""
+    if settings.signing_key:
+        return settings.signing_key.encode()
+    path = settings.resolved_data_dir() / KEY_FILE
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:  # another process created it first
+            return Path(path).read_text().strip().encode()
+        with os.fdopen(fd, "w") as handle:
+            handle.write(secrets.token_hex(32))
+    return path.read_text().strip().encode()

@@ -57,6 +57,11 @@ def run_prefix(job_id: str) -> str:
     return f"{job_prefix(job_id)}/run"
 
 
+def log_key(job_id: str) -> str:
+    """The job's log lines (worker.execution.JobLog), all attempts, for GET /v1/jobs/{id}/logs."""
+    return f"{job_prefix(job_id)}/log.txt"
+
+
 def check_key(key: str) -> str:
     """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
     if not key or "\\" in key or any(part in ("", ".", "..") for part in key.split("/")):

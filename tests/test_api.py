@@ -299,8 +299,10 @@ def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) 
     parent = reconstruct(service, alice, scene_id).json()["id"]
     interact = {"type": "interact", "parent_job_id": parent,
                 "params": {"frames": 10, "wind": {"direction": [1, 0, 0], "strength": 2.0}}}
-    early = service.client.post("/v1/jobs", json=interact, headers=alice)
-    assert early.status_code == 409 and "queued" in early.json()["detail"]
+    early = service.client.post("/v1/jobs", json=interact, headers=alice)  # waits for its parent (service.chaining)
+    assert early.status_code == 202 and early.json()["stage"] == f"waiting for job {parent}"
+    assert service.queue.sent == [(parent, "reconstruct")]
+    service.client.post(f"/v1/jobs/{early.json()['id']}/cancel", headers=alice)
 
     succeed_with_run(service, parent)
     created = service.client.post("/v1/jobs", json=interact, headers=alice)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import shutil
 import socket
+import threading
 import time
 from dataclasses import dataclass
 from datetime import timedelta
@@ -19,11 +20,14 @@ from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from service import webhooks
+from service.chaining import release_children
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
-from service.settings import Settings
-from service.storage import Storage, job_prefix, run_prefix
+from service.queue import RESUME_STAGE, JobQueue
+from service.settings import Settings, signing_key
+from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
 from worker.runners import JobCancelled, Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
@@ -31,6 +35,12 @@ log = logging.getLogger(__name__)
 
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
+MAX_LOG_BYTES = 1024 * 1024
+
+
+class LeaseLost(Exception):
+    """Another runner claimed the job (our heartbeats stopped reaching the database for longer
+    than the lease): stop at once and write nothing more; the job is the new runner's."""
 
 
 class JobBusy(Exception):
@@ -75,6 +85,7 @@ class Claim:
     params: dict
     scene_id: str | None
     ancestors: tuple[str, ...]  # parent job first, then its parent, ...: the runs this one continues
+    token: int  # the job's lease_token this claim set
 
 
 class JobExecutor:
@@ -86,7 +97,11 @@ class JobExecutor:
         runners: dict[str, Runner],
         device: str = "cpu",
         worker_name: str | None = None,
+        queue: JobQueue | None = None,
     ) -> None:
+        """`queue` sends the jobs waiting on a job that succeeded (service.chaining); without one,
+        they stay waiting (tests that drive single jobs)."""
+        self.queue = queue
         self.settings = settings
         self.sessions = sessions
         self.storage = storage
@@ -107,19 +122,33 @@ class JobExecutor:
         if claim is None:
             return None
         try:
-            return self._run_claimed(claim)
+            with JobLog(self.storage, job_id) as job_log:
+                log.info("job %s (%s): attempt with lease token %d on %s", job_id, claim.job_type, claim.token,
+                         self.worker_name)
+                return self._run_claimed(claim, job_log)
+        except LeaseLost:  # the folder may be the new runner's too (same machine): leave it
+            log.warning("job %s: lease lost to another runner; stopped", job_id)
+            return None
         finally:  # storage holds the checkpoints and results; the local copies would only pile up
-            shutil.rmtree(self._folder(claim.job_id).root, ignore_errors=True)
+            if self._holds(claim):
+                shutil.rmtree(self._folder(claim.job_id).root, ignore_errors=True)
+
+    def _holds(self, claim: Claim) -> bool:
+        with session_scope(self.sessions) as session:
+            return session.scalar(select(Job.lease_token).where(Job.id == claim.job_id)) == claim.token
 
     def _folder(self, job_id: str) -> JobFolder:
         return JobFolder(self.work_dir / "jobs" / job_id)
 
-    def _run_claimed(self, claim: Claim) -> str:
+    def _run_claimed(self, claim: Claim, job_log: JobLog) -> str:
         job_id = claim.job_id
-        reporter = ProgressReporter(self.sessions, job_id)
+        reporter = ProgressReporter(self.sessions, job_id, claim.token)
+        reporter.start_heartbeat(self.settings.job_lease_seconds / 4)
         try:
-            files = self._execute(claim, reporter)
+            files = self._execute(claim, reporter, job_log)
             self._publish(claim, files, reporter)
+        except LeaseLost:
+            raise
         except JobCancelled:
             return self.finish(job_id, JobState.CANCELLED, reporter, stage="cancelled")
         except ValueError as exc:  # fluidcore's bad-input errors name the field: show them as they are
@@ -133,6 +162,8 @@ class JobExecutor:
         except Exception as exc:
             log.exception("job %s failed", job_id)
             return self.finish(job_id, JobState.FAILED, reporter, error=f"{type(exc).__name__}: {exc}")
+        finally:
+            reporter.stop_heartbeat()
         return self.finish(job_id, JobState.SUCCEEDED, reporter, stage="done")
 
     def claim(self, job_id: str) -> Claim | None:
@@ -151,18 +182,21 @@ class JobExecutor:
             lease = timedelta(seconds=self.settings.job_lease_seconds)
             if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
                 raise JobBusy((job.heartbeat_at + lease - now).total_seconds())
-            # Found running with an expired lease: the last attempt died (e.g. hard time limit, OOM kill).
-            if job.state == JobState.RUNNING and job.attempts >= self.settings.max_job_attempts:
+            # Found running with an expired lease, or sent again by the reaper (service.queue): the
+            # last attempt died (e.g. hard time limit, OOM kill).
+            lost = job.state == JobState.RUNNING or job.stage == RESUME_STAGE
+            if lost and job.attempts >= self.settings.max_job_attempts:
                 job.state, job.finished_at = JobState.FAILED, now
                 job.error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
                 return None
             job.state, job.stage, job.error = JobState.RUNNING, "preparing", None
             job.started_at = job.started_at or now
             job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
+            job.lease_token += 1
             log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
-            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job))
+            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job), job.lease_token)
 
-    def _execute(self, claim: Claim, reporter: ProgressReporter) -> list[Path]:
+    def _execute(self, claim: Claim, reporter: ProgressReporter, job_log: JobLog) -> list[Path]:
         folder = self._folder(claim.job_id)
         mirror = FolderMirror(self.storage, folder.run(claim.job_id), run_prefix(claim.job_id))
         resumed = mirror.pull()
@@ -172,7 +206,12 @@ class JobExecutor:
 
         def progress(fraction: float, stage: str) -> None:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
+            if reporter.cancelled:  # honoured at every report, so in stages without frames too
+                raise JobCancelled(f"cancelled during {stage}")
+            with session_scope(self.sessions) as session:  # a superseded runner must not push checkpoints
+                reporter.owned(session)
             mirror.push()
+            job_log.flush()
 
         inputs = RunInputs(
             job_id=claim.job_id,
@@ -185,8 +224,12 @@ class JobExecutor:
             should_cancel=reporter.cancel_requested,
             **self._fetch_inputs(claim, folder),
         )
+        if reporter.cancel_requested():  # fetching the inputs can take a while
+            raise JobCancelled("cancelled while preparing")
         files = self.runners[claim.job_type](inputs)
         mirror.push()
+        if reporter.cancel_requested():
+            raise JobCancelled("cancelled before publishing")
         return files
 
     def _fetch_inputs(self, claim: Claim, folder: JobFolder) -> dict[str, object]:
@@ -217,16 +260,23 @@ class JobExecutor:
         manifest, states)."""
         reporter.report(RUN_SHARE, "publish")
         rows = []
-        for path in files:
-            folder, kind, camera, content_type = _published_as(path)
-            key = f"{job_prefix(claim.job_id)}/{folder}/{path.name}"
-            self.storage.put_file(key, path, content_type)
-            rows.append(
-                Artifact(
-                    job_id=claim.job_id, name=f"{folder}/{path.name}", kind=kind, camera=camera, key=key,
-                    size=path.stat().st_size, content_type=content_type,
+        uploaded: list[str] = []
+        try:
+            for path in files:
+                folder, kind, camera, content_type = _published_as(path)
+                key = f"{job_prefix(claim.job_id)}/{folder}/{path.name}"
+                self.storage.put_file(key, path, content_type)
+                uploaded.append(key)
+                rows.append(
+                    Artifact(
+                        job_id=claim.job_id, name=f"{folder}/{path.name}", kind=kind, camera=camera, key=key,
+                        size=path.stat().st_size, content_type=content_type,
+                    )
                 )
-            )
+        except BaseException:  # no half-published set: the retry uploads them all again
+            for key in uploaded:
+                self.storage.delete(key)
+            raise
         prefix = run_prefix(claim.job_id)
         for info in self.storage.list(f"{prefix}/"):
             name = info.key[len(prefix) + 1 :]
@@ -237,6 +287,7 @@ class JobExecutor:
                          content_type=content_type)
             )
         with session_scope(self.sessions) as session:
+            reporter.owned(session)  # still ours: a superseded runner must not publish
             session.execute(delete(Artifact).where(Artifact.job_id == claim.job_id))
             session.add_all(rows)
 
@@ -248,7 +299,7 @@ class JobExecutor:
     ) -> str:
         """Put the job in an end state (also used by the task when transient retries run out)."""
         with session_scope(self.sessions) as session:
-            job = session.get(Job, job_id)
+            job = reporter.owned(session) if reporter is not None else session.get(Job, job_id)
             assert job is not None
             job.state, job.error, job.finished_at = state, error, utcnow()
             job.stage = stage or job.stage
@@ -256,15 +307,23 @@ class JobExecutor:
                 job.stage_seconds = reporter.final_stage_seconds()
             if state == JobState.SUCCEEDED:
                 job.progress = 1.0
+            webhook = (job.webhook_url, job.owner, webhooks.payload(job)) if job.webhook_url else None
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
+        if webhook is not None:
+            url, owner, body = webhook
+            secret = webhooks.owner_secret(signing_key(self.settings), owner)
+            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body)
+        if self.queue is not None:
+            with self.sessions() as session:
+                release_children(session, job_id, self.queue)
         return state.value
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:
         """A transient fault: give the job back (no live lease) so the retry can claim it at once."""
         try:
             with session_scope(self.sessions) as session:
-                job = session.get(Job, job_id)
-                if job is not None and job.state == JobState.RUNNING:
+                job = reporter.owned(session)
+                if job.state == JobState.RUNNING:
                     job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to retry", None
                     job.stage_seconds = reporter.final_stage_seconds()
         except Exception:  # the database itself may be what failed; the lease then expires on its own
@@ -280,17 +339,77 @@ def _ancestors(session: Session, job: Job) -> tuple[str, ...]:
     return tuple(chain)
 
 
+class JobLog(logging.Handler):
+    """The job's log lines, kept in storage (`log_key`) so the API can show them while it runs.
+
+    Captures INFO and above from the `worker`, `service` and `fluidcore` loggers while the job
+    runs (one job per process), appended to the lines of earlier attempts. `flush` uploads the
+    whole text when something new arrived; at most MAX_LOG_BYTES are kept (a runaway loop must
+    not fill storage), then one line says the rest was dropped."""
+
+    LOGGERS = ("worker", "service", "fluidcore")
+
+    def __init__(self, storage: Storage, job_id: str) -> None:
+        super().__init__(logging.INFO)
+        self.storage, self.key = storage, log_key(job_id)
+        self.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        try:
+            self.text = storage.read_bytes(self.key).decode(errors="replace")
+        except ObjectNotFound:
+            self.text = ""
+        self._dirty = False
+        self._levels: dict[str, int] = {}
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if len(self.text) >= MAX_LOG_BYTES:
+            return
+        line = self.format(record) + "\n"
+        if len(self.text) + len(line) > MAX_LOG_BYTES:
+            line = f"... log truncated at {MAX_LOG_BYTES} bytes\n"
+        self.text += line
+        self._dirty = True
+
+    def __enter__(self) -> JobLog:
+        for name in self.LOGGERS:
+            logger = logging.getLogger(name)
+            self._levels[name] = logger.level
+            if logger.level == logging.NOTSET or logger.level > logging.INFO:
+                logger.setLevel(logging.INFO)
+            logger.addHandler(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for name, level in self._levels.items():
+            logging.getLogger(name).removeHandler(self)
+            logging.getLogger(name).setLevel(level)
+        try:
+            self.flush()
+        except StorageError:  # the job's outcome is in the database already; only lines are lost
+            log.warning("job log %s: could not be stored", self.key, exc_info=True)
+
+    def flush(self) -> None:
+        if self._dirty:
+            self._dirty = False
+            self.storage.put_bytes(self.key, self.text.encode(), "text/plain")
+
+
 class ProgressReporter:
     """Writes progress, stage, per-stage seconds and the lease heartbeat to the job row.
 
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
 
-    def __init__(self, sessions: sessionmaker[Session], job_id: str, stage: str = "preparing") -> None:
-        self.sessions, self.job_id = sessions, job_id
+    def __init__(
+        self, sessions: sessionmaker[Session], job_id: str, token: int | None = None, stage: str = "preparing"
+    ) -> None:
+        self.sessions, self.job_id, self.token = sessions, job_id, token
+        self._lost = False
+        self._stop = threading.Event()
+        self._heartbeat: threading.Thread | None = None
         self._stage: str | None = stage
         self._stage_started = time.monotonic()
         self._last_write = 0.0
+        self.cancelled = False  # cancel_requested as of the last write
         with session_scope(sessions) as session:
             job = session.get(Job, job_id)
             self._seconds: dict[str, float] = dict(job.stage_seconds or {}) if job else {}
@@ -300,15 +419,45 @@ class ProgressReporter:
         stage_changed = stage != self._stage
         self._accumulate(now)
         self._stage = stage
+        if stage_changed:
+            log.info("job %s: stage %s (progress %.0f%%)", self.job_id, stage, 100 * fraction)
         if not stage_changed and now - self._last_write < DB_WRITE_INTERVAL_S:
             return
         self._last_write = now
         with session_scope(self.sessions) as session:
-            job = session.get(Job, self.job_id)
-            if job is None:
-                return
+            job = self.owned(session)
             job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
+            self.cancelled = job.cancel_requested
+
+    def owned(self, session: Session) -> Job:
+        """The job row, if this runner still holds its lease token; else LeaseLost."""
+        job = session.get(Job, self.job_id)
+        if self._lost or job is None or (self.token is not None and job.lease_token != self.token):
+            self._lost = True
+            raise LeaseLost(f"job {self.job_id} was claimed by another runner")
+        return job
+
+    def start_heartbeat(self, period_s: float) -> None:
+        """Refresh `heartbeat_at` every `period_s` from a thread, so a stage that reports no
+        progress for a long time (a big prepare, one slow frame) never looks dead."""
+        self._heartbeat = threading.Thread(target=self._beat, args=(period_s,), name=f"heartbeat-{self.job_id}", daemon=True)
+        self._heartbeat.start()
+
+    def stop_heartbeat(self) -> None:
+        self._stop.set()
+        if self._heartbeat is not None:
+            self._heartbeat.join()
+
+    def _beat(self, period_s: float) -> None:
+        while not self._stop.wait(period_s):
+            try:
+                with session_scope(self.sessions) as session:
+                    self.owned(session).heartbeat_at = utcnow()
+            except LeaseLost:
+                return  # the runner finds out at its next report
+            except Exception:  # database unreachable: keep trying; the lease decides who runs
+                log.warning("job %s: heartbeat failed", self.job_id, exc_info=True)
 
     def cancel_requested(self) -> bool:
         with session_scope(self.sessions) as session:

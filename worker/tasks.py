@@ -19,6 +19,7 @@ from service.celery_app import make_celery, task_name
 from service.database import make_engine, make_sessionmaker
 from service.job_types import JobType
 from service.models import JobState
+from service.queue import CeleryQueue
 from service.settings import get_settings
 from service.storage import make_storage
 from worker.execution import TRANSIENT_ERRORS, JobBusy, JobExecutor
@@ -42,7 +43,7 @@ def executor() -> JobExecutor:
     engine = make_engine(settings.resolved_database_url())
     return JobExecutor(
         settings, make_sessionmaker(engine), make_storage(settings), dict(load_runners(settings.runners)),
-        device=device, worker_name=f"{os.uname().nodename}:{os.getpid()}",
+        device=device, worker_name=f"{os.uname().nodename}:{os.getpid()}", queue=CeleryQueue(settings),
     )
 
 

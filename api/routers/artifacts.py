@@ -10,13 +10,14 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from api.deps import OptionalOwnerDep, OwnerDep, SessionDep, SettingsDep, StorageDep, unauthorized
+from api.errors import error_responses
 from api.routers.jobs import owned_job
 from api.schemas import ArtifactList, ArtifactOut
 from api.signing import signed_url, signing_key, verify
 from service.models import Artifact, Job
 from service.storage import ObjectNotFound
 
-router = APIRouter(prefix="/v1/jobs", tags=["artifacts"])
+router = APIRouter(prefix="/v1/jobs", tags=["artifacts"], responses=error_responses(401, 422, 503))
 
 _RANGE = re.compile(r"^bytes=(\d*)-(\d*)$")
 
@@ -54,7 +55,7 @@ def artifact_path(job_id: str, name: str) -> str:
     return f"/v1/jobs/{job_id}/artifacts/{quote(name)}"
 
 
-@router.get("/{job_id}/artifacts", response_model=ArtifactList)
+@router.get("/{job_id}/artifacts", response_model=ArtifactList, responses=error_responses(404))
 def list_artifacts(
     job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
 ) -> ArtifactList:
@@ -78,7 +79,12 @@ def list_artifacts(
 @router.get(
     "/{job_id}/artifacts/{name:path}",
     response_class=StreamingResponse,
-    responses={200: {"content": {"video/mp4": {}, "application/octet-stream": {}}}, 206: {"description": "a byte range"}},
+    responses={
+        200: {"content": {"video/mp4": {}, "application/octet-stream": {}}},
+        206: {"description": "a byte range"},
+        **error_responses(403, 404, 416),
+    },
+    openapi_extra={"security": [{"HTTPBearer": []}, {}]},  # the key, or none with a signed link
 )
 def download_artifact(
     job_id: str,

@@ -7,23 +7,29 @@ import json
 from datetime import UTC, datetime
 from typing import Annotated
 
-from fastapi import APIRouter, Body, Header, HTTPException, Query, Response, status
+from fastapi import APIRouter, Body, Header, HTTPException, Response, status
 from sqlalchemy import delete, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import owned_scene
-from api.schemas import JobLinks, JobOut, JobRequest, JobTimings, Page
+from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
+from service.chaining import release_children, waiting_stage
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
 from service.queue import QueueUnavailable
 from service.settings import Settings
-from service.storage import ObjectNotFound, Storage, job_prefix, run_prefix
+from service.storage import ObjectNotFound, Storage, job_prefix, log_key, run_prefix
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+router = APIRouter(
+    prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute, responses=error_responses(401, 422, 503)
+)
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+@router.post(
+    "", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409, 413)
+)
 def create_job(
     request: Annotated[JobRequest, Body()],
     owner: OwnerDep,
@@ -34,7 +40,12 @@ def create_job(
     response: Response,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> JobOut:
-    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job."""
+    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job.
+
+    A continuation may name a parent that is still queued or running: it waits (stage "waiting
+    for job PARENT") and starts when the parent succeeds, or fails saying why the parent did not.
+    """
+    idempotency_key = idempotency_key or None  # an empty header is no key
     body = request.model_dump(mode="json")
     request_hash = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
     if idempotency_key is not None:
@@ -43,7 +54,7 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
-    _check_references(session, storage, owner, request, settings)
+    waits_for = _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
         type=request.type,
@@ -52,6 +63,8 @@ def create_job(
         params=body["params"],
         idempotency_key=idempotency_key,
         request_hash=request_hash,
+        stage=waiting_stage(waits_for) if waits_for else "queued",
+        webhook_url=body.get("webhook"),
     )
     session.add(job)
     try:
@@ -64,6 +77,10 @@ def create_job(
         response.headers["Idempotent-Replayed"] = "true"
         return job_out(existing)
 
+    if waits_for:  # sent by whoever sees the parent end; it may have ended since the check above
+        release_children(session, waits_for, queue)
+        session.refresh(job)
+        return job_out(job)
     try:
         job.task_id = queue.enqueue(job.id, job.type)
     except QueueUnavailable as exc:
@@ -82,8 +99,8 @@ def list_jobs(
     type: JobType | None = None,
     scene_id: str | None = None,
     parent_job_id: str | None = None,
-    limit: Annotated[int, Query(ge=1, le=100)] = 20,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: PageLimit = 20,
+    offset: PageOffset = 0,
 ) -> Page[JobOut]:
     """The caller's jobs, newest first, optionally filtered."""
     query = select(Job).where(Job.owner == owner)
@@ -96,12 +113,25 @@ def list_jobs(
     return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset, next_offset=next_offset)
 
 
-@router.get("/{job_id}", response_model=JobOut)
+@router.get("/{job_id}", response_model=JobOut, responses=error_responses(404))
 def get_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     return job_out(owned_job(session, job_id, owner))
 
 
-@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut)
+@router.get("/{job_id}/logs", response_model=JobLogs, responses=error_responses(404))
+def get_job_logs(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, offset: PageOffset = 0) -> JobLogs:
+    """The job's log lines so far (every attempt), from line `offset` on: poll with `next_offset`."""
+    job = owned_job(session, job_id, owner)
+    try:
+        lines = storage.read_bytes(log_key(job.id)).decode(errors="replace").splitlines()
+    except ObjectNotFound:
+        lines = []
+    return JobLogs(job_id=job.id, lines=lines[offset:], next_offset=max(offset, len(lines)))
+
+
+@router.post(
+    "/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409)
+)
 def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     """A queued job is cancelled at once; a running one stops at its next frame boundary."""
     job = owned_job(session, job_id, owner, for_update=True)
@@ -114,7 +144,7 @@ def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
     return job_out(job)
 
 
-@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
 def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
     """Delete a finished job, its run folder and its artifacts; refused (409) while it runs or has
     continuations."""
@@ -153,8 +183,10 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
 
 def _check_references(
     session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
-) -> None:
-    """The scene or parent job exists, belongs to the caller, and fits the parameters."""
+) -> str | None:
+    """The scene or parent job exists, belongs to the caller, and fits the parameters.
+
+    Returns the parent's id when the new job has to wait for it (queued or running)."""
     if JobType(request.type).starts_from == "scene":
         scene = owned_scene(session, request.scene_id, owner)
         frames = request.params.frames
@@ -163,12 +195,12 @@ def _check_references(
                 status.HTTP_422_UNPROCESSABLE_CONTENT,
                 f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
             )
-        return
-    # Any succeeded job can be continued: every job type leaves the same run-folder format.
+        return None
+    # Any job can be continued: every job type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
-    if parent.state != JobState.SUCCEEDED:
+    if parent.state in (JobState.FAILED, JobState.CANCELLED):
         raise HTTPException(
-            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it must have succeeded first"
+            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it cannot be continued"
         )
     frames = getattr(request.params, "frames", None)
     if frames is not None and frames > settings.max_predict_frames:
@@ -176,8 +208,11 @@ def _check_references(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
             f"params.frames: at most {settings.max_predict_frames} new frames per job",
         )
+    if parent.state != JobState.SUCCEEDED:
+        return parent.id  # the run scene is checked by the worker once the parent's run exists
     if isinstance(request.params, InteractParams):
         _check_in_run_scene(storage, parent.id, request.params)
+    return None
 
 
 def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:

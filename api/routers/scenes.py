@@ -7,20 +7,21 @@ import tempfile
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, HTTPException, Query, UploadFile, status
+from fastapi import APIRouter, File, Form, HTTPException, UploadFile, status
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep
+from api.errors import error_responses
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
 from service.models import Job, JobState, Scene, new_id
 from service.storage import Storage, run_prefix, scene_prefix
 
-router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
+router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut)
+@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut, responses=error_responses(400, 413))
 def create_scene(
     owner: OwnerDep,
     session: SessionDep,
@@ -48,7 +49,7 @@ def create_scene(
         cameras_name = None
         if cameras is not None:
             cameras_name = safe_filename(cameras.filename, "cameras")
-            spool(cameras.file, folder / cameras_name, settings.max_video_bytes, "cameras")
+            spool(cameras.file, folder / cameras_name, settings.max_cameras_bytes, "cameras")
         sizes: dict[str, int] = {}
         for part in video:
             filename = safe_filename(part.filename, "video")
@@ -78,8 +79,8 @@ def create_scene(
 def list_scenes(
     owner: OwnerDep,
     session: SessionDep,
-    limit: Annotated[int, Query(ge=1, le=100)] = 20,
-    offset: Annotated[int, Query(ge=0)] = 0,
+    limit: PageLimit = 20,
+    offset: PageOffset = 0,
 ) -> Page[SceneOut]:
     """The caller's scenes, newest first."""
     total = session.scalar(select(func.count()).select_from(Scene).where(Scene.owner == owner)) or 0
@@ -92,7 +93,7 @@ def list_scenes(
     )
 
 
-@router.get("/{scene_id}", response_model=SceneOut)
+@router.get("/{scene_id}", response_model=SceneOut, responses=error_responses(404))
 def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> SceneOut:
     """The scene, with its geometry in world units (box, source, camera centres) to place a ball."""
     scene = owned_scene(session, scene_id, owner)
@@ -126,7 +127,7 @@ def capture_geometry(cameras_path: Path) -> SceneGeometry:
     return SceneGeometry.model_validate(scene_info.from_cameras_file(cameras_path))
 
 
-@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT)
+@router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
 def delete_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
     """Delete a scene and its files; refused (409) while jobs made from it still exist."""
     scene = owned_scene(session, scene_id, owner)

@@ -80,6 +80,37 @@ def _check_size(value: object, field_name: str) -> int:
     return int(number)
 
 
+MIN_FIELD_OF_VIEW_DEG = 0.5  # a 4000 mm lens on a full-frame sensor; nothing narrower films smoke
+MAX_FIELD_OF_VIEW_DEG = 170.0  # past a fisheye, which a pinhole model cannot describe anyway
+MAX_PRINCIPAL_OFFSET = 1.0  # principal point at most one image size outside the frame
+MAX_CAMERA_DISTANCE = 1.0e6  # world units from the origin
+
+
+def check_ranges(camera: Camera) -> None:
+    """Raise CameraError for values a Camera accepts but no real capture has: a field of view
+    outside [MIN, MAX]_FIELD_OF_VIEW_DEG on either axis, a principal point more than
+    MAX_PRINCIPAL_OFFSET image sizes outside the frame, a centre farther than MAX_CAMERA_DISTANCE.
+
+    Construction only needs values to be finite; these bounds keep a typo (fl_x 1e-300, cx 1e300)
+    from reaching the worker, where it overflows pixel grids instead of failing with a message.
+    """
+    for axis, focal, size in (("x", camera.fx, camera.width), ("y", camera.fy, camera.height)):
+        fov = math.degrees(2.0 * math.atan(0.5 * size / focal))
+        if not MIN_FIELD_OF_VIEW_DEG <= fov <= MAX_FIELD_OF_VIEW_DEG:
+            raise CameraError(
+                f"camera {camera.name!r}: fl_{axis} = {focal:g} gives a {fov:.3g} degree field of view over "
+                f"{size} pixels; expected {MIN_FIELD_OF_VIEW_DEG:g} to {MAX_FIELD_OF_VIEW_DEG:g} degrees"
+            )
+    for key, value, size in (("cx", camera.cx, camera.width), ("cy", camera.cy, camera.height)):
+        if not -MAX_PRINCIPAL_OFFSET * size <= value <= (1.0 + MAX_PRINCIPAL_OFFSET) * size:
+            raise CameraError(f"camera {camera.name!r}: {key} = {value:g} is far outside the {size}-pixel frame")
+    distance = math.hypot(*camera.center())  # no overflow warning for an absurd translation
+    if distance > MAX_CAMERA_DISTANCE:
+        raise CameraError(
+            f"camera {camera.name!r}: centre is {distance:.3g} units from the origin (at most {MAX_CAMERA_DISTANCE:g})"
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class Camera:
     """A calibrated pinhole camera: intrinsics in pixels and a world-to-camera pose (OpenCV axes).

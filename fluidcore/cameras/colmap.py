@@ -15,9 +15,13 @@ and the unpacked size is capped, so an upload cannot write elsewhere or fill the
 
 from __future__ import annotations
 
+import ctypes
+import signal
+import sys
 import tempfile
 import zipfile
 from pathlib import Path, PurePosixPath
+from types import ModuleType
 
 import numpy as np
 
@@ -57,13 +61,42 @@ def load_colmap_dir(folder: Path) -> dict[str, Camera]:
     model_dir = find_model_dir(folder)
     if model_dir is None:
         raise CameraError(f"{folder.name}: no COLMAP model (cameras.bin/.txt and images.bin/.txt) found")
-    import pycolmap
-
+    pycolmap = _import_pycolmap()
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
     except (ValueError, RuntimeError) as error:
         raise CameraError(f"{folder.name}: unreadable COLMAP model: {error}") from None
     return cameras_from_reconstruction(reconstruction, folder.name)
+
+
+# glog's failure handler, which importing pycolmap installs, takes these over from the process.
+_FAILURE_SIGNALS = (signal.SIGSEGV, signal.SIGILL, signal.SIGFPE, signal.SIGABRT, signal.SIGBUS, signal.SIGTERM)
+_SIGACTION_BYTES = 256  # more than struct sigaction on any Linux ABI; kept opaque, only copied back
+
+
+def _import_pycolmap() -> ModuleType:
+    """`import pycolmap`, keeping the process's own signal handlers.
+
+    The import installs glog's failure handler for SIGTERM among others, silently replacing what
+    the process had: `fluidnexus serve` then died on SIGTERM with a stack dump (exit 143) instead
+    of stopping cleanly, after any COLMAP upload. The handlers are saved and put back around the
+    first import with sigaction(2) itself, which (unlike `signal.signal`) works from the request
+    threads the API validates uploads on.
+    """
+    if "pycolmap" in sys.modules or not sys.platform.startswith("linux"):
+        import pycolmap
+
+        return pycolmap
+    libc = ctypes.CDLL(None, use_errno=True)
+    saved = {signum: ctypes.create_string_buffer(_SIGACTION_BYTES) for signum in _FAILURE_SIGNALS}
+    for signum, action in saved.items():
+        libc.sigaction(int(signum), None, action)
+    try:
+        import pycolmap
+    finally:
+        for signum, action in saved.items():
+            libc.sigaction(int(signum), action, None)
+    return pycolmap
 
 
 def load_colmap_zip(path: Path) -> dict[str, Camera]:

@@ -9,7 +9,8 @@ then at the top level (nerfstudio allows both), in this order:
   1. `fl_x`, `fl_y` (fl_y defaults to fl_x), `cx`, `cy` (default w/2, h/2), `w`, `h`;
   2. `camera_angle_x` (horizontal field of view, radians) with the size from `camera_hw` = [H, W]
      or `w`/`h`, or, as PINF does, from the entry's video (`file_name`/`file_path`) when
-     that file exists; square pixels and a centred principal point.
+     that file exists inside the camera file's folder; square pixels and a centred principal
+     point.
 
 Lens distortion: nerfstudio's OPENCV model (`k1`, `k2`, `k3`, `p1`, `p2`) becomes the camera's
 `distortion` (OpenCV order k1 k2 p1 p2 k3); the reconstruction undistorts the frames with OpenCV
@@ -43,6 +44,8 @@ def read_json(path: Path) -> dict[str, Any]:
         data = json.loads(path.read_text(encoding="utf-8-sig"))
     except (UnicodeDecodeError, json.JSONDecodeError) as error:
         raise CameraError(f"{path.name}: not valid JSON ({error})") from error
+    except RecursionError:  # Python's parser recurses per nesting level; no camera file nests deeply
+        raise CameraError(f"{path.name}: JSON nested too deeply") from None
     if not isinstance(data, dict):
         raise CameraError(f"{path.name}: top level must be a JSON object, got {type(data).__name__}")
     return data
@@ -165,15 +168,27 @@ def _image_size(path: Path, data: dict[str, Any], entry: dict[str, Any], video: 
         if not isinstance(hw, (list, tuple)) or len(hw) != 2:
             raise CameraError(f"camera_hw must be [height, width], got {hw!r}")
         return _size(hw[1], "camera_hw[1] (width)"), _size(hw[0], "camera_hw[0] (height)")
-    if video and (path.parent / video).is_file():
+    video_file = _file_in_folder(path.parent, video) if video else None
+    if video_file is not None:
         from fluidcore.video import VideoError, probe
 
         try:
-            info = probe(path.parent / video)
+            info = probe(video_file)
         except VideoError as error:
             raise CameraError(f"missing fields w/h, and the size cannot be read from {video}: {error}") from None
         return info.width, info.height
-    raise CameraError("missing fields w and h (or camera_hw, or a readable video in file_path)")
+    raise CameraError(
+        "missing fields w and h (or camera_hw, or a readable video in file_path inside the cameras file's folder)"
+    )
+
+
+def _file_in_folder(folder: Path, relative: str) -> Path | None:
+    """The file `relative` names if it lies inside `folder` (an absolute path, `..` or a link
+    leading out does not count), else None. A camera file is user input: on a server it must not
+    make the reader open, or reveal the existence of, any file but the ones uploaded with it."""
+    root = folder.resolve()
+    candidate = (root / relative).resolve()
+    return candidate if candidate.is_relative_to(root) and candidate.is_file() else None
 
 
 def _distortion(data: dict[str, Any], entry: dict[str, Any]) -> tuple[float, ...]:

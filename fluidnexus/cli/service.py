@@ -7,6 +7,8 @@ torch: the embedded worker is a separate process that does.
 
 from __future__ import annotations
 
+import ctypes
+import functools
 import os
 import signal
 import subprocess
@@ -30,6 +32,10 @@ DataDir = Annotated[
     typer.Option("--data-dir", help="database, storage and broker folder (default $FLUIDNEXUS_DATA_DIR, else ~/.local/share/fluidnexus)"),
 ]
 WORKER_STOP_TIMEOUT_S = 30
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+# Longer than clients keep an idle connection (httpx and browsers: 5 s or more), so the server
+# never closes one just as a client reuses it (a "server disconnected" error under load).
+KEEP_ALIVE_S = 20
 
 
 def _settings(data_dir: Path | None) -> Settings:
@@ -65,7 +71,7 @@ def serve(
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
     try:
         app = create_app(settings.model_copy(update={"migrate_on_start": False}), queue=queue)  # migrated above
-        uvicorn.run(app, host=host, port=port)
+        uvicorn.run(app, host=host, port=port, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
         if process is not None:
             _stop_worker(process)
@@ -85,7 +91,20 @@ def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
     ]
     # Its own process group: a Ctrl-C meant for the server does not also hit the worker mid-boot,
     # and stopping signals the worker's pool children along with it.
-    return subprocess.Popen(command, env=env, start_new_session=True)
+    die_with_server = functools.partial(_die_with_parent, os.getpid()) if sys.platform.startswith("linux") else None
+    return subprocess.Popen(command, env=env, start_new_session=True, preexec_fn=die_with_server)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Runs in the worker's process before it execs Celery: the kernel SIGKILLs it when the server
+    dies, however it dies (`kill -9` included), and Celery's pool children die with it (they
+    ask the same of their parent). Otherwise a killed server leaves its worker running a job
+    that the next server's worker would start again beside it."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent_pid:  # the server died before the line above took effect
+        os._exit(1)
 
 
 def _stop_worker(process: subprocess.Popen[bytes]) -> None:

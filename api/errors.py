@@ -1,0 +1,173 @@
+"""Error answers: one body shape for every 4xx/5xx, documented per route in the OpenAPI schema,
+and the handlers that produce it.
+
+Every error is `{"detail": ...}`: a sentence for 400/401/403/404/405/409/413/416/503, and for 422 either a
+sentence (checks the API makes itself, e.g. "params.frames: end 90 is past the scene's 60
+frames") or pydantic's list of field errors. Clients and schema-driven fuzzers can rely on it
+because `error_responses` puts exactly that shape into the schema.
+
+Request JSON is parsed strictly (`StrictJSONRoute`): NaN / Infinity literals and nesting deep
+enough to exhaust the parser are a 422 before any model sees them, because Python's `json`
+accepts the first and raises RecursionError on the second.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Coroutine
+from typing import Any
+
+from fastapi import FastAPI, Request, Response
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
+from pydantic import BaseModel, ConfigDict, Field
+from sqlalchemy.exc import TimeoutError as PoolTimeout
+from starlette.routing import Match
+
+from service.storage import StorageError
+from api.uploads import UploadRejected
+
+
+class FieldError(BaseModel):
+    """One pydantic validation error: where (`loc`), what (`msg`, `type`)."""
+
+    model_config = ConfigDict(extra="allow")
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class Message(BaseModel):
+    detail: str = Field(description="what went wrong, in one sentence")
+
+
+class ValidationFailure(BaseModel):
+    detail: str | list[FieldError] = Field(description="a sentence, or pydantic's field errors")
+
+
+_DESCRIPTIONS = {
+    400: "malformed multipart body",
+    401: "missing or invalid API key",
+    403: "signed download link invalid or expired",
+    404: "no such resource for this API key",
+    409: "conflicts with the resource's state (the message says which)",
+    413: "request body or an uploaded file over its size limit",
+    416: "byte range outside the file",
+    422: "invalid input (the message names the field)",
+    503: "database, broker or storage unavailable; retry later",
+}
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """The `responses=` entry documenting `codes` with the body shape they really have."""
+    return {
+        code: {"model": ValidationFailure if code == 422 else Message, "description": _DESCRIPTIONS[code]}
+        for code in codes
+    }
+
+
+class JSONRejected(json.JSONDecodeError):
+    """A body Python's json would accept (NaN) or crash on (deep nesting), but JSON does not allow."""
+
+
+def _no_constants(name: str) -> float:
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def strict_json(body: bytes) -> Any:
+    """`json.loads` without NaN/Infinity and with deep nesting refused, both as JSONDecodeError
+    (FastAPI answers those with a 422)."""
+    text = body.decode("utf-8", errors="replace")
+    try:
+        return json.loads(text, parse_constant=_no_constants)
+    except ValueError as exc:
+        if isinstance(exc, json.JSONDecodeError):
+            raise
+        raise JSONRejected(str(exc), text[:200], 0) from None
+    except RecursionError:
+        raise JSONRejected("JSON nested too deeply", text[:200], 0) from None
+
+
+class _StrictJSONRequest(Request):
+    async def json(self) -> Any:
+        if not hasattr(self, "_json"):
+            self._json = strict_json(await self.body())
+        return self._json
+
+
+class StrictJSONRoute(APIRoute):
+    """An APIRoute whose request JSON is parsed by `strict_json`."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def strict_handler(request: Request) -> Response:
+            return await handler(_StrictJSONRequest(request.scope, request.receive))
+
+        return strict_handler
+
+
+def _finite(value: Any) -> Any:
+    """`value` with non-finite floats written as strings, so an error that echoes them serialises."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(item) for item in value]
+    return value
+
+
+async def validation_failed(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    return JSONResponse({"detail": _finite(jsonable_encoder(exc.errors()))}, status_code=422)
+
+
+async def upload_rejected(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, UploadRejected)
+    return JSONResponse({"detail": str(exc)}, status_code=exc.status_code)
+
+
+async def storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """Object storage down or full: the request may succeed later, nothing was half-written."""
+    return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503)
+
+
+async def database_busy(request: Request, exc: Exception) -> JSONResponse:
+    """No pooled database connection came in time: say so (and when to retry) instead of a 500."""
+    return JSONResponse({"detail": "database busy; retry shortly"}, status_code=503, headers={"Retry-After": "1"})
+
+
+HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, Any, JSONResponse]]] = {
+    RequestValidationError: validation_failed,
+    UploadRejected: upload_rejected,
+    StorageError: storage_unavailable,
+    PoolTimeout: database_busy,
+}
+
+
+API_PATHS = ("/v1/{rest:path}", "/healthz", "/readyz")
+ALL_METHODS = ["GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"]
+
+
+def add_unmatched_routes(app: FastAPI, routes: list[APIRoute]) -> None:
+    """Answer an unknown path (404) or method (405 with the route's real `Allow`) under the API's
+    paths in the API's own shape. Without this the web folder mounted at `/` takes every such
+    request and answers 405 `Allow: GET, HEAD` for, say, OPTIONS /v1/jobs. Add it after the API
+    routers (whose `routes` it is given) and before that mount: the router tries routes in order."""
+
+    async def unmatched(request: Request) -> JSONResponse:
+        allowed = sorted({m for r in routes if r.matches(request.scope)[0] == Match.PARTIAL for m in r.methods})
+        if allowed:
+            return JSONResponse(
+                {"detail": f"method {request.method} not allowed; use {', '.join(allowed)}"},
+                status_code=405,
+                headers={"Allow": ", ".join(allowed)},
+            )
+        return JSONResponse({"detail": f"no route {request.url.path}"}, status_code=404)
+
+    for path in API_PATHS:
+        app.add_api_route(path, unmatched, methods=ALL_METHODS, include_in_schema=False)

@@ -1,0 +1,374 @@
+"""Load on a live `fluidnexus serve` over loopback: pollers, listers and uploads at once (issue 16).
+
+    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--json]
+
+Starts `fluidnexus serve --no-worker` on 127.0.0.1 with a fresh data folder (`--backend
+postgres`: a fresh database on the local PostgreSQL and a key prefix of its own on the local
+Redis, both removed afterwards), creates a key, a scene and one job, then for `--seconds` runs
+  - `--clients` closed-loop clients, half polling the job (GET /v1/jobs/{id}), half listing
+    (GET /v1/jobs/{id}/artifacts and GET /v1/jobs, alternately);
+  - `--uploads` clients uploading a two-camera scene (POST /v1/scenes) again and again;
+  - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own.
+Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
+answers by class (2xx/4xx/5xx), timeouts and connection errors. Everything is bounded: the
+clients stop at the deadline, the server is stopped after, and nothing but 127.0.0.1 is
+contacted. The server's threads are not limited: it gets what the machine has (2 cores here,
+shared with this client).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import uuid
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import typer
+
+if __package__ in (None, ""):  # `python bench/load.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from fluidnexus.cli.errors import UserError, echo_json, user_errors  # noqa: E402
+
+HOST = "127.0.0.1"  # loopback only: this benchmark never targets another address
+PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
+REDIS_URL = "redis://127.0.0.1:6379/0"
+HEALTH_PERIOD_S = 0.25
+STARTUP_TIMEOUT_S = 60.0
+
+
+@dataclass
+class Server:
+    base_url: str
+    key: str
+    job_id: str
+    scene: dict[str, tuple[str, bytes, str]]  # multipart parts: field -> (filename, content, type)
+    backend: str
+
+
+@dataclass
+class RouteStats:
+    latencies: list[float] = field(default_factory=list)
+    classes: dict[str, int] = field(default_factory=lambda: defaultdict(int))
+    examples: list[str] = field(default_factory=list)  # the first few failures, for diagnosis
+
+    def record(self, outcome: str, seconds: float, failure: str | None = None) -> None:
+        self.classes[outcome] += 1
+        if outcome in ("2xx", "4xx", "5xx"):
+            self.latencies.append(seconds)
+        if failure is not None and len(self.examples) < 3:
+            self.examples.append(failure)
+
+    def summary(self, seconds: float) -> dict[str, Any]:
+        ordered = sorted(self.latencies)
+
+        def quantile(q: float) -> float | None:
+            return ordered[min(len(ordered) - 1, int(q * len(ordered)))] if ordered else None
+
+        return {
+            "requests": sum(self.classes.values()),
+            "requests_per_s": len(ordered) / seconds,
+            "p50_s": quantile(0.50),
+            "p99_s": quantile(0.99),
+            "max_s": ordered[-1] if ordered else None,
+            **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error")},
+            "failures": self.examples,
+        }
+
+
+def tiny_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
+    """Two 32x24 cameras with a six-frame video each: a complete, valid upload of a few kB."""
+    import numpy as np
+
+    from fluidcore.video import write_mp4
+
+    frames = []
+    for name, x in (("left", -0.5), ("right", 0.5)):
+        frames.append({
+            "camera": name, "fl_x": 38.4, "fl_y": 38.4, "cx": 16, "cy": 12, "w": 32, "h": 24,
+            "transform_matrix": [[1, 0, 0, x], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]],
+        })
+        clip = np.full((6, 24, 32, 3), 40, dtype=np.uint8)
+        clip[:, 8:16, 10:20] = 200
+        write_mp4(folder / f"{name}.mp4", clip, fps=30.0)
+    parts = {"cameras": ("transforms.json", json.dumps({"frames": frames}).encode(), "application/json")}
+    for name in ("left", "right"):
+        parts[name] = (f"{name}.mp4", (folder / f"{name}.mp4").read_bytes(), "video/mp4")
+    return parts
+
+
+def multipart(scene: dict[str, tuple[str, bytes, str]]) -> list[tuple[str, tuple[str, bytes, str]]]:
+    return [("cameras" if name == "cameras" else "video", part) for name, part in scene.items()]
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind((HOST, 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
+    """FLUIDNEXUS_* variables for the backend; PostgreSQL database and Redis keys removed afterwards."""
+    env = {"FLUIDNEXUS_DATA_DIR": str(data_dir)}
+    if backend == "sqlite":
+        yield env
+        return
+    from sqlalchemy import create_engine, text
+
+    name = f"fnx_load_{uuid.uuid4().hex[:10]}"
+    prefix = f"{name}:"
+    admin = create_engine(PG_ADMIN_URL, isolation_level="AUTOCOMMIT")
+    try:
+        with admin.connect() as connection:
+            connection.execute(text(f'CREATE DATABASE "{name}"'))
+    except Exception as exc:
+        raise UserError(f"--backend postgres needs PostgreSQL on 127.0.0.1:5432 ({exc.__class__.__name__})") from None
+    try:
+        yield {
+            **env,
+            "FLUIDNEXUS_DATABASE_URL": f"postgresql+psycopg://postgres@127.0.0.1:5432/{name}",
+            "FLUIDNEXUS_BROKER_URL": REDIS_URL,
+            "FLUIDNEXUS_BROKER_KEY_PREFIX": prefix,
+        }
+    finally:
+        with admin.connect() as connection:
+            connection.execute(text(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)'))
+        admin.dispose()
+        import redis
+
+        client = redis.Redis.from_url(REDIS_URL)
+        for key in client.scan_iter(f"{prefix}*"):
+            client.delete(key)
+
+
+@contextmanager
+def live_server(backend: str, log: Path | None = None) -> Iterator[Server]:
+    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job."""
+    import httpx
+
+    fluidnexus = Path(sys.executable).with_name("fluidnexus")
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-load-") as tmp, backend_env(backend, Path(tmp) / "data") as env:
+        env = {**os.environ, **env}
+        key = subprocess.run([fluidnexus, "keys", "create", "--owner", "load"], env=env, check=True,
+                             capture_output=True, text=True).stdout.strip()
+        port = free_port()
+        base_url = f"http://{HOST}:{port}"
+        out = (log or Path(tmp) / "server.log").open("w")
+        process = subprocess.Popen([fluidnexus, "serve", "--host", HOST, "--port", str(port), "--no-worker"],
+                                   env=env, stdout=out, stderr=subprocess.STDOUT)
+        try:
+            _wait_healthy(base_url, process)
+            scene = tiny_scene(Path(tmp))
+            headers = {"Authorization": f"Bearer {key}"}
+            with httpx.Client(base_url=base_url, headers=headers, timeout=30) as client:
+                created = client.post("/v1/scenes", files=multipart(scene))
+                created.raise_for_status()
+                job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": created.json()["id"]})
+                job.raise_for_status()
+            yield Server(base_url, key, job.json()["id"], scene, backend)
+        finally:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(30)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+            out.close()
+
+
+def _wait_healthy(base_url: str, process: subprocess.Popen[bytes]) -> None:
+    import httpx
+
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            raise UserError(f"fluidnexus serve exited with {process.returncode} before answering")
+        try:
+            if httpx.get(f"{base_url}/healthz", timeout=1).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        time.sleep(0.2)
+    raise UserError(f"fluidnexus serve did not answer within {STARTUP_TIMEOUT_S:g} s")
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection with requests prepared as bytes.
+
+    A deliberately small client: httpx spends several milliseconds of CPU per request, and with
+    220 clients on a 2-core machine the latencies it measured were mostly its own. Every answer of
+    this API carries Content-Length, so reading one is a status line, headers and that many bytes.
+    """
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.streams: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+
+    async def send(self, request: bytes) -> tuple[int, bytes]:
+        if self.streams is None:
+            self.streams = await asyncio.open_connection(HOST, self.port)
+        reader, writer = self.streams
+        writer.write(request)
+        await writer.drain()
+        status = int((await reader.readline()).split(b" ", 2)[1])
+        length = 0
+        while (line := await reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+        return status, await reader.readexactly(length)
+
+    def close(self) -> None:
+        if self.streams is not None:
+            self.streams[1].close()
+            self.streams = None
+
+
+def prepared(method: str, path: str, headers: dict[str, str], body: bytes = b"") -> bytes:
+    lines = [f"{method} {path} HTTP/1.1", f"Host: {HOST}", f"Content-Length: {len(body)}"]
+    lines += [f"{name}: {value}" for name, value in headers.items()]
+    return ("\r\n".join(lines) + "\r\n\r\n").encode() + body
+
+
+def multipart_body(scene: dict[str, tuple[str, bytes, str]], boundary: str) -> bytes:
+    body = b""
+    for name, (filename, content, content_type) in scene.items():
+        field_name = "cameras" if name == "cameras" else "video"
+        body += (f"--{boundary}\r\nContent-Disposition: form-data; name=\"{field_name}\"; filename=\"{filename}\"\r\n"
+                 f"Content-Type: {content_type}\r\n\r\n").encode() + content + b"\r\n"
+    return body + f"--{boundary}--\r\n".encode()
+
+
+async def _timed(connection: Connection, stats: RouteStats, request: bytes, timeout: float) -> None:
+    """One request with a total `timeout`; a timed-out or broken connection is replaced."""
+    start = time.perf_counter()
+    failure = None
+    try:
+        status, body = await asyncio.wait_for(connection.send(request), timeout)
+        outcome = f"{status // 100}xx"
+        if status >= 400:
+            failure = f"{status} {body[:200].decode(errors='replace')}"
+    except TimeoutError:
+        outcome, failure = "timeout", f"no answer within {timeout:g} s"
+        connection.close()
+    except (OSError, asyncio.IncompleteReadError, ValueError, IndexError) as exc:
+        outcome, failure = "error", repr(exc)
+        connection.close()
+    stats.record(outcome, time.perf_counter() - start, failure)
+
+
+async def _load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
+    import httpx
+
+    stats: dict[str, RouteStats] = defaultdict(RouteStats)
+    deadline = time.monotonic() + seconds
+    port = int(server.base_url.rsplit(":", 1)[1])
+    auth = {"Authorization": f"Bearer {server.key}"}
+    job = f"/v1/jobs/{server.job_id}"
+    boundary = uuid.uuid4().hex
+    requests = {
+        "GET /v1/jobs/{id}": prepared("GET", job, auth),
+        "GET /v1/jobs/{id}/artifacts": prepared("GET", f"{job}/artifacts", auth),
+        "GET /v1/jobs": prepared("GET", "/v1/jobs?limit=20", auth),
+        "POST /v1/scenes": prepared(
+            "POST", "/v1/scenes", {**auth, "Content-Type": f"multipart/form-data; boundary={boundary}"},
+            multipart_body(server.scene, boundary),
+        ),
+    }
+
+    async def client(routes: tuple[str, ...]) -> None:
+        connection = Connection(port)
+        try:
+            while time.monotonic() < deadline:
+                for route in routes:
+                    await _timed(connection, stats[route], requests[route], timeout)
+        finally:
+            connection.close()
+
+    def health() -> None:
+        """On a thread with its own client, so its timings are the server's, not this event loop's."""
+        with httpx.Client(base_url=server.base_url, timeout=timeout) as probe:
+            while time.monotonic() < deadline:
+                for path in ("/healthz", "/readyz"):
+                    start = time.perf_counter()
+                    try:
+                        response = probe.get(path)
+                        outcome = f"{response.status_code // 100}xx"
+                        failure = f"{response.status_code} {response.text[:200]}" if response.status_code >= 400 else None
+                    except httpx.TransportError as exc:
+                        outcome, failure = "error", repr(exc)
+                    stats[f"GET {path}"].record(outcome, time.perf_counter() - start, failure)
+                time.sleep(HEALTH_PERIOD_S)
+
+    started = time.monotonic()
+    tasks = [client(("GET /v1/jobs/{id}",)) for _ in range(clients - clients // 2)]
+    tasks += [client(("GET /v1/jobs/{id}/artifacts", "GET /v1/jobs")) for _ in range(clients // 2)]
+    tasks += [client(("POST /v1/scenes",)) for _ in range(uploads)]
+    await asyncio.gather(asyncio.to_thread(health), *tasks)
+    elapsed = time.monotonic() - started
+    routes = {route: route_stats.summary(elapsed) for route, route_stats in sorted(stats.items())}
+    return {
+        "backend": server.backend,
+        "seconds": elapsed,
+        "clients": clients,
+        "uploads": uploads,
+        "timeout_s": timeout,
+        "routes": routes,
+        "total_5xx": sum(r["5xx"] for r in routes.values()),
+        "total_timeouts": sum(r["timeout"] for r in routes.values()),
+        "total_errors": sum(r["error"] for r in routes.values()),
+        "health_max_s": max(routes[r]["max_s"] or 0.0 for r in ("GET /healthz", "GET /readyz") if r in routes),
+    }
+
+
+def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
+    """The load phase against a `live_server`; returns the JSON result."""
+    result = asyncio.run(_load(server, seconds, clients, uploads, timeout))
+    result["load_average"] = os.getloadavg()
+    result["cpus"] = os.cpu_count()
+    return result
+
+
+def command(
+    backend: str = typer.Option("sqlite", "--backend", help="sqlite (embedded) | postgres (with Redis)."),
+    seconds: float = typer.Option(60.0, "--seconds", min=1.0, max=600.0, help="How long the load runs."),
+    clients: int = typer.Option(200, "--clients", min=2, max=1000, help="Concurrent pollers + listers."),
+    uploads: int = typer.Option(20, "--uploads", min=0, max=200, help="Concurrent uploaders."),
+    timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Per-request timeout, seconds."),
+    server_log: Path | None = typer.Option(None, "--server-log", help="Keep the server's log here."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+) -> None:
+    """Requests/s and p50/p99 per route under concurrent polling, listing and uploads."""
+    with user_errors():
+        if backend not in ("sqlite", "postgres"):
+            raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
+        with live_server(backend, server_log) as server:
+            result = run_load(server, seconds, clients, uploads, timeout)
+    if json_out:
+        echo_json(result)
+        return
+    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s, timeout {timeout:g} s, "
+          f"{result['cpus']} CPUs, load {result['load_average'][0]:.2f}")
+    print(f"{'route':<30} {'req/s':>7} {'p50 s':>7} {'p99 s':>7} {'max s':>7} {'2xx':>6} {'4xx':>5} {'5xx':>5} {'t/o':>4} {'err':>4}")
+    for route, r in result["routes"].items():
+        print(f"{route:<30} {r['requests_per_s']:7.1f} {r['p50_s'] or 0:7.3f} {r['p99_s'] or 0:7.3f} {r['max_s'] or 0:7.3f} "
+              f"{r['2xx']:6d} {r['4xx']:5d} {r['5xx']:5d} {r['timeout']:4d} {r['error']:4d}")
+    print(f"5xx {result['total_5xx']}, timeouts {result['total_timeouts']}, connection errors {result['total_errors']}, "
+          f"slowest health answer {result['health_max_s']:.3f} s")
+
+
+if __name__ == "__main__":
+    typer.run(command)

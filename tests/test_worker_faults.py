@@ -1,0 +1,210 @@
+"""Faults inside one job's run (issue 16): a cancel in a stage without frames (prepare) is
+honoured, a storage error while publishing leaves nothing half-published, a runner whose job
+was taken over stops (fencing token), heartbeats keep a silent job alive, and the reaper sends a
+dead worker's job again."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import time
+from collections.abc import Iterator
+from datetime import timedelta
+from pathlib import Path
+
+import pytest
+
+from service.database import session_scope
+from service.models import Job, JobState, utcnow
+from service.storage import LocalStorage, StorageError, job_prefix
+from worker.execution import JobBusy
+from worker.runners import RunInputs
+from service.queue import reap_stale
+from service_support import FAKE_RUNNERS, fake_job, free_port, sqlite_url
+from test_worker import World
+from test_worker_celery import Deployment, redis_postgres, start_worker, stop, wait_for  # noqa: F401  fixture
+
+
+@pytest.fixture
+def world(tmp_path: Path) -> Iterator[World]:
+    world = World(tmp_path, sqlite_url(tmp_path), LocalStorage(tmp_path / "storage"))
+    yield world
+    world.engine.dispose()
+
+
+def test_a_cancel_during_prepare_is_honoured(world: World) -> None:
+    """The runner's prepare stage reports progress but has no frames, so it never asks should_cancel."""
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 3]})
+    reports = []
+
+    def long_prepare(inputs: RunInputs) -> list[Path]:
+        with session_scope(world.sessions) as session:  # the user cancels while the job prepares
+            session.get(Job, job_id).cancel_requested = True
+        for step in range(5):
+            reports.append(step)
+            inputs.progress(0.01 * step, "prepare" if step == 0 else f"prepare step {step}")
+        return fake_job(inputs)
+
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": long_prepare}).run(job_id) == "cancelled"
+    job = world.get(job_id)
+    assert job.state == JobState.CANCELLED and reports == [0]  # stopped at the first report
+    assert world.artifacts(job_id) == {}
+
+
+def test_a_cancel_while_fetching_inputs_stops_before_the_runner(world: World) -> None:
+    job_id = world.job(scene_id=world.scene())
+    executor = world.executor(runners={**FAKE_RUNNERS, "reconstruct": lambda inputs: pytest.fail("ran")})
+    fetch = executor._fetch_inputs
+
+    def slow_fetch(*args):  # type: ignore[no-untyped-def]
+        with session_scope(world.sessions) as session:
+            session.get(Job, job_id).cancel_requested = True
+        return fetch(*args)
+
+    executor._fetch_inputs = slow_fetch  # type: ignore[method-assign]
+    assert executor.run(job_id) == "cancelled"
+
+
+def test_a_storage_error_while_publishing_lists_and_keeps_nothing_half_written(world: World) -> None:
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+    put_file = world.storage.put_file
+    published = []
+
+    def full_after_one_video(key, path, content_type="application/octet-stream"):  # type: ignore[no-untyped-def]
+        if key.startswith(f"{job_prefix(job_id)}/videos"):
+            if published:
+                raise StorageError(f"put {key}: no space left on device")
+            published.append(key)
+        return put_file(key, path, content_type)
+
+    world.storage.put_file = full_after_one_video  # type: ignore[method-assign]
+    with pytest.raises(StorageError, match="no space left"):
+        world.executor().run(job_id)
+    job = world.get(job_id)
+    assert job.state == JobState.QUEUED and job.stage == "waiting to retry"  # the task retries, then fails it
+    assert world.artifacts(job_id) == {}
+    assert world.storage.list(f"{job_prefix(job_id)}/videos/") == []  # the one video that made it was removed
+
+    world.storage.put_file = put_file  # type: ignore[method-assign]
+    assert world.executor("retry").run(job_id) == "succeeded"
+    assert {a.kind for a in world.artifacts(job_id).values()} >= {"video", "orbit", "manifest"}
+
+
+def test_a_runner_whose_job_was_taken_over_stops_and_writes_nothing(world: World) -> None:
+    """One job never runs twice at once: once a second runner claims it (after the first one's
+    heartbeats stopped for a lease), the first stops at its next report, and the second finishes."""
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 4]})
+    first, second = world.executor("first"), world.executor("second")
+    outcomes = []
+
+    def taken_over_after_one_frame(inputs: RunInputs) -> list[Path]:
+        def progress(fraction: float, stage: str) -> None:
+            inputs.progress(fraction, stage)
+            if not outcomes:  # the first runner looks dead (e.g. its database link dropped for a lease)
+                with session_scope(world.sessions) as session:
+                    session.get(Job, job_id).heartbeat_at -= timedelta(seconds=world.settings.job_lease_seconds + 1)
+                outcomes.append(second.run(job_id))  # meanwhile, another worker takes the job over
+
+        return fake_job(RunInputs(**{**inputs.__dict__, "progress": progress}))
+
+    first.runners = {**FAKE_RUNNERS, "reconstruct": taken_over_after_one_frame}
+    assert first.run(job_id) is None  # stopped: LeaseLost at its next report
+    assert outcomes == ["succeeded"]
+    job = world.get(job_id)
+    assert job.state == JobState.SUCCEEDED and job.lease_token == 2 and job.worker == "second"
+    computed = world.tmp_path / "cache-first" / f"computed-{job_id}.txt"
+    assert computed.read_text().split() == ["0", "1"]  # stopped at the report of the frame in flight, unpushed
+
+
+def test_heartbeats_keep_a_job_without_progress_alive(world: World) -> None:
+    world.settings = world.settings.model_copy(update={"job_lease_seconds": 4})
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 1]})
+    claims = []
+
+    def silent_for_two_leases(inputs: RunInputs) -> list[Path]:
+        time.sleep(6)  # no progress report: only the heartbeat thread says the job is alive
+        try:
+            world.executor("second").claim(job_id)
+            claims.append("claimed")
+        except JobBusy as busy:
+            claims.append(f"busy {busy.retry_in:.0f}")
+        return fake_job(inputs)
+
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": silent_for_two_leases}).run(job_id) == "succeeded"
+    assert claims and claims[0].startswith("busy")
+
+
+def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
+    from service.queue import RESUME_STAGE
+    from service_support import RecordingQueue
+
+    lease = world.settings.job_lease_seconds
+    stale = world.job(scene_id=world.scene(), state=JobState.RUNNING, heartbeat_at=utcnow() - timedelta(seconds=lease + 1))
+    alive = world.job(scene_id="s1", state=JobState.RUNNING, heartbeat_at=utcnow())
+    spent = world.job(scene_id="s1", state=JobState.RUNNING, attempts=3,
+                      heartbeat_at=utcnow() - timedelta(seconds=lease + 1))
+    queue = RecordingQueue()
+    assert sorted(reap_stale(world.sessions, queue, lease)) == sorted([stale, spent])
+    assert reap_stale(world.sessions, queue, lease) == []  # taken once
+    assert world.get(stale).state == JobState.QUEUED and world.get(stale).stage == RESUME_STAGE
+    assert world.get(alive).state == JobState.RUNNING
+    assert world.executor().run(stale) == "succeeded"  # resumes
+    assert world.executor().run(spent) is None  # out of attempts: failed, not run again
+    assert "gave up after 3 attempts" in world.get(spent).error
+
+
+def test_a_killed_workers_job_is_picked_up_within_30_s(redis_postgres: Deployment) -> None:
+    """Redis + PostgreSQL, real worker processes: the whole first worker is killed mid-job; its
+    message stays unacknowledged in Redis (visibility timeout: hours), so what brings the job back
+    is the lease (16 s) and the reaper, run here every quarter lease as the API runs it."""
+    deployment = redis_postgres
+    lease = deployment.settings.job_lease_seconds
+    first = start_worker(deployment.settings, frame_seconds=0.4)
+    second = None
+    try:
+        job_id = deployment.submit(frames=30)
+        wait_for(lambda: len(deployment.storage.list(f"jobs/{job_id}/run/states/")) >= 3, 120, "three checkpoints")
+        stop(first, signal.SIGKILL)
+        killed = time.monotonic()
+        second = start_worker(deployment.settings, frame_seconds=0.4)
+        while (job := deployment.job(job_id)).lease_token < 2 and time.monotonic() - killed < 60:
+            reap_stale(deployment.sessions, deployment.queue, lease)
+            time.sleep(lease / 4)
+        picked_up = time.monotonic() - killed
+        assert job.lease_token == 2 and job.state == JobState.RUNNING, job.state
+        assert picked_up < 30, f"picked up {picked_up:.1f} s after the kill"
+        print(f"picked up {picked_up:.1f} s after the kill (lease {lease} s)")
+        wait_for(lambda: deployment.job(job_id).state == JobState.SUCCEEDED, 120, "the resumed job to succeed")
+    finally:
+        stop(first, signal.SIGKILL)
+        if second is not None:
+            stop(second)
+
+
+@pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server")
+def test_a_redis_restart_during_a_run_loses_no_job(tmp_path: Path) -> None:
+    """A private Redis (append-only file, as docker-compose.yml runs it) is restarted while one job
+    runs and another waits in its queue: both finish, none is left running."""
+    port = free_port()
+    command = ["redis-server", "--port", str(port), "--bind", "127.0.0.1", "--appendonly", "yes", "--save", "",
+               "--dir", str(tmp_path), "--logfile", str(tmp_path / "redis.log")]
+    redis = subprocess.Popen(command)
+    deployment = Deployment(tmp_path, sqlite_url(tmp_path), f"redis://127.0.0.1:{port}/0")
+    worker = start_worker(deployment.settings, frame_seconds=0.3)
+    try:
+        running, waiting = deployment.submit(frames=16), deployment.submit(frames=2)
+        wait_for(lambda: len(deployment.storage.list(f"jobs/{running}/run/states/")) >= 3, 120, "three checkpoints")
+        redis.terminate()
+        redis.wait(30)
+        redis = subprocess.Popen(command)
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline and {deployment.job(j).state for j in (running, waiting)} != {JobState.SUCCEEDED}:
+            reap_stale(deployment.sessions, deployment.queue, deployment.settings.job_lease_seconds)
+            time.sleep(1)
+        assert [deployment.job(j).state for j in (running, waiting)] == [JobState.SUCCEEDED] * 2
+    finally:
+        stop(worker)
+        redis.terminate()
+        redis.wait(30)
+        deployment.engine.dispose()
