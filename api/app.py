@@ -10,9 +10,10 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from api.routers import artifacts, health, jobs, scenes
+from api.routers import artifacts, health, jobs, particles, scenes
 from api.uploads import UploadRejected
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue
@@ -31,7 +32,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         yield
         app.state.engine.dispose()
 
-    app = FastAPI(
+    # FastAPIOffline: /docs and /redoc load Swagger UI / ReDoc from the installed package, not a CDN,
+    # so the reference renders on a machine without internet.
+    app = FastAPIOffline(
         title="FluidNexus",
         summary="Reconstruct smoke from video, predict it, and ask what-if questions.",
         version="0.1.0",
@@ -46,7 +49,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.add_middleware(BodySizeLimit, limit=settings.max_upload_bytes)
     app.add_exception_handler(UploadRejected, _upload_rejected)
     app.add_exception_handler(StorageError, _storage_unavailable)
-    for router in (scenes.router, jobs.router, artifacts.router, health.router):
+    for router in (scenes.router, jobs.router, artifacts.router, particles.router, health.router):
         app.include_router(router)
     if settings.web_dir.is_dir():  # mounted last: API routes take precedence over files
         app.mount("/", StaticFiles(directory=settings.web_dir, html=True), name="web")

@@ -1,0 +1,178 @@
+"""The browser UI in headless Chromium (Debian's `chromium`, driven by the `playwright` package)
+against a real `fluidnexus serve` with its embedded worker running fluidcore's pipeline on a
+tiny synthetic scene: sign in (a wrong key first), upload (a bad upload first), reconstruct,
+chain a prediction onto the running reconstruction, play the results, refuse a ball outside
+the box, run a wind and a ball what-if and play each next to the factual prediction.
+
+One journey in one test: the reconstruction it waits for is what every later step needs.
+Screenshots of every screen go to docs/screens/ (README shows them) when
+FLUIDNEXUS_SCREENSHOTS=1, else to the test's temporary folder.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from test_service_e2e import Server
+
+pytestmark = pytest.mark.browser
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+ROOT = Path(__file__).resolve().parents[1]
+JOB_TIMEOUT_MS = 240_000
+NEW_FRAMES = 2
+
+if not Path(CHROMIUM).is_file():
+    pytest.skip("Debian's chromium is not installed (.ci/run installs it)", allow_module_level=True)
+sync_api = pytest.importorskip("playwright.sync_api")
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    server = Server(tmp_path_factory.mktemp("web") / "data")
+    yield server
+    server.stop()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    with sync_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(
+            executable_path=CHROMIUM,
+            # WebGL through the software rasteriser: there is no GPU in CI
+            args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--autoplay-policy=no-user-gesture-required"],
+        )
+        yield browser
+        browser.close()
+
+
+@pytest.fixture
+def screens(tmp_path: Path) -> Path:
+    folder = ROOT / "docs" / "screens" if os.environ.get("FLUIDNEXUS_SCREENSHOTS") == "1" else tmp_path
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path] | Path]:
+    """A 2-frame, 2-camera synthetic plume, a video matching no camera and one of the wrong size."""
+    from fluidcore import synth
+    from service_support import write_video
+
+    folder = tmp_path_factory.mktemp("scene")
+    transforms = synth.write(synth.generate(synth.SynthSpec(frames=2, width=24, height=32, views=2)), folder / "scene")
+    videos = sorted((transforms.parent / "videos").glob("*.mp4"))
+    wrong_size = write_video(folder / videos[0].name, width=32, height=24, n_frames=2)
+    unknown = write_video(folder / "nobody.mp4", width=24, height=32, n_frames=2)
+    return {"cameras": transforms, "videos": videos, "wrong_size": wrong_size, "unknown": unknown}
+
+
+def row(page, kind: str, nth: int = 0):  # type: ignore[no-untyped-def]
+    """The nth row (newest first) of the jobs table for jobs of one type."""
+    return page.locator("#jobs-table tbody tr", has=page.locator(".job-title", has_text=kind)).nth(nth)
+
+
+def wait_all_succeeded(page, count: int) -> None:  # type: ignore[no-untyped-def]
+    page.wait_for_function(
+        """n => { const s = [...document.querySelectorAll('#jobs-table .job-state')].map(c => c.textContent);
+                 if (s.some(x => x === 'failed' || x === 'cancelled')) throw new Error('a job ended ' + s);
+                 return s.length === n && s.every(x => x === 'succeeded'); }""",
+        arg=count, timeout=JOB_TIMEOUT_MS, polling=1000,
+    )
+
+
+def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
+    page.wait_for_function("() => [...document.querySelectorAll('#players video')].length >= 2 && "
+                           "[...document.querySelectorAll('#players video')].every(v => v.readyState >= 2)",
+                           timeout=30_000)
+    page.get_by_role("button", name="Play").click()
+    page.wait_for_function("() => { const v = document.querySelector('#players video'); return v.currentTime > 0 || v.ended; }",
+                           timeout=30_000)
+
+
+def test_browser_journey(server: Server, browser, scene: dict, screens: Path) -> None:  # type: ignore[no-untyped-def]
+    page = browser.new_page(viewport={"width": 1366, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.goto(f"http://127.0.0.1:{server.port}/")
+
+    # sign in: a wrong key is refused in words, the real one lands on the job list
+    page.get_by_label("API key").fill("fnx_0123456789abcdef_" + "x" * 40)
+    page.get_by_role("button", name="Sign in").click()
+    sync_api.expect(page.locator("#signin-error")).to_contain_text("not accepted: it is wrong or has been revoked")
+    page.screenshot(path=screens / "signin.png")
+    page.get_by_label("API key").fill(server.client.headers["Authorization"].removeprefix("Bearer "))
+    page.get_by_role("button", name="Sign in").click()
+    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+
+    # a bad upload is explained before anything is sent
+    page.get_by_role("button", name="Upload", exact=True).click()
+    page.locator("#upload-files").set_input_files([scene["cameras"], scene["wrong_size"], scene["unknown"]])
+    problems = page.locator("#upload-problems")
+    sync_api.expect(problems).to_contain_text("nobody.mp4 matches no camera")
+    sync_api.expect(problems).to_contain_text("must have its camera's exact frame size")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    page.screenshot(path=screens / "upload-problems.png", full_page=True)
+
+    page.get_by_role("button", name="Clear").click()
+    page.locator("#upload-files").set_input_files([scene["cameras"], *scene["videos"]])
+    sync_api.expect(page.locator("#video-list canvas")).to_have_count(len(scene["videos"]))
+    sync_api.expect(page.locator("#camera-summary")).to_contain_text(f"{len(scene['videos'])} cameras")
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    page.get_by_label("End frame").fill("2")
+    page.screenshot(path=screens / "upload.png", full_page=True)
+    page.locator("#upload-button").click()
+    sync_api.expect(page.locator("#notice")).to_contain_text("uploaded; reconstruction")
+
+    # chaining: a prediction started on the unfinished reconstruction waits for it
+    page.get_by_label("New frames for Predict").fill(str(NEW_FRAMES))
+    row(page, "reconstruct").get_by_role("button", name="Predict").click()
+    sync_api.expect(row(page, "predict").locator(".job-stage")).to_contain_text("waiting for job")
+    page.screenshot(path=screens / "jobs.png", full_page=True)
+    wait_all_succeeded(page, 2)
+
+    # results: players in sync, plots from the manifest, downloads
+    row(page, "reconstruct").get_by_role("button", name="Results").click()
+    play_first_video(page)
+    sync_api.expect(page.locator("#plots figure")).to_have_count(4)
+    sync_api.expect(page.locator("#downloads a", has_text="manifest.json")).to_have_count(1)
+    page.screenshot(path=screens / "results.png", full_page=True)
+
+    # what-if: the ball outside the box is refused with the box's limits; wind, then ball, are sent
+    page.get_by_role("button", name="Jobs").click()
+    row(page, "reconstruct").get_by_role("button", name="What-if").click()
+    sync_api.expect(page.locator("#box-limits")).to_contain_text("Scene box: x from")
+    page.get_by_label("New frames to simulate").fill(str(NEW_FRAMES))
+    page.get_by_label("Ball", exact=True).check()
+    page.get_by_label("ball centre x").fill("1000")
+    sync_api.expect(page.locator("#whatif-problems")).to_contain_text("Ball centre x = 1000 is outside the scene box: x must be from")
+    page.get_by_label("Ball", exact=True).uncheck()
+    page.screenshot(path=screens / "whatif.png", full_page=True)
+    page.get_by_role("button", name="Run what-if").click()
+    sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
+
+    row(page, "reconstruct").get_by_role("button", name="What-if").click()
+    sync_api.expect(page.locator("#box-limits")).to_contain_text("Scene box")
+    page.get_by_label("New frames to simulate").fill(str(NEW_FRAMES))
+    page.get_by_label("Wind", exact=True).uncheck()
+    page.get_by_label("Ball", exact=True).check()
+    sync_api.expect(page.locator("#whatif-problems")).to_be_empty()
+    page.screenshot(path=screens / "whatif-ball.png", full_page=True)
+    page.get_by_role("button", name="Run what-if").click()
+    sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
+    wait_all_succeeded(page, 4)  # reconstruct, the factual prediction, two what-ifs: no second factual
+
+    for nth, shot in ((0, "whatif-results.png"), (1, None)):
+        page.get_by_role("button", name="Jobs").click()
+        row(page, "interact", nth).get_by_role("button", name="Results").click()
+        sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
+        sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")
+        play_first_video(page)
+        if shot:
+            page.screenshot(path=screens / shot, full_page=True)
+    assert not errors, errors
