@@ -107,7 +107,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#signin-error")).to_contain_text("not accepted: it is wrong or has been revoked")
     page.screenshot(path=screens / "signin.png")
     page.get_by_label("API key").fill(server.client.headers["Authorization"].removeprefix("Bearer "))
-    page.get_by_role("button", name="Sign in").click()
+    page.keyboard.press("Enter")  # the form submits from the keyboard
     sync_api.expect(page.locator("#jobs-title")).to_be_visible()
 
     # a bad upload is explained before anything is sent
@@ -151,8 +151,8 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.get_by_label("Ball", exact=True).check()
     page.get_by_label("ball centre x").fill("1000")
     sync_api.expect(page.locator("#whatif-problems")).to_contain_text("Ball centre x = 1000 is outside the scene box: x must be from")
+    page.screenshot(path=screens / "whatif-refused.png", full_page=True)
     page.get_by_label("Ball", exact=True).uncheck()
-    page.screenshot(path=screens / "whatif.png", full_page=True)
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
 
@@ -161,6 +161,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.get_by_label("New frames to simulate").fill(str(NEW_FRAMES))
     page.get_by_label("Wind", exact=True).uncheck()
     page.get_by_label("Ball", exact=True).check()
+    page.get_by_label("ball centre x").fill("0")  # the synthetic scene's box is centred on x = 0
     sync_api.expect(page.locator("#whatif-problems")).to_be_empty()
     page.screenshot(path=screens / "whatif-ball.png", full_page=True)
     page.get_by_role("button", name="Run what-if").click()

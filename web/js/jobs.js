@@ -85,7 +85,7 @@ function updateRow(job) {
   const stateCell = tr.querySelector(".job-state");
   stateCell.textContent = job.cancel_requested && !isFinished(job) ? `${job.state} (cancelling)` : job.state;
   stateCell.className = `job-state state-${job.state}`;
-  tr.querySelector(".job-stage").textContent = job.stage;
+  tr.querySelector(".job-stage").textContent = job.stage.replace(/\b[0-9a-f]{32}\b/g, shortId);
   tr.querySelector("progress").value = job.progress;
   tr.querySelector("progress").setAttribute("aria-label", `progress of ${describeJob(job)}`);
   tr.querySelector(".job-percent").textContent = `${Math.round(job.progress * 100)} %`;

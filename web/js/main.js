@@ -10,9 +10,15 @@ import { initWhatif, leaveWhatif, showWhatif } from "./whatif.js";
 const $ = (id) => document.getElementById(id);
 const VIEWS = ["signin", "upload", "jobs", "results", "whatif"];
 
+const NOTICE_MS = 12000;
+let noticeTimer = null;
+
+/** A short message at the top (what an action did); it goes away by itself. */
 function notice(text) {
   $("notice").textContent = text;
   $("notice").hidden = !text;
+  clearTimeout(noticeTimer);
+  if (text) noticeTimer = setTimeout(() => notice(""), NOTICE_MS);
 }
 
 function show(name) {

@@ -103,12 +103,13 @@ function plot(title, frames, series, unit) {
   const opts = {
     title, width: 380, height: 220,
     scales: { x: { time: false } },
-    axes: [{ label: "frame" }, { label: unit, size: 60 }],
+    axes: [{ label: "frame", incrs: FRAME_STEPS }, { label: unit, size: 60 }],
     series: [{ label: "frame" }, ...series.map(([name], i) => ({ label: name, stroke: PALETTE[i % PALETTE.length], width: 2 }))],
   };
   plots.push(new uPlot(opts, [frames, ...series.map(([, values]) => values)], figure));
 }
 
+const FRAME_STEPS = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]; // whole frames on the x axis
 const PALETTE = ["#1d5fa8", "#c0392b", "#17692a", "#8e44ad", "#d35400", "#2c3e50"];
 const NOT_LOSSES = new Set(["input_psnr", "particles", "gaussians"]);
 
