@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from test_service_e2e import Server
+from test_service_e2e import CLI, Server
 
 pytestmark = pytest.mark.browser
 
@@ -60,7 +61,8 @@ def screens(tmp_path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path] | Path]:
-    """A 2-frame, 2-camera synthetic plume, a video matching no camera and one of the wrong size."""
+    """A 2-frame, 2-camera synthetic plume, a video matching no camera, one of the wrong size and a
+    broken COLMAP zip."""
     from fluidcore import synth
     from service_support import write_video
 
@@ -69,7 +71,9 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path] | Pa
     videos = sorted((transforms.parent / "videos").glob("*.mp4"))
     wrong_size = write_video(folder / videos[0].name, width=32, height=24, n_frames=2)
     unknown = write_video(folder / "nobody.mp4", width=24, height=32, n_frames=2)
-    return {"cameras": transforms, "videos": videos, "wrong_size": wrong_size, "unknown": unknown}
+    colmap_zip = folder / "sparse.zip"
+    colmap_zip.write_bytes(b"PK\x03\x04" + b"not a zip archive")
+    return {"cameras": transforms, "videos": videos, "wrong_size": wrong_size, "unknown": unknown, "colmap_zip": colmap_zip}
 
 
 def row(page, kind: str, nth: int = 0):  # type: ignore[no-untyped-def]
@@ -118,6 +122,13 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(problems).to_contain_text("must have its camera's exact frame size")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     page.screenshot(path=screens / "upload-problems.png", full_page=True)
+
+    # what only the server can judge (a COLMAP zip) comes back as the server's message
+    page.get_by_role("button", name="Clear").click()
+    page.locator("#upload-files").set_input_files([scene["colmap_zip"], scene["videos"][0]])
+    sync_api.expect(page.locator("#camera-summary")).to_contain_text("COLMAP model (zip); the server reads it")
+    page.locator("#upload-button").click()
+    sync_api.expect(page.locator("#upload-error")).to_contain_text("Upload refused: cameras:")
 
     page.get_by_role("button", name="Clear").click()
     page.locator("#upload-files").set_input_files([scene["cameras"], *scene["videos"]])
@@ -176,4 +187,11 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
         play_first_video(page)
         if shot:
             page.screenshot(path=screens / shot, full_page=True)
+
+    # a key revoked while signed in: the next poll sends the page back to sign-in, saying why
+    key_id = server.client.headers["Authorization"].split("_")[1]
+    subprocess.run([*CLI, "keys", "revoke", key_id, "--data-dir", str(server.data_dir)], cwd=ROOT, check=True,
+                   capture_output=True)
+    sync_api.expect(page.locator("#signin-error")).to_contain_text("no longer accepted", timeout=10_000)
+    sync_api.expect(page.locator("#nav")).to_be_hidden()
     assert not errors, errors

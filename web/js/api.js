@@ -62,7 +62,7 @@ export async function checkKey(key) {
   } catch (error) {
     if (error.status === 401) {
       throw new ApiError(401, "This API key was not accepted: it is wrong or has been revoked. "
-        + "Check that it was copied whole, or create a new one with `fluidnexus keys create --owner NAME`.");
+        + "Check that it was copied whole, or create a new one with: fluidnexus keys create --owner NAME");
     }
     throw error;
   }
