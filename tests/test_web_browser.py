@@ -81,13 +81,21 @@ def row(page, kind: str, nth: int = 0):  # type: ignore[no-untyped-def]
     return page.locator("#jobs-table tbody tr", has=page.locator(".job-title", has_text=kind)).nth(nth)
 
 
-def wait_all_succeeded(page, count: int) -> None:  # type: ignore[no-untyped-def]
+def wait_succeeded(page, count: int) -> None:  # type: ignore[no-untyped-def]
+    """Until `count` jobs succeeded and every other job is cancelled (none failed, none left running)."""
     page.wait_for_function(
         """n => { const s = [...document.querySelectorAll('#jobs-table .job-state')].map(c => c.textContent);
-                 if (s.some(x => x === 'failed' || x === 'cancelled')) throw new Error('a job ended ' + s);
-                 return s.length === n && s.every(x => x === 'succeeded'); }""",
+                 if (s.includes('failed')) throw new Error('a job failed: ' + s);
+                 return s.filter(x => x === 'succeeded').length === n && s.every(x => x === 'succeeded' || x === 'cancelled'); }""",
         arg=count, timeout=JOB_TIMEOUT_MS, polling=1000,
     )
+
+
+def drop(page, path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Drag a file onto the drop zone, as a user would from a file manager."""
+    page.locator("#drop-zone").dispatch_event("drop", {"dataTransfer": page.evaluate_handle(
+        """([name, text]) => { const d = new DataTransfer(); d.items.add(new File([text], name)); return d; }""",
+        [path.name, path.read_text()])})
 
 
 def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
@@ -131,7 +139,9 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-error")).to_contain_text("Upload refused: cameras:")
 
     page.get_by_role("button", name="Clear").click()
-    page.locator("#upload-files").set_input_files([scene["cameras"], *scene["videos"]])
+    drop(page, scene["cameras"])
+    sync_api.expect(page.locator("#camera-summary")).to_contain_text("nerfstudio transforms.json")
+    page.locator("#upload-files").set_input_files(scene["videos"])
     sync_api.expect(page.locator("#video-list canvas")).to_have_count(len(scene["videos"]))
     sync_api.expect(page.locator("#camera-summary")).to_contain_text(f"{len(scene['videos'])} cameras")
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
@@ -140,12 +150,18 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.locator("#upload-button").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("uploaded; reconstruction")
 
-    # chaining: a prediction started on the unfinished reconstruction waits for it
+    # chaining: a prediction started on the unfinished reconstruction waits for it; one is
+    # cancelled while it waits and sent again with Retry
     page.get_by_label("New frames for Predict").fill(str(NEW_FRAMES))
     row(page, "reconstruct").get_by_role("button", name="Predict").click()
     sync_api.expect(row(page, "predict").locator(".job-stage")).to_contain_text("waiting for job")
+    row(page, "predict").get_by_role("button", name="Cancel").click()
+    sync_api.expect(row(page, "predict").locator(".job-state")).to_have_text("cancelled")
+    row(page, "predict").get_by_role("button", name="Retry").click()
+    sync_api.expect(page.locator("#jobs-table tbody tr")).to_have_count(3)
+    sync_api.expect(row(page, "predict").locator(".job-state")).to_have_text("queued")
     page.screenshot(path=screens / "jobs.png", full_page=True)
-    wait_all_succeeded(page, 2)
+    wait_succeeded(page, 2)
 
     # results: players in sync, plots from the manifest, downloads
     row(page, "reconstruct").get_by_role("button", name="Results").click()
@@ -177,7 +193,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.screenshot(path=screens / "whatif-ball.png", full_page=True)
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
-    wait_all_succeeded(page, 4)  # reconstruct, the factual prediction, two what-ifs: no second factual
+    wait_succeeded(page, 4)  # reconstruct, the factual prediction, two what-ifs: no second factual
 
     for nth, shot in ((0, "whatif-results.png"), (1, None)):
         page.get_by_role("button", name="Jobs").click()
