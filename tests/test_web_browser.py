@@ -149,6 +149,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.screenshot(path=screens / "upload.png", full_page=True)
     page.locator("#upload-button").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("uploaded; reconstruction")
+    assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
 
     # chaining: a prediction started on the unfinished reconstruction waits for it; one is
     # cancelled while it waits and sent again with Retry
@@ -211,3 +212,48 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#signin-error")).to_contain_text("no longer accepted", timeout=10_000)
     sync_api.expect(page.locator("#nav")).to_be_hidden()
     assert not errors, errors
+
+
+def camera_files(scene: dict, folder: Path) -> list[Path]:
+    """The synthetic scene's transforms.json, the same cameras as a PINF info.json with a rotated
+    voxel box, and ScalarFlow's real transforms.json when ../shared is there."""
+    import json
+
+    frames = json.loads(scene["cameras"].read_text())["frames"]
+    pinf = {
+        "train_videos": [{"file_name": f"train0{i}.mp4", "camera_angle_x": 0.7, "camera_hw": [f["h"], f["w"]],
+                          "transform_matrix": f["transform_matrix"]} for i, f in enumerate(frames)],
+        "voxel_scale": [0.5, 0.8, 0.4],
+        "voxel_matrix": [[0, 0, 1, 0.1], [0, 1, 0, -0.2], [-1, 0, 0, 0.3], [0, 0, 0, 1]],
+    }
+    (folder / "info.json").write_text(json.dumps(pinf))
+    files = [scene["cameras"], folder / "info.json"]
+    scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "transforms.json"
+    return files + [scalarflow] if scalarflow.is_file() else files
+
+
+def test_browser_camera_reader_agrees_with_fluidcore(server: Server, browser, scene: dict, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """web/js/cameras.js (what the upload view shows) reads the same names, sizes, camera centres
+    and scene box as fluidcore.cameras, which the server validates uploads with."""
+    import numpy as np
+
+    from fluidcore.cameras import load, scene_box
+
+    page = browser.new_page()
+    page.goto(f"http://127.0.0.1:{server.port}/")
+    for path in camera_files(scene, tmp_path):
+        parsed = page.evaluate(
+            """async ([name, text]) => (await import('/js/cameras.js')).parseCameraFile(name, new TextEncoder().encode(text).buffer)""",
+            [path.name, path.read_text()],
+        )
+        expected = load(path)
+        assert [c["name"] for c in parsed["cameras"]] == list(expected), path
+        for camera in parsed["cameras"]:
+            truth = expected[camera["name"]]
+            assert (camera["width"], camera["height"]) == (truth.width, truth.height)
+            # 1e-6: the server re-orthonormalises rotations stored in single precision (ScalarFlow's)
+            np.testing.assert_allclose(camera["center"], truth.center(), atol=1e-6)
+        lo, hi = scene_box(path)
+        np.testing.assert_allclose(parsed["box"]["lo"], lo, atol=1e-9)
+        np.testing.assert_allclose(parsed["box"]["hi"], hi, atol=1e-9)
+    page.close()
