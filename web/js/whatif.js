@@ -151,10 +151,10 @@ function showLimits(box) {
     + `y from ${fmt(box.lo[1])} to ${fmt(box.hi[1])}, z from ${fmt(box.lo[2])} to ${fmt(box.hi[2])}.`;
   ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).min = String(box.lo[i]); $(id).max = String(box.hi[i]); });
   const centre = box.lo.map((l, i) => (l + box.hi[i]) / 2);
-  if (!$("ball-cx").dataset.placed) { // first time: put the ball in the middle of the box
+  if ($("ball-cx").dataset.placedFor !== run.jobId) { // a new run: start with the ball in the middle of its box
     ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).value = fmt(centre[i]); });
     $("ball-radius").value = fmt(0.15 * Math.min(...box.hi.map((h, i) => h - box.lo[i])));
-    $("ball-cx").dataset.placed = "yes";
+    $("ball-cx").dataset.placedFor = run.jobId;
   }
 }
 
