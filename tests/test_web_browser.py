@@ -214,12 +214,16 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert not errors, errors
 
 
-def camera_files(scene: dict, folder: Path) -> list[Path]:
-    """The synthetic scene's transforms.json, the same cameras as a PINF info.json with a rotated
-    voxel box, and ScalarFlow's real transforms.json when ../shared is there."""
+def camera_files(folder: Path) -> list[Path]:
+    """A transforms.json with a voxel box, the same cameras as a PINF info.json with a rotated
+    box, and ScalarFlow's real transforms.json when ../shared is there."""
     import json
 
-    frames = json.loads(scene["cameras"].read_text())["frames"]
+    from service_support import camera_entry
+
+    frames = [camera_entry(f"cam{i}", 32, 24, x) for i, x in enumerate((-1.0, 0.5, 2.0))]
+    box = {"voxel_scale": [0.5, 0.8, 0.4], "voxel_matrix": [[1, 0, 0, -0.2], [0, 1, 0, 0.0], [0, 0, 1, -0.1], [0, 0, 0, 1]]}
+    (folder / "transforms.json").write_text(json.dumps({"frames": frames, **box}))
     pinf = {
         "train_videos": [{"file_name": f"train0{i}.mp4", "camera_angle_x": 0.7, "camera_hw": [f["h"], f["w"]],
                           "transform_matrix": f["transform_matrix"]} for i, f in enumerate(frames)],
@@ -227,12 +231,28 @@ def camera_files(scene: dict, folder: Path) -> list[Path]:
         "voxel_matrix": [[0, 0, 1, 0.1], [0, 1, 0, -0.2], [-1, 0, 0, 0.3], [0, 0, 0, 1]],
     }
     (folder / "info.json").write_text(json.dumps(pinf))
-    files = [scene["cameras"], folder / "info.json"]
+    files = [folder / "transforms.json", folder / "info.json"]
     scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "transforms.json"
     return files + [scalarflow] if scalarflow.is_file() else files
 
 
-def test_browser_camera_reader_agrees_with_fluidcore(server: Server, browser, scene: dict, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+@pytest.fixture
+def static_web() -> Iterator[str]:
+    """web/ served as plain files (no API, no worker): enough for the page's modules on their own."""
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    handler = functools.partial(SimpleHTTPRequestHandler, directory=str(ROOT / "web"))
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    yield f"http://127.0.0.1:{httpd.server_address[1]}/"
+    httpd.shutdown()
+    httpd.server_close()
+
+
+def test_browser_camera_reader_agrees_with_fluidcore(static_web: str, browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """web/js/cameras.js (what the upload view shows) reads the same names, sizes, camera centres
     and scene box as fluidcore.cameras, which the server validates uploads with."""
     import numpy as np
@@ -240,8 +260,8 @@ def test_browser_camera_reader_agrees_with_fluidcore(server: Server, browser, sc
     from fluidcore.cameras import load, scene_box
 
     page = browser.new_page()
-    page.goto(f"http://127.0.0.1:{server.port}/")
-    for path in camera_files(scene, tmp_path):
+    page.goto(static_web + "vendor/README.md")  # any page of the same origin; main.js is not needed
+    for path in camera_files(tmp_path):
         parsed = page.evaluate(
             """async ([name, text]) => (await import('/js/cameras.js')).parseCameraFile(name, new TextEncoder().encode(text).buffer)""",
             [path.name, path.read_text()],
