@@ -277,3 +277,19 @@ def test_browser_camera_reader_agrees_with_fluidcore(static_web: str, browser, t
         np.testing.assert_allclose(parsed["box"]["lo"], lo, atol=1e-9)
         np.testing.assert_allclose(parsed["box"]["hi"], hi, atol=1e-9)
     page.close()
+
+
+def test_controls_are_labelled_and_reachable_by_keyboard(static_web: str, browser) -> None:  # type: ignore[no-untyped-def]
+    """Every input and select has a label a screen reader reads, actions are real buttons, and the
+    sign-in form works from the keyboard (focus starts in the key field; Tab reaches Sign in)."""
+    page = browser.new_page()
+    page.goto(static_web)
+    sync_api.expect(page.get_by_label("API key")).to_be_focused()
+    unlabelled = page.evaluate("""() => [...document.querySelectorAll('input, select')]
+        .filter(e => !e.labels.length && !e.getAttribute('aria-label') && !e.getAttribute('aria-labelledby'))
+        .map(e => e.id || e.outerHTML)""")
+    assert unlabelled == []
+    assert page.evaluate("() => document.querySelectorAll('[onclick], div[role=button], span[role=button]').length") == 0
+    page.keyboard.press("Tab")
+    sync_api.expect(page.get_by_role("button", name="Sign in")).to_be_focused()
+    page.close()
