@@ -19,7 +19,7 @@ export const setKey = (key) => sessionStorage.setItem(KEY_NAME, key);
 export const clearKey = () => sessionStorage.removeItem(KEY_NAME);
 
 /** The API's error body in words: FastAPI sends `detail` as a string, or as a list of field errors. */
-export function describeError(status, body) {
+function describeError(status, body) {
   const detail = body && body.detail;
   if (typeof detail === "string") return detail;
   if (Array.isArray(detail)) {

@@ -38,7 +38,7 @@ function entryCamera(data, entry, where) {
 }
 
 /** World bounds of PINF's voxel box (fluidcore.cameras.boxes.voxel_box), or null without one. */
-export function voxelBox(data) {
+function voxelBox(data) {
   if (data.voxel_matrix == null || data.voxel_scale == null) return null;
   const scale = Array.isArray(data.voxel_scale) ? data.voxel_scale.map(Number) : [0, 1, 2].map(() => Number(data.voxel_scale));
   const m = data.voxel_matrix;

@@ -1,18 +1,18 @@
 // Jobs view: the caller's jobs with state, stage and live progress (polled every 2 s), and the
 // actions that make sense in each state. Rows are updated in place so keyboard focus stays put.
 
+import { $ } from "./dom.js";
 import { api } from "./api.js";
 
 const POLL_MS = 2000;
 const FINISHED = new Set(["succeeded", "failed", "cancelled"]);
-const $ = (id) => document.getElementById(id);
 
 export const jobs = new Map(); // id -> the latest JobOut
 const rows = new Map(); // id -> {tr, state}
 let actions = {};
 let timer = null;
 
-export const isFinished = (job) => FINISHED.has(job.state);
+const isFinished = (job) => FINISHED.has(job.state);
 export const shortId = (id) => id.slice(0, 8);
 export const describeJob = (job) => `${job.type} ${shortId(job.id)}`;
 

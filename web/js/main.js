@@ -1,13 +1,13 @@
 // The page: sign-in, then four views chosen by the URL hash (#upload, #jobs, #results/ID,
 // #whatif/ID), so the browser's back button and bookmarks work.
 
+import { $ } from "./dom.js";
 import { ApiError, api, checkKey, clearKey, getKey, setKey, setUnauthorizedHandler } from "./api.js";
-import { describeJob, initJobs, jobs, pollNow, requestOf, startPolling, stopPolling } from "./jobs.js";
+import { describeJob, initJobs, jobs, pollNow, requestOf, shortId, startPolling, stopPolling } from "./jobs.js";
 import { initResults, showResults, stopSync } from "./results.js";
 import { initUpload } from "./upload.js";
 import { initWhatif, leaveWhatif, showWhatif } from "./whatif.js";
 
-const $ = (id) => document.getElementById(id);
 const VIEWS = ["signin", "upload", "jobs", "results", "whatif"];
 
 const NOTICE_MS = 12000;
@@ -91,7 +91,7 @@ function init() {
     button.addEventListener("click", () => go(`#${button.dataset.view}`));
   }
   initUpload((scene, job) => {
-    notice(job ? `Scene ${scene.name || scene.id} uploaded; reconstruction ${job.id.slice(0, 8)} queued.`
+    notice(job ? `Scene ${scene.name || scene.id} uploaded; reconstruction ${shortId(job.id)} queued.`
       : `Scene ${scene.name || scene.id} uploaded.`);
     go("#jobs");
   });
@@ -105,7 +105,7 @@ function init() {
   });
   initResults();
   initWhatif((job) => {
-    notice(`What-if ${job.id.slice(0, 8)} queued, with the factual prediction it plays next to. Open its Results when it has succeeded.`);
+    notice(`What-if ${shortId(job.id)} queued, with the factual prediction it plays next to. Open its Results when it has succeeded.`);
     go("#jobs");
   });
   window.addEventListener("hashchange", route);

@@ -2,10 +2,10 @@
 // what-if, next to the factual prediction from the same frame), per-frame plots from the run
 // manifest, and downloads of the particle states and the manifest.
 
+import { $ } from "./dom.js";
 import { api } from "./api.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
-const $ = (id) => document.getElementById(id);
 const SYNC_TOLERANCE_S = 0.08;
 let syncLoop = null;
 let plots = [];

@@ -1,11 +1,11 @@
 // Upload view: drop a camera file and videos, see them (first frames, cameras and box from
 // above), read what is wrong before sending, then send with a progress bar.
 
+import { $, showList } from "./dom.js";
 import { api, uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
-const $ = (id) => document.getElementById(id);
 
 const state = { camerasFile: null, parsed: null, cameraError: null, videos: [] };
 
@@ -48,7 +48,7 @@ async function addFiles(files) {
 }
 
 /** Everything that would make the server refuse this upload and that the browser can already see. */
-export function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
+function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   const problems = [];
   if (!camerasFile) problems.push("Add a camera file (transforms.json, info.json or a zipped COLMAP model).");
   if (cameraError) problems.push(`Camera file: ${cameraError}`);
@@ -95,7 +95,7 @@ function render() {
   const list = $("video-list");
   list.replaceChildren(...state.videos.map(videoCard));
   const problems = uploadProblems(state);
-  $("upload-problems").replaceChildren(...problems.map((text) => Object.assign(document.createElement("li"), { textContent: text })));
+  showList("upload-problems", problems);
   $("upload-button").disabled = problems.length > 0;
   if (!$("scene-name").value && state.camerasFile) $("scene-name").value = state.camerasFile.name.replace(/\.[^.]*$/, "");
 }

@@ -2,6 +2,7 @@
 // the scene box. The form refuses a ball outside the box (naming the box's limits) before
 // anything is sent; the server checks everything again (fluidcore.interaction).
 
+import { $, showList } from "./dom.js";
 import { api } from "./api.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 import {
@@ -9,7 +10,6 @@ import {
   OrbitControls, PerspectiveCamera, Points, PointsMaterial, Scene, SphereGeometry, Vector3, WebGLRenderer,
 } from "../vendor/three.min.js";
 
-const $ = (id) => document.getElementById(id);
 const num = (id) => Number($(id).value);
 const vec = (...ids) => ids.map(num);
 const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
@@ -21,7 +21,7 @@ let retry = null;
 let onSubmitted = () => {};
 
 /** The values in the form, as the API's interact params. */
-export function formParams() {
+function formParams() {
   const params = { frames: num("wi-frames") };
   if ($("wind-on").checked) {
     params.wind = { direction: vec("wind-dx", "wind-dy", "wind-dz"), strength: num("wind-strength"),
@@ -35,7 +35,7 @@ export function formParams() {
 }
 
 /** What the server would refuse, in words; box limits come from the parent run. */
-export function whatifProblems(params, box) {
+function whatifProblems(params, box) {
   const problems = [];
   const whole = (value, name, min) => {
     if (!Number.isInteger(value) || value < min) problems.push(`${name} must be a whole number of at least ${min}.`);
@@ -160,7 +160,7 @@ function showLimits(box) {
 
 function validate() {
   const problems = whatifProblems(formParams(), run && run.box);
-  $("whatif-problems").replaceChildren(...problems.map((text) => Object.assign(document.createElement("li"), { textContent: text })));
+  showList("whatif-problems", problems);
   for (const id of ["ball-cx", "ball-cy", "ball-cz", "ball-radius"]) {
     $(id).setAttribute("aria-invalid", String(problems.some((p) => p.includes(`centre ${id.slice(-1)} `) || (id === "ball-radius" && p.startsWith("Ball radius")))));
   }
