@@ -156,6 +156,7 @@ function reset() {
   $("upload-files").value = "";
   $("scene-name").value = "";
   $("upload-progress").hidden = true;
+  $("upload-error").textContent = "";
   render();
 }
 
