@@ -25,7 +25,15 @@ DEFAULT_POINTS = 20_000
 MAX_POINTS = 100_000  # 1.2 MB of float32 positions as JSON text is already ~2.5 MB
 
 
-@router.get("/{job_id}/particles", response_model=ParticlesOut)
+@router.get(
+    "/{job_id}/particles",
+    response_model=ParticlesOut,
+    responses={
+        401: {"description": "missing or invalid API key"},
+        404: {"description": "no such job for this key, or no such frame in its run"},
+        409: {"description": "the job has not written its run or a frame yet"},
+    },
+)
 def get_particles(
     job_id: str,
     owner: OwnerDep,
