@@ -192,6 +192,10 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#whatif-problems")).to_contain_text("Ball centre x = 1000 is outside the scene box: x must be from")
     page.screenshot(path=screens / "whatif-refused.png", full_page=True)
     page.get_by_label("Ball", exact=True).uncheck()
+    page.get_by_label("Strength").fill("1000")  # allowed in general, too strong for this scene: the server says so
+    page.get_by_role("button", name="Run what-if").click()
+    sync_api.expect(page.locator("#whatif-error")).to_contain_text("Refused: params: wind.strength 1000", timeout=SERVER_MS)
+    page.get_by_label("Strength").fill("2")
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
 
