@@ -32,6 +32,9 @@ NEW_FRAMES = 2
 if not Path(CHROMIUM).is_file():
     pytest.skip("Debian's chromium is not installed (.ci/run installs it)", allow_module_level=True)
 sync_api = pytest.importorskip("playwright.sync_api")
+# Waits sized for a loaded 2-core machine (the suite runs two test processes beside the server's
+# worker); a check that fails still fails, only later.
+sync_api.expect.set_options(timeout=20_000)
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +113,7 @@ def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
 
 def test_browser_journey(server: Server, browser, scene: dict, screens: Path) -> None:  # type: ignore[no-untyped-def]
     page = browser.new_page(viewport={"width": 1366, "height": 900})
+    page.set_default_timeout(30_000)
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.goto(f"http://127.0.0.1:{server.port}/")
