@@ -89,7 +89,7 @@ def wait_succeeded(page, count: int) -> None:  # type: ignore[no-untyped-def]
     """Until `count` jobs succeeded and every other job is cancelled (none failed, none left running)."""
     page.wait_for_function(
         """n => { const s = [...document.querySelectorAll('#jobs-table .job-state')].map(c => c.textContent);
-                 if (s.includes('failed')) throw new Error('a job failed: ' + s);
+                 if (s.includes('failed')) throw new Error('a job failed: ' + [...document.querySelectorAll('#jobs-table .job-error')].map(e => e.textContent));
                  return s.filter(x => x === 'succeeded').length === n && s.every(x => x === 'succeeded' || x === 'cancelled'); }""",
         arg=count, timeout=JOB_TIMEOUT_MS, polling=1000,
     )

@@ -12,8 +12,9 @@ let plots = [];
 
 /** Video choices of one job: [{label, url, camera}] with the orbit last. */
 function videoChoices(artifacts, prefix) {
-  return artifacts.filter((a) => a.kind === "video" || a.kind === "orbit")
-    .map((a) => ({ label: `${prefix}${a.kind === "orbit" ? "orbit" : `camera ${a.camera}`}`, url: a.presigned_url, camera: a.camera }))
+  const name = (a) => (a.kind === "video" ? `camera ${a.camera}` : a.kind.replace("_", " "));
+  return artifacts.filter((a) => a.kind === "video" || a.kind === "orbit" || a.kind === "side_by_side")
+    .map((a) => ({ label: `${prefix}${name(a)}`, url: a.presigned_url, camera: a.kind === "video" ? a.camera : null, kind: a.kind }))
     .sort((a, b) => (a.camera === null) - (b.camera === null));
 }
 
@@ -22,7 +23,7 @@ function playerPlan(job, manifest, own, factual) {
   const input = (manifest.input_views || [])[0];
   const mine = videoChoices(own, job.type === "interact" ? "what-if: " : "");
   const pick = (choices, camera) => Math.max(0, choices.findIndex((c) => c.camera === camera));
-  const orbit = (choices) => Math.max(0, choices.findIndex((c) => c.camera === null));
+  const orbit = (choices) => Math.max(0, choices.findIndex((c) => c.kind === "orbit"));
   if (factual) {
     const theirs = videoChoices(factual, "factual: ");
     return [
@@ -134,7 +135,7 @@ function drawPlots(manifest) {
 }
 
 function downloads(artifacts) {
-  const wanted = artifacts.filter((a) => a.kind === "manifest" || a.kind === "state" || a.kind === "file");
+  const wanted = artifacts.filter((a) => ["manifest", "state", "export", "file"].includes(a.kind));
   $("downloads").replaceChildren(...wanted.map((a) => {
     const li = document.createElement("li");
     const link = Object.assign(document.createElement("a"), { href: a.presigned_url, textContent: a.name });

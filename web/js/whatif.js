@@ -25,7 +25,7 @@ function formParams() {
   const params = { frames: num("wi-frames") };
   if ($("wind-on").checked) {
     params.wind = { direction: vec("wind-dx", "wind-dy", "wind-dz"), strength: num("wind-strength"),
-      growth: num("wind-growth"), start_frame: num("wind-start") };
+      growth: num("wind-growth"), profile: $("wind-profile").value, start_frame: num("wind-start") };
   }
   if ($("ball-on").checked) {
     params.ball = { center: vec("ball-cx", "ball-cy", "ball-cz"), radius: num("ball-radius"),
@@ -47,6 +47,7 @@ function whatifProblems(params, box) {
     if (direction.some((v) => !Number.isFinite(v)) || Math.hypot(...direction) === 0) problems.push("Wind direction must be a non-zero vector.");
     if (!(strength >= 0)) problems.push("Wind strength must be 0 or more.");
     if (!Number.isFinite(growth)) problems.push("Wind growth must be a number.");
+    if (params.wind.profile === "uniform" && growth !== 0) problems.push("Wind growth must be 0 for a uniform wind (it is the same at every height).");
     whole(start, "Wind start frame", 0);
     if (start >= params.frames) problems.push(`Wind start frame ${start} is not within the ${params.frames} new frames.`);
   }
@@ -113,6 +114,13 @@ function showParticles(data) {
   controls.update();
 }
 
+/** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
+function windGain({ profile, growth }, height) {
+  if (profile === "uniform") return 1;
+  if (profile === "linear") return Math.max(0, 1 + growth * height);
+  return Math.exp(growth * height);
+}
+
 /** Redraw the ball and the wind arrows from the form's current values. */
 function drawOverlay() {
   if (!view || !run) return;
@@ -135,7 +143,7 @@ function drawOverlay() {
     const base = up.dot(new Vector3(...(run.source.center || [0, 0, 0])));
     const centre = lo.clone().add(hi).multiplyScalar(0.5);
     const heights = [...Array(WIND_ARROWS).keys()].map((i) => lo.dot(up) + ((i + 0.5) / WIND_ARROWS) * hi.clone().sub(lo).dot(up));
-    const force = heights.map((h) => params.wind.strength * Math.exp(params.wind.growth * (h - base)));
+    const force = heights.map((h) => params.wind.strength * windGain(params.wind, h - base));
     const peak = Math.max(...force, 1e-12);
     heights.forEach((h, i) => {
       const at = centre.clone().addScaledVector(up, h - centre.dot(up)).addScaledVector(dir, -0.25 * size);
