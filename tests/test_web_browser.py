@@ -107,7 +107,7 @@ def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
                            "[...document.querySelectorAll('#players video')].every(v => v.readyState >= 2)",
                            timeout=30_000)
     page.get_by_role("button", name="Play").click()
-    page.wait_for_function("() => { const v = document.querySelector('#players video'); return v.currentTime > 0 || v.ended; }",
+    page.wait_for_function("() => { const v = document.querySelector('#players video'); return v !== null && (v.currentTime > 0 || v.ended); }",
                            timeout=30_000)
 
 
@@ -217,7 +217,9 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
 
     for nth, shot in ((0, "whatif-results.png"), (1, None)):
         page.get_by_role("button", name="Jobs").click()
+        short_id = row(page, "interact", nth).locator(".job-id").text_content()
         row(page, "interact", nth).get_by_role("button", name="Results").click()
+        sync_api.expect(page.locator("#results-title")).to_have_text(f"Results of interact {short_id}")
         sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
         sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")
         play_first_video(page)

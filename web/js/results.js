@@ -156,6 +156,8 @@ async function factualFor(job) {
 
 export async function showResults(jobId) {
   $("results-error").textContent = "";
+  $("results-title").textContent = "Results";
+  $("results-summary").textContent = "Loading…";
   $("players").replaceChildren();
   try {
     const job = await api(`/v1/jobs/${jobId}`);

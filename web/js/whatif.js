@@ -198,6 +198,7 @@ const showError = (error) => { $("whatif-error").textContent = error.message; };
 export async function showWhatif(jobId) {
   run = null;
   $("whatif-error").textContent = "";
+  $("box-limits").textContent = ""; // filled again when this run's box has loaded
   view = view || createView();
   await refreshJobs();
   const job = jobs.get(jobId) || (await api(`/v1/jobs/${jobId}`));
