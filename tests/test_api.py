@@ -294,11 +294,14 @@ def succeed_with_run(service: Service, job_id: str) -> None:
     service.set_job(job_id, state=JobState.SUCCEEDED)
 
 
-def test_continuations_of_succeeded_parents(service: Service, scene_id: str) -> None:
+def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) -> None:
     alice = service.key("alice")
     parent = reconstruct(service, alice, scene_id).json()["id"]
     interact = {"type": "interact", "parent_job_id": parent,
                 "params": {"frames": 10, "wind": {"direction": [1, 0, 0], "strength": 2.0}}}
+    early = service.client.post("/v1/jobs", json=interact, headers=alice)
+    assert early.status_code == 409 and "queued" in early.json()["detail"]
+
     succeed_with_run(service, parent)
     created = service.client.post("/v1/jobs", json=interact, headers=alice)
     assert created.status_code == 202, created.text

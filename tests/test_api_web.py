@@ -1,6 +1,5 @@
 """What the browser UI needs from the API: its files and the API reference served with no
-internet, particle positions for the 3D what-if view, and chaining (a continuation of a job
-that is still running waits for it)."""
+internet, and particle positions for the 3D what-if view."""
 
 from __future__ import annotations
 
@@ -12,9 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.models import JobState
 from test_api import (  # noqa: F401  (fixtures used by name)
-    Service, postgres_url, reconstruct, scene_dir, scene_id, service, sqlite_service, succeed_with_run,
+    Service, postgres_url, reconstruct, scene_dir, scene_id, service, sqlite_service,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,32 +100,3 @@ def test_particles_of_a_frame_with_the_scene_box(service: Service, scene_id: str
     assert service.client.get(url, params={"max_points": 10**6}, headers=alice).status_code == 422
     assert service.client.get(url, headers=service.key("bob")).status_code == 404
     assert service.client.get(url).status_code == 401
-
-
-# -- chaining --------------------------------------------------------------------------------------
-
-def test_continuations_of_unfinished_parents_wait_for_them(service: Service, scene_id: str) -> None:
-    alice = service.key("alice")
-    parent = reconstruct(service, alice, scene_id).json()["id"]
-    predict = {"type": "predict", "parent_job_id": parent, "params": {"frames": 4}}
-    chained = service.client.post("/v1/jobs", json=predict, headers=alice)
-    assert chained.status_code == 202, chained.text
-    assert chained.json()["state"] == "queued" and chained.json()["stage"] == f"waiting for job {parent}"
-    assert (chained.json()["id"], "predict") in service.queue.sent  # the worker holds it until the parent succeeds
-
-    wind = {"direction": [1, 0, 0], "strength": 2.0}
-    interact = {"type": "interact", "parent_job_id": parent, "params": {"frames": 4, "wind": wind}}
-    assert service.client.post("/v1/jobs", json=interact, headers=alice).status_code == 202  # no manifest yet
-
-    write_states(service, parent, {0: 5})  # running, with its run (and scene box) written
-    service.set_job(parent, state=JobState.RUNNING)
-    outside = {**interact, "params": {"frames": 4, "ball": {"center": [3, 0.5, 0], "radius": 0.1}}}
-    refused = service.client.post("/v1/jobs", json=outside, headers=alice)
-    assert refused.status_code == 422 and "ball" in refused.json()["detail"]
-
-    succeed_with_run(service, parent)
-    assert service.client.post("/v1/jobs", json=predict, headers=alice).json()["stage"] == "queued"
-
-    service.set_job(parent, state=JobState.FAILED)
-    late = service.client.post("/v1/jobs", json=predict, headers=alice)
-    assert late.status_code == 409 and "failed" in late.json()["detail"]

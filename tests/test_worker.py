@@ -125,26 +125,6 @@ def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
     assert list((world.tmp_path / "cache-b" / "jobs").iterdir()) == []
 
 
-def test_a_chained_job_waits_for_its_parent_and_fails_with_it(world: World) -> None:
-    """A continuation queued on an unfinished parent is handed back (JobBusy, retried by the task)
-    until the parent succeeds; a parent that failed fails it with a message instead."""
-    parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
-    child = world.job("predict", parent_job_id=parent, params={"frames": 2})
-    with pytest.raises(JobBusy, match=f"waiting for parent job {parent}") as busy:
-        world.executor("b").run(child)
-    assert 0 < busy.value.retry_in <= 10
-    assert world.get(child).state == JobState.QUEUED and world.get(child).attempts == 0
-
-    assert world.executor("a").run(parent) == "succeeded"
-    assert world.executor("b").run(child) == "succeeded"
-
-    doomed_parent = world.job(scene_id="s1", params={"frames": [0, 2]}, state=JobState.FAILED)
-    doomed = world.job("predict", parent_job_id=doomed_parent, params={"frames": 2})
-    assert world.executor("b").run(doomed) is None
-    job = world.get(doomed)
-    assert job.state == JobState.FAILED and f"parent job {doomed_parent} failed" in job.error
-
-
 def test_killed_worker_resumes_from_checkpoints_on_another(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), params={"frames": [0, 5], "crash_after": 2})
     first = world.executor("first")

@@ -33,14 +33,11 @@ RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing th
 DB_WRITE_INTERVAL_S = 1.0
 
 
-PARENT_POLL_SECONDS = 3.0  # how often a chained job looks again whether its parent succeeded
-
-
 class JobBusy(Exception):
     """Another worker holds a live lease on the job; try again after `retry_in` seconds."""
 
-    def __init__(self, retry_in: float, reason: str = "job is running elsewhere") -> None:
-        super().__init__(f"{reason}; retry in {retry_in:.0f} s")
+    def __init__(self, retry_in: float) -> None:
+        super().__init__(f"job is running elsewhere; retry in {retry_in:.0f} s")
         self.retry_in = retry_in
 
 
@@ -151,13 +148,6 @@ class JobExecutor:
                 job.state, job.stage, job.finished_at = JobState.CANCELLED, "cancelled", utcnow()
                 return None
             now = utcnow()
-            parent_state = session.scalar(select(Job.state).where(Job.id == job.parent_job_id)) if job.parent_job_id else None
-            if parent_state in (JobState.QUEUED, JobState.RUNNING):  # chained: runs once the parent succeeded
-                raise JobBusy(PARENT_POLL_SECONDS, f"waiting for parent job {job.parent_job_id}")
-            if parent_state in (JobState.FAILED, JobState.CANCELLED):
-                job.state, job.finished_at = JobState.FAILED, now
-                job.error = f"parent job {job.parent_job_id} {parent_state}; this continuation did not run"
-                return None
             lease = timedelta(seconds=self.settings.job_lease_seconds)
             if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
                 raise JobBusy((job.heartbeat_at + lease - now).total_seconds())

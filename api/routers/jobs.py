@@ -43,7 +43,7 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
-    parent = _check_references(session, storage, owner, request, settings)
+    _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
         type=request.type,
@@ -53,8 +53,6 @@ def create_job(
         idempotency_key=idempotency_key,
         request_hash=request_hash,
     )
-    if parent is not None and parent.state != JobState.SUCCEEDED:
-        job.stage = waiting_stage(parent.id)
     session.add(job)
     try:
         session.commit()
@@ -134,11 +132,6 @@ def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: Stora
     storage.delete_prefix(f"{job_prefix(job.id)}/")
 
 
-def waiting_stage(parent_id: str) -> str:
-    """The stage a chained job shows until its parent succeeds."""
-    return f"waiting for job {parent_id}"
-
-
 def owned_job(session: Session, job_id: str, owner: str, for_update: bool = False) -> Job:
     """The job if it exists and belongs to `owner`; 404 otherwise."""
     query = select(Job).where(Job.id == job_id)
@@ -160,8 +153,8 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
 
 def _check_references(
     session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
-) -> Job | None:
-    """The scene or parent job exists, belongs to the caller, and fits the parameters; returns the parent."""
+) -> None:
+    """The scene or parent job exists, belongs to the caller, and fits the parameters."""
     if JobType(request.type).starts_from == "scene":
         scene = owned_scene(session, request.scene_id, owner)
         frames = request.params.frames
@@ -170,14 +163,12 @@ def _check_references(
                 status.HTTP_422_UNPROCESSABLE_CONTENT,
                 f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
             )
-        return None
-    # Any job can be continued (every job type leaves the same run-folder format), also one still
-    # queued or running: the worker holds the continuation until its parent succeeds (chaining).
+        return
+    # Any succeeded job can be continued: every job type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
-    if parent.state in (JobState.FAILED, JobState.CANCELLED):
+    if parent.state != JobState.SUCCEEDED:
         raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            f"parent job {parent.id} is {parent.state}; continue a job that succeeded or is still queued or running",
+            status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it must have succeeded first"
         )
     frames = getattr(request.params, "frames", None)
     if frames is not None and frames > settings.max_predict_frames:
@@ -186,30 +177,26 @@ def _check_references(
             f"params.frames: at most {settings.max_predict_frames} new frames per job",
         )
     if isinstance(request.params, InteractParams):
-        _check_in_run_scene(storage, parent, request.params)
-    return parent
+        _check_in_run_scene(storage, parent.id, request.params)
 
 
-def _check_in_run_scene(storage: Storage, parent: Job, params: InteractParams) -> None:
+def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:
     """Wind and ball against the parent run's scene (box, time step, speed limit), and the branch
     frame against its finished frames, read from its manifest: a ball outside the box, a wind
     that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
-    later. A parent that has not written its manifest yet cannot be checked here; the worker's own
-    check (fluidcore) then fails the job with the same message."""
+    later."""
     from fluidcore.interaction import InteractionError, InteractionParams
 
     try:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(parent.id)}/manifest.json"))
+        manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
     except ObjectNotFound:
-        if parent.state == JobState.SUCCEEDED:
-            raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent.id} has no run in storage") from None
-        return
+        raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
     frames = [entry.get("t") for entry in manifest.get("frames") or []]
-    if params.from_frame is not None and params.from_frame not in frames and parent.state == JobState.SUCCEEDED:
+    if params.from_frame is not None and params.from_frame not in frames:
         held = f"{frames[0]}..{frames[-1]}" if frames else "none"
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent.id} (frames {held})",
+            f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
         )
     try:
         InteractionParams(wind=params.wind, ball=params.ball).check_scene(manifest.get("scene") or {}, params.frames)
