@@ -13,10 +13,11 @@ import anyio.to_thread
 from fastapi import FastAPI
 from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
-from api.routers import artifacts, health, jobs, scenes, webhooks
+from api.routers import artifacts, health, jobs, particles, scenes, webhooks
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
@@ -41,7 +42,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         reaper.cancel()
         app.state.engine.dispose()
 
-    app = FastAPI(
+    # FastAPIOffline: /docs and /redoc load Swagger UI / ReDoc from the installed package, not a CDN,
+    # so the reference renders on a machine without internet.
+    app = FastAPIOffline(
         title="FluidNexus",
         summary="Reconstruct smoke from video, predict it, and ask what-if questions.",
         version="0.1.0",
@@ -59,7 +62,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)
-    routers = (scenes.router, jobs.router, artifacts.router, webhooks.router, health.router)
+    routers = (scenes.router, jobs.router, artifacts.router, particles.router, webhooks.router, health.router)
     for router in routers:
         app.include_router(router)
     add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])

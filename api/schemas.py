@@ -152,3 +152,19 @@ class ArtifactList(BaseModel):
 class Health(BaseModel):
     status: Literal["ok", "unavailable"]
     checks: dict[str, str] = {}
+
+
+class RunScene(BaseModel):
+    box_lo: list[float] = Field(description="scene box, lowest corner (world units)")
+    box_hi: list[float] = Field(description="scene box, highest corner (world units)")
+    up: list[float]
+    source: dict[str, Any] = Field(description="the smoke source as the run recorded it (fluidcore.physics.Source)")
+
+
+class ParticlesOut(BaseModel):
+    job_id: str
+    frame: int
+    frames: list[int] = Field(description="frames the run has written so far")
+    total: int = Field(description="live particles in the frame, before subsampling")
+    positions: list[float] = Field(description="x0, y0, z0, x1, ...: world units, evenly subsampled")
+    scene: RunScene

@@ -1,0 +1,241 @@
+// What-if view: wind and ball controls drawn over a 3D view of the reconstructed particles and
+// the scene box. The form refuses a ball outside the box (naming the box's limits) before
+// anything is sent; the server checks everything again (fluidcore.interaction).
+
+import { $, showList } from "./dom.js";
+import { api } from "./api.js";
+import { describeJob, jobs, refreshJobs } from "./jobs.js";
+import {
+  ArrowHelper, Box3, Box3Helper, BufferAttribute, BufferGeometry, Color, Group, Mesh, MeshBasicMaterial,
+  OrbitControls, PerspectiveCamera, Points, PointsMaterial, Scene, SphereGeometry, Vector3, WebGLRenderer,
+} from "../vendor/three.min.js";
+
+const num = (id) => Number($(id).value);
+const vec = (...ids) => ids.map(num);
+const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
+const RETRY_MS = 3000;
+
+let view = null; // {renderer, scene, camera, controls, overlay}
+let run = null; // {jobId, box: {lo, hi}, up, source}
+let retry = null;
+let onSubmitted = () => {};
+
+/** The values in the form, as the API's interact params. */
+function formParams() {
+  const params = { frames: num("wi-frames") };
+  if ($("wind-on").checked) {
+    params.wind = { direction: vec("wind-dx", "wind-dy", "wind-dz"), strength: num("wind-strength"),
+      growth: num("wind-growth"), profile: $("wind-profile").value, start_frame: num("wind-start") };
+  }
+  if ($("ball-on").checked) {
+    params.ball = { center: vec("ball-cx", "ball-cy", "ball-cz"), radius: num("ball-radius"),
+      start_frame: num("ball-start"), velocity: vec("ball-vx", "ball-vy", "ball-vz") };
+  }
+  return params;
+}
+
+/** What the server would refuse, in words; box limits come from the parent run. */
+function whatifProblems(params, box) {
+  const problems = [];
+  const whole = (value, name, min) => {
+    if (!Number.isInteger(value) || value < min) problems.push(`${name} must be a whole number of at least ${min}.`);
+  };
+  whole(params.frames, "New frames", 1);
+  if (!params.wind && !params.ball) problems.push("Turn on the wind, the ball, or both.");
+  if (params.wind) {
+    const { direction, strength, growth, start_frame: start } = params.wind;
+    if (direction.some((v) => !Number.isFinite(v)) || Math.hypot(...direction) === 0) problems.push("Wind direction must be a non-zero vector.");
+    if (!(strength >= 0)) problems.push("Wind strength must be 0 or more.");
+    if (!Number.isFinite(growth)) problems.push("Wind growth must be a number.");
+    if (params.wind.profile === "uniform" && growth !== 0) problems.push("Wind growth must be 0 for a uniform wind (it is the same at every height).");
+    whole(start, "Wind start frame", 0);
+    if (start >= params.frames) problems.push(`Wind start frame ${start} is not within the ${params.frames} new frames.`);
+  }
+  if (params.ball) {
+    const { center, radius, start_frame: start, velocity } = params.ball;
+    if (box) {
+      "xyz".split("").forEach((axis, i) => {
+        if (!(center[i] >= box.lo[i] && center[i] <= box.hi[i])) {
+          problems.push(`Ball centre ${axis} = ${center[i]} is outside the scene box: ${axis} must be from ${fmt(box.lo[i])} to ${fmt(box.hi[i])}.`);
+        }
+      });
+      const extent = Math.max(...box.hi.map((h, i) => h - box.lo[i]));
+      if (radius > extent) problems.push(`Ball radius ${radius} is larger than the scene box (${fmt(extent)}).`);
+    }
+    if (!(radius > 0)) problems.push("Ball radius must be more than 0.");
+    if (velocity.some((v) => !Number.isFinite(v))) problems.push("Ball velocity must be three numbers.");
+    whole(start, "Ball start frame", 0);
+    if (start >= params.frames) problems.push(`Ball start frame ${start} is not within the ${params.frames} new frames.`);
+  }
+  return problems;
+}
+
+const fmt = (v) => Number(v.toFixed(3)).toString();
+
+function createView() {
+  const canvas = $("scene3d");
+  let renderer;
+  try {
+    renderer = new WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
+  } catch (error) {
+    return null; // no WebGL: the form still works, the view says why it is empty
+  }
+  renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+  renderer.setSize(canvas.clientWidth || canvas.width, (canvas.clientWidth || canvas.width) * 0.75, false);
+  const scene = new Scene();
+  scene.background = new Color(0x14161a);
+  const camera = new PerspectiveCamera(40, 4 / 3, 0.001, 1000);
+  const controls = new OrbitControls(camera, canvas);
+  controls.listenToKeyEvents(canvas);
+  const overlay = new Group();
+  scene.add(overlay);
+  const current = { renderer, scene, camera, controls, overlay, points: null, box: null };
+  controls.addEventListener("change", () => renderer.render(scene, camera));
+  return current;
+}
+
+function showParticles(data) {
+  const { scene, camera, controls } = view;
+  if (view.points) scene.remove(view.points);
+  if (view.box) scene.remove(view.box);
+  const geometry = new BufferGeometry();
+  geometry.setAttribute("position", new BufferAttribute(new Float32Array(data.positions), 3));
+  const lo = new Vector3(...data.scene.box_lo), hi = new Vector3(...data.scene.box_hi);
+  const size = hi.clone().sub(lo).length();
+  view.points = new Points(geometry, new PointsMaterial({ color: 0xcfd6e0, size: size / 200, transparent: true, opacity: 0.7 }));
+  view.box = new Box3Helper(new Box3(lo, hi), 0x4f9bea);
+  scene.add(view.points, view.box);
+  const centre = lo.clone().add(hi).multiplyScalar(0.5);
+  const up = new Vector3(...data.scene.up).normalize();
+  camera.up.copy(up);
+  const side = new Vector3(1, 0, 0).cross(up).lengthSq() > 0.1 ? new Vector3(0.4, 0, 1) : new Vector3(1, 0, 0.4);
+  camera.position.copy(centre).addScaledVector(side.normalize(), 1.6 * size).addScaledVector(up, 0.5 * size);
+  controls.target.copy(centre);
+  controls.update();
+}
+
+/** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
+function windGain({ profile, growth }, height) {
+  if (profile === "uniform") return 1;
+  if (profile === "linear") return Math.max(0, 1 + growth * height);
+  return Math.exp(growth * height);
+}
+
+/** Redraw the ball and the wind arrows from the form's current values. */
+function drawOverlay() {
+  if (!view || !run) return;
+  const { overlay, renderer, scene, camera } = view;
+  overlay.clear();
+  const params = formParams();
+  const lo = new Vector3(...run.box.lo), hi = new Vector3(...run.box.hi);
+  const size = hi.clone().sub(lo).length();
+  if (params.ball && params.ball.radius > 0 && params.ball.center.every(Number.isFinite)) {
+    const ball = new Mesh(new SphereGeometry(params.ball.radius, 24, 16),
+      new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, opacity: 0.55 }));
+    ball.position.set(...params.ball.center);
+    overlay.add(ball);
+    const v = new Vector3(...params.ball.velocity);
+    if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), ball.position, 0.3 * size, 0xe74c3c));
+  }
+  if (params.wind && Math.hypot(...params.wind.direction) > 0) {
+    const dir = new Vector3(...params.wind.direction).normalize();
+    const up = new Vector3(...run.up).normalize();
+    const base = up.dot(new Vector3(...(run.source.center || [0, 0, 0])));
+    const centre = lo.clone().add(hi).multiplyScalar(0.5);
+    const heights = [...Array(WIND_ARROWS).keys()].map((i) => lo.dot(up) + ((i + 0.5) / WIND_ARROWS) * hi.clone().sub(lo).dot(up));
+    const force = heights.map((h) => params.wind.strength * windGain(params.wind, h - base));
+    const peak = Math.max(...force, 1e-12);
+    heights.forEach((h, i) => {
+      const at = centre.clone().addScaledVector(up, h - centre.dot(up)).addScaledVector(dir, -0.25 * size);
+      const length = Math.max(0.02 * size, (0.5 * size * force[i]) / peak);
+      overlay.add(new ArrowHelper(dir, at, length, 0x3498db, 0.25 * length, 0.12 * length));
+    });
+  }
+  renderer.render(scene, camera);
+}
+
+function showLimits(box) {
+  $("box-limits").textContent = `Scene box: x from ${fmt(box.lo[0])} to ${fmt(box.hi[0])}, `
+    + `y from ${fmt(box.lo[1])} to ${fmt(box.hi[1])}, z from ${fmt(box.lo[2])} to ${fmt(box.hi[2])}.`;
+  ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).min = String(box.lo[i]); $(id).max = String(box.hi[i]); });
+  const centre = box.lo.map((l, i) => (l + box.hi[i]) / 2);
+  if ($("ball-cx").dataset.placedFor !== run.jobId) { // a new run: start with the ball in the middle of its box
+    ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).value = fmt(centre[i]); });
+    $("ball-radius").value = fmt(0.15 * Math.min(...box.hi.map((h, i) => h - box.lo[i])));
+    $("ball-cx").dataset.placedFor = run.jobId;
+  }
+}
+
+function validate() {
+  const problems = whatifProblems(formParams(), run && run.box);
+  showList("whatif-problems", problems);
+  for (const id of ["ball-cx", "ball-cy", "ball-cz", "ball-radius"]) {
+    $(id).setAttribute("aria-invalid", String(problems.some((p) => p.includes(`centre ${id.slice(-1)} `) || (id === "ball-radius" && p.startsWith("Ball radius")))));
+  }
+  return problems;
+}
+
+async function loadParticles(jobId) {
+  clearTimeout(retry);
+  try {
+    const data = await api(`/v1/jobs/${jobId}/particles?max_points=20000`);
+    run = { jobId, box: { lo: data.scene.box_lo, hi: data.scene.box_hi }, up: data.scene.up, source: data.scene.source };
+    showLimits(run.box);
+    if (view) showParticles(data);
+    $("whatif-summary").textContent += ` Showing ${data.positions.length / 3} of ${data.total} particles at frame ${data.frame}; `
+      + "the what-if continues after the run's last frame.";
+    validate();
+    drawOverlay();
+  } catch (error) {
+    if (error.status !== 409) throw error;
+    $("whatif-summary").textContent = `${error.message}: the particles and box appear when it writes its first frame.`;
+    retry = setTimeout(() => loadParticles(jobId).catch(showError), RETRY_MS);
+  }
+}
+
+const showError = (error) => { $("whatif-error").textContent = error.message; };
+
+export async function showWhatif(jobId) {
+  run = null;
+  $("whatif-error").textContent = "";
+  $("box-limits").textContent = ""; // filled again when this run's box has loaded
+  view = view || createView();
+  await refreshJobs();
+  const job = jobs.get(jobId) || (await api(`/v1/jobs/${jobId}`));
+  $("whatif-title").textContent = `What if: continue ${describeJob(job)}`;
+  $("whatif-summary").textContent = job.state === "succeeded" ? ""
+    : `${describeJob(job)} is ${job.state}; what-ifs sent now run when it succeeds.`;
+  if (!view) $("whatif-summary").textContent += " This browser has no WebGL, so the 3D view stays empty.";
+  await loadParticles(jobId).catch(showError);
+}
+
+export function leaveWhatif() { clearTimeout(retry); }
+
+/** Send the what-if, and the factual prediction it plays next to (unless one is already there). */
+async function submit(event) {
+  event.preventDefault();
+  $("whatif-error").textContent = "";
+  if (!run || validate().length) {
+    if (!run) $("whatif-error").textContent = "Wait until the run's particles and box are shown.";
+    return;
+  }
+  const params = formParams();
+  try {
+    const interact = await api("/v1/jobs", { method: "POST", body: { type: "interact", parent_job_id: run.jobId, params } });
+    await refreshJobs();
+    const factual = [...jobs.values()].some((j) => j.type === "predict" && j.parent_job_id === run.jobId
+      && j.params.frames === params.frames && j.state !== "failed" && j.state !== "cancelled");
+    if (!factual) {
+      await api("/v1/jobs", { method: "POST", body: { type: "predict", parent_job_id: run.jobId, params: { frames: params.frames } } });
+    }
+    onSubmitted(interact);
+  } catch (error) {
+    $("whatif-error").textContent = `Refused: ${error.message}`;
+  }
+}
+
+export function initWhatif(submitted) {
+  onSubmitted = submitted;
+  $("whatif-form").addEventListener("input", () => { validate(); drawOverlay(); });
+  $("whatif-form").addEventListener("submit", submit);
+}
