@@ -168,11 +168,11 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
         freeze = render_frames(recon, camera, [window[1] - 1])
         copy = resize_image(last_input.astype(np.float32) / 255.0, *size)
         scores = {
-            "prediction": _per_frame(pred, truth),
-            "copy_input": _per_frame(np.broadcast_to(to_uint8_rgb(copy), truth.shape), truth),
-            "freeze": _per_frame(np.broadcast_to(freeze, truth.shape), truth),
+            "prediction": per_frame(pred, truth),
+            "copy_input": per_frame(np.broadcast_to(to_uint8_rgb(copy), truth.shape), truth),
+            "freeze": per_frame(np.broadcast_to(freeze, truth.shape), truth),
         }
-        resim = _per_frame(render_frames(resim_run, camera), video.read_frames(path, window[0], window[1], size=size))
+        resim = per_frame(render_frames(resim_run, camera), video.read_frames(path, window[0], window[1], size=size))
         views[name] = {
             "role": "input" if name == input_view else "held-out",
             **{f"{k}_psnr": float(np.mean(v["psnr"])) for k, v in scores.items()},
@@ -186,7 +186,7 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
     return views, render_seconds
 
 
-def _per_frame(pred, truth) -> dict[str, list[float]]:  # noqa: ANN001 - uint8 (T, H, W, 3) arrays
+def per_frame(pred, truth) -> dict[str, list[float]]:  # noqa: ANN001 - uint8 (T, H, W, 3) arrays
     """PSNR and SSIM of each frame (the anchors average these over frames)."""
     import numpy as np
     import torch

@@ -1,0 +1,470 @@
+"""The whole generalisation protocol on one scene folder with ground-truth videos (issue 12).
+
+    fluidnexus bench generalise SCENE_DIR --input-view view_02 --observed 0:90 [--future 60]
+        [--quality preview] [--set FIELD=JSON] [--score-every 3] [--score-long-side 240]
+        [--tasks nvs,input,future,velocity,whatif,rise] [--figure per_frame.png] [--json]
+
+Only the input view's video reaches the reconstruction (frames A..B-1); every other camera's
+frames are read afterwards, for scoring. Tasks (each next to the baselines of the same frames,
+computed in the same run):
+
+    nvs       the reconstruction from every other camera with truth, frames A..B-1
+              baselines: blank (the background colour estimated from the input view),
+              copy_input (the input frame at the same t shown as that view)
+    input     the reconstruction from the input view itself (input-view fit; shown next to nvs:
+              a fit far above the novel views means the 3D is wrong where no camera looks)
+    future    prediction from frame B-1, frames B..B+F-1, every camera with truth
+              baselines: blank, freeze (the input view's frame B-1 held, on every view)
+    velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
+              at the truth's sample points (voxels with density > 0.05, or the synth's particles),
+              at every saved frame of the observed and predicted windows; baseline: zero velocity
+    whatif    per counterfactual variant beside the scene (wind / ball, from its gt/meta.json):
+              the reconstruction branched at the variant's branch frame, continued once with the
+              intervention and once without it (the "own factual prediction" baseline), both
+              scored against the variant's truth on its window and on its late window
+    rise      the first 10 reconstructed frames continued to frame A+60 by prediction: the plume's
+              top height above the source against the truth's (a 10-frame reconstruction must rise)
+
+PSNR / SSIM as the shared anchors (scikit-image conventions: per frame, mean over frames, then
+over views). `--score-every K` scores every K-th frame of each window and `--score-long-side`
+renders and downsizes the truth to that long side: both make a run fit a small machine; the
+baselines are always computed on the same frames at the same size. Reader per layout:
+bench/gt_scenes.py.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import typer
+
+if __package__ in (None, ""):  # `python bench/generalise.py`
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from fluidnexus.cli.errors import UserError, echo_json, user_errors  # noqa: I001 - first: it registers every benchmark
+from bench.gt_scenes import GroundTruth, Variant, open_scene  # noqa: E402
+from bench.predict import per_frame  # noqa: E402
+from bench.scene_args import quality_overrides  # noqa: E402
+from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+
+TASKS = ("nvs", "input", "future", "velocity", "whatif", "rise")
+RISE_OBSERVED = 10  # frames of the short reconstruction the rise task continues
+RISE_AT = 60  # frames after the observed window's start at which the plume's top is compared
+Predictor = Callable[[Any, list[int], tuple[int, int]], Any]  # (camera, frames, size) -> uint8 (T, H, W, 3)
+
+
+def _log(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def command(
+    scene_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="Scene folder with transforms.json and ground truth."),
+    input_view: str = typer.Option(..., "--input-view", help="The one camera whose video is reconstructed."),
+    observed: str = typer.Option(..., "--observed", help="A:B, the observed frames (end exclusive)."),
+    future: int | None = typer.Option(None, "--future", min=1, help="Frames to predict after B (default: up to 60, as many as the truth has)."),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
+    set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. long_side=240."),
+    score_every: int = typer.Option(1, "--score-every", min=1, help="Score every K-th frame of each window."),
+    score_long_side: int | None = typer.Option(None, "--score-long-side", min=16, help="Score at this long side (default: full size)."),
+    tasks: str = typer.Option(",".join(TASKS), "--tasks", help="Comma-separated subset of " + ",".join(TASKS) + "."),
+    reconstruction: Path | None = typer.Option(None, "--reconstruction", help="Reuse this finished reconstruction run."),
+    out: Path | None = typer.Option(None, "--out", help="Keep the runs here (default: a temporary folder)."),
+    figure: Path | None = typer.Option(None, "--figure", help="Write the per-frame PSNR figure (PNG) here."),
+    threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
+    json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+) -> None:
+    """Novel views, input-view fit, future, velocity, what-ifs and rise on one scene, with baselines."""
+    import torch
+
+    from fluidcore.jobs import parse_frames
+
+    with user_errors(ValueError):
+        if threads is not None:
+            torch.set_num_threads(threads)
+        chosen = _tasks(tasks)
+        gt = open_scene(scene_dir)
+        input_path = gt.input_path(input_view)
+        window = parse_frames(observed)
+        if window[1] > gt.n_frames:
+            raise UserError(f"--observed {observed}: the scene has {gt.n_frames} frames")
+        n_future = min(future or 60, gt.n_frames - window[1])
+        if "future" in chosen and n_future < 1:
+            raise UserError(f"--observed {observed}: no frame after it has ground truth to predict")
+        folder = out or Path(tempfile.mkdtemp(prefix="bench-generalise-"))
+        protocol = Protocol(gt, input_view, input_path, window, score_every, score_long_side, folder)
+        result = protocol.run(chosen, n_future, reconstruction, quality, quality_overrides(set_), progress_bar=not json_out)
+        result.update({"threads": torch.get_num_threads(), "load_average": list(os.getloadavg())})
+        if figure is not None:
+            result["figure"] = str(plot(result, figure))
+    if json_out:
+        echo_json(result)
+    else:
+        print_table(result)
+
+
+def _tasks(text: str) -> list[str]:
+    chosen = [t.strip() for t in text.split(",") if t.strip()]
+    unknown = sorted(set(chosen) - set(TASKS))
+    if unknown or not chosen:
+        raise UserError(f"--tasks: choose from {', '.join(TASKS)}, got {text!r}")
+    return chosen
+
+
+class Protocol:
+    """One scene, one input view, one observed window: runs and scores the tasks."""
+
+    def __init__(
+        self, gt: GroundTruth, input_view: str, input_path: Path, window: tuple[int, int],
+        score_every: int, score_long_side: int | None, folder: Path,
+    ) -> None:
+        self.gt, self.input_view, self.input_path, self.window = gt, input_view, input_path, window
+        self.every, self.long_side, self.folder = score_every, score_long_side, folder
+        self.seconds: dict[str, float] = {}
+
+    # -- running --------------------------------------------------------------------------------
+    def run(self, tasks: Sequence[str], n_future: int, reuse: Path | None, quality: str, overrides: dict, progress_bar: bool) -> dict:
+        from fluidcore.runs import Run
+
+        recon = Run.open(self._reconstruct(reuse, quality, overrides, progress_bar))
+        out: dict[str, Any] = {
+            "scene": str(self.gt.root), "layout": self.gt.kind, "input_view": self.input_view,
+            "observed": list(self.window), "score_every": self.every, "score_long_side": self.long_side,
+            "quality": recon.manifest["settings"].get("quality"), "physics": recon.scene.physics,
+            "source": recon.scene.source, "reconstruction": str(recon.path), "tasks": {},
+        }
+        frames = self._frames(*self.window)
+        held_out = [v for v in self.gt.views() if v != self.input_view]
+        if "nvs" in tasks and held_out:
+            out["tasks"]["nvs"] = self.score(self.gt, held_out, frames, {
+                "method": self._render([recon]), "copy_input": self._copy_input(), "blank": self._blank(recon),
+            })
+        if "input" in tasks:
+            out["tasks"]["input"] = self.score(self.gt, [self.input_view], frames, {
+                "method": self._render([recon]), "blank": self._blank(recon),
+            })
+        predicted = None
+        if ("future" in tasks or "velocity" in tasks) and n_future > 0:
+            predicted = self._timed("predict", lambda: self._predict(recon.path, self.folder / "predict", n_future))
+        if "future" in tasks and predicted is not None:
+            future = self._frames(self.window[1], self.window[1] + n_future)
+            out["tasks"]["future"] = self.score(self.gt, self.gt.views(), future, {
+                "method": self._render([predicted]), "freeze": self._freeze(self.window[1] - 1), "blank": self._blank(recon),
+            })
+        if "velocity" in tasks:
+            out["tasks"]["velocity"] = self.velocity([recon, *([predicted] if predicted else [])])
+        if "whatif" in tasks:
+            out["tasks"]["whatif"] = {v.name: self.whatif(recon, v) for v in self.gt.variants()}
+        if "rise" in tasks:
+            out["tasks"]["rise"] = self.rise(recon)
+        out["seconds"] = self.seconds
+        return out
+
+    def _timed(self, name: str, work: Callable[[], Any]) -> Any:
+        started = time.perf_counter()
+        value = work()
+        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - started
+        return value
+
+    def _reconstruct(self, reuse: Path | None, quality: str, overrides: dict, progress_bar: bool) -> Path:
+        from fluidcore.reconstruct.job import run_reconstruct
+        from fluidcore.reconstruct.presets import get
+        from fluidcore.runs import Run
+
+        if reuse is not None:
+            run = Run.open(reuse)
+            if run.manifest["input_views"] != [self.input_view] or run.frames() != list(range(*self.window)):
+                raise UserError(f"--reconstruction: {reuse} is not {self.input_view} over frames {self.window[0]}:{self.window[1]}")
+            return reuse
+        preset = get(quality).with_overrides(**overrides)
+        path = self.folder / "reconstruct"
+        _log(f"reconstructing {self.input_view} frames {self.window[0]}:{self.window[1]} at {preset.name}")
+        self._timed("reconstruct", lambda: run_reconstruct(
+            self.gt.cameras_path, {self.input_view: self.input_path}, path, quality=preset, frames=self.window,
+            progress_bar=progress_bar,
+        ))
+        return path
+
+    def _predict(self, parent: Path, out: Path, frames: int, **interventions: Any) -> Any:
+        from fluidcore import predict
+        from fluidcore.runs import Run
+
+        _log(f"continuing {parent.name} by {frames} frames {sorted(k for k, v in interventions.items() if v) or ''}")
+        if any(interventions.values()):
+            return Run.open(predict.run_interact(parent, out, frames=frames, **interventions))
+        return Run.open(predict.run_predict(parent, out, frames=frames))
+
+    def _frames(self, start: int, stop: int) -> list[int]:
+        return list(range(start, stop, self.every))
+
+    def _size(self, camera: Any) -> tuple[int, int]:
+        from fluidcore.reconstruct.presets import render_size
+
+        return render_size(camera.width, camera.height, self.long_side) if self.long_side else (camera.width, camera.height)
+
+    # -- predictors: (camera, frames, size) -> uint8 (T, H, W, 3) --------------------------------
+    def _render(self, runs: Sequence[Any]) -> Predictor:
+        """Each frame from the first of `runs` that holds it (a continuation, then its parent)."""
+        import numpy as np
+
+        from fluidcore.artifacts import render_frames
+
+        def predict(camera: Any, frames: list[int], size: tuple[int, int]) -> np.ndarray:
+            scaled = camera.scaled(*size)
+            out = []
+            for t in frames:
+                run = next((r for r in runs if t in r.frames()), None)
+                if run is None:
+                    raise UserError(f"frame {t}: none of the runs holds it")
+                out.append(render_frames(run, scaled, [t])[0])
+            return np.stack(out)
+
+        return predict
+
+    def _input_frames(self, frames: list[int], size: tuple[int, int]) -> Any:
+        from bench.gt_scenes import read_frames_at
+
+        return read_frames_at(self.input_path, frames, size)
+
+    def _copy_input(self) -> Predictor:
+        return lambda camera, frames, size: self._input_frames(frames, size)
+
+    def _freeze(self, t: int) -> Predictor:
+        import numpy as np
+
+        def predict(camera: Any, frames: list[int], size: tuple[int, int]) -> np.ndarray:
+            last = self._input_frames([t], size)
+            return np.broadcast_to(last, (len(frames), *last.shape[1:]))
+
+        return predict
+
+    def _blank(self, run: Any) -> Predictor:
+        import numpy as np
+
+        from fluidcore.artifacts import to_uint8_rgb
+
+        colour = to_uint8_rgb(np.asarray(run.background_color, np.float32)[None, None])
+
+        def predict(camera: Any, frames: list[int], size: tuple[int, int]) -> np.ndarray:
+            return np.broadcast_to(colour, (len(frames), size[1], size[0], 3))
+
+        return predict
+
+    # -- scoring ---------------------------------------------------------------------------------
+    def score(self, gt: GroundTruth, views: Sequence[str], frames: list[int], predictors: dict[str, Predictor]) -> dict:
+        """Per view and predictor: mean PSNR / SSIM and the per-frame PSNR; means over views."""
+        import numpy as np
+
+        per_view: dict[str, Any] = {}
+        for view in views:
+            camera = gt.cameras[view]
+            size = self._size(camera)
+            truth = gt.truth(view, frames, size)
+            per_view[view] = {}
+            for name, predictor in predictors.items():
+                scores = per_frame(predictor(camera, frames, size), truth)
+                per_view[view][name] = {"psnr": float(np.mean(scores["psnr"])), "ssim": float(np.mean(scores["ssim"])),
+                                        "per_frame_psnr": scores["psnr"]}
+            _log(f"  {view}: " + ", ".join(f"{k} {v['psnr']:.2f}" for k, v in per_view[view].items()))
+        return {"frames": frames, "views": per_view, "mean": _means(per_view, predictors)}
+
+    def velocity(self, runs: Sequence[Any]) -> dict:
+        """End-point error per saved truth frame the runs hold, against zero velocity."""
+        import numpy as np
+
+        rows = {}
+        for t in self.gt.velocity_frames():
+            run = next((r for r in runs if t in r.frames()), None)
+            truth = self.gt.velocity(t) if run is not None else None
+            if truth is None or len(truth[0]) == 0:
+                continue
+            points, expected = truth
+            predicted = _particle_velocity(run, t, points)
+            error = np.linalg.norm(predicted - expected, axis=1)
+            rows[str(t)] = {"epe": float(error.mean()), "zero_epe": float(np.linalg.norm(expected, axis=1).mean()),
+                            "samples": len(points), "window": "observed" if t < self.window[1] else "future"}
+        summary = {}
+        for part in ("observed", "future"):
+            chosen = [r for r in rows.values() if r["window"] == part]
+            if chosen:
+                summary[part] = {k: float(np.mean([r[k] for r in chosen])) for k in ("epe", "zero_epe")}
+        first = rows.get(str(self.window[1]))
+        if first is not None:
+            summary["first_future_frame"] = {"frame": self.window[1], "epe": first["epe"], "zero_epe": first["zero_epe"]}
+        return {"frames": rows, "summary": summary}
+
+    def whatif(self, recon: Any, variant: Variant) -> dict:
+        """The variant's intervention and the own factual prediction, both against its truth."""
+        branch = _branch(recon, variant.branch_frame, self.folder / f"branch_{variant.branch_frame:04d}")
+        n = variant.scene.n_frames - 1 - variant.branch_frame
+        wind = None
+        if variant.wind is not None:  # the same acceleration field, expressed at our source's height
+            up = recon.scene.up
+            base = sum(c * u for c, u in zip(recon.scene.source["center"], up, strict=True))
+            strength = variant.wind["strength"] * math.exp(variant.wind["growth"] * (base - variant.wind_base))
+            wind = {**variant.wind, "strength": strength}
+        intervened = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"whatif_{variant.name}", n,
+                                                                 wind=wind, ball=variant.ball))
+        factual = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"factual_{variant.branch_frame:04d}", n))
+        frames = self._frames(variant.first_frame, variant.scene.n_frames)
+        scored = self.score(variant.scene, variant.scene.views(), frames, {
+            "method": self._render([intervened, branch]), "own_factual": self._render([factual, branch]), "blank": self._blank(recon),
+        })
+        scored["late_start"] = variant.late_start
+        scored["late_mean"] = _means(scored["views"], ("method", "own_factual", "blank"), [t >= variant.late_start for t in frames])
+        scored["intervention"] = {"wind": wind, "ball": variant.ball}
+        return scored
+
+    def rise(self, recon: Any) -> dict | None:
+        """Continue the first RISE_OBSERVED reconstructed frames to frame A + RISE_AT; compare the
+        plume's top height above the source with the truth's (None without truth heights)."""
+        import numpy as np
+
+        at = self.window[0] + RISE_AT
+        last = self.window[0] + RISE_OBSERVED - 1
+        source = self.gt.source_height()
+        truth = self.gt.top_height(at)
+        if truth is None or source is None or last not in recon.frames():
+            return None
+        branch = _branch(recon, last, self.folder / f"branch_{last:04d}")
+        run = self._timed("rise", lambda: self._predict(branch.path, self.folder / "rise", at - last))
+        state = run.read_frame(at)
+        heights = state.positions[state.alive] @ np.asarray(run.scene.up, dtype=np.float32)
+        top = float(np.quantile(heights, 0.98)) if len(heights) else float("nan")
+        ratio = (top - source) / (truth - source)
+        return {"frame": at, "observed_frames": RISE_OBSERVED, "top_above_source": top - source,
+                "truth_top_above_source": truth - source, "ratio": ratio}
+
+
+def _means(per_view: dict[str, Any], names: Sequence[str], keep: Sequence[bool] | None = None) -> dict[str, Any]:
+    """Mean PSNR / SSIM over views (per-view means first); with `keep`, PSNR over the kept frames only."""
+    import numpy as np
+
+    out = {}
+    for name in names:
+        if keep is None:
+            out[name] = {m: float(np.mean([v[name][m] for v in per_view.values()])) for m in ("psnr", "ssim")}
+        else:
+            out[name] = {"psnr": float(np.mean([np.mean([p for p, k in zip(v[name]["per_frame_psnr"], keep, strict=True) if k])
+                                                for v in per_view.values()]))}
+    return out
+
+
+def _particle_velocity(run: Any, t: int, points: Any) -> Any:
+    """The run's particle velocities at frame t, interpolated at `points` as the reconstruction
+    carries its visual Gaussians (Shepard average within the visual velocity radius; 0 where no
+    particle is near)."""
+    import numpy as np
+    import torch
+
+    from fluidcore.physics import interpolate_velocity
+
+    state = run.read_frame(t)
+    h = run.scene.physics["h"]
+    settings = run.manifest["settings"]
+    radius = (settings.get("visual") or settings["quality"])["velocity_radius"]
+    alive = state.alive
+    with torch.no_grad():
+        v = interpolate_velocity(torch.from_numpy(np.ascontiguousarray(points)), torch.from_numpy(state.positions[alive]),
+                                 torch.from_numpy(state.velocities[alive]), radius * h)
+    return v.numpy()
+
+
+def _branch(recon: Any, last: int, out: Path) -> Any:
+    """The reconstruction's frames up to `last` as a run of their own: exactly what reconstructing
+    only those frames writes (each frame depends on earlier ones only), so a continuation can
+    start at `last`."""
+    from fluidcore.runs import Run
+
+    first = recon.frames()[0]
+    if last not in recon.frames():
+        raise UserError(f"branch frame {last} is outside the reconstruction ({first}..{recon.frames()[-1]})")
+    m = recon.manifest
+    run = Run.create(
+        out, kind=recon.kind, cameras=recon.cameras(), input_views=m["input_views"], frame_range=(first, last + 1),
+        fps=recon.fps, channels=recon.channels, background_color=recon.background_color, scene=recon.scene,
+        settings=m["settings"],
+    )
+    if recon.background_images() and not run.background_images():
+        run.write_background(recon.background_images())
+    for t in range(run.next_frame(), last + 1):
+        log = recon.frame_log(t)
+        run.write_frame(t, recon.read_frame(t), log["losses"], log["seconds"])
+    return run
+
+
+# -- output ------------------------------------------------------------------------------------
+def _rows(result: dict) -> list[tuple[str, str, dict]]:
+    """(task, predictor, {"psnr", "ssim"}) for every scored mean."""
+    tasks = result["tasks"]
+    rows = []
+    for task in ("nvs", "input", "future"):
+        for name, value in (tasks.get(task) or {}).get("mean", {}).items():
+            rows.append((task, name, value))
+    for variant, scored in (tasks.get("whatif") or {}).items():
+        for name, value in scored["mean"].items():
+            rows.append((f"{variant}", name, value))
+        for name, value in scored["late_mean"].items():
+            rows.append((f"{variant} late", name, value))
+    return rows
+
+
+def print_table(result: dict) -> None:
+    print(f"scene {result['scene']} ({result['layout']}), input {result['input_view']}, observed {result['observed']}, "
+          f"every {result['score_every']} frame(s), long side {result['score_long_side'] or 'full'}")
+    print(f"{'task':<16} {'predictor':<12} {'PSNR':>7} {'SSIM':>7}")
+    for task, name, value in _rows(result):
+        ssim = f"{value['ssim']:7.4f}" if "ssim" in value else f"{'':>7}"
+        print(f"{task:<16} {name:<12} {value['psnr']:7.2f} {ssim}")
+    velocity = result["tasks"].get("velocity")
+    for part, v in ((velocity or {}).get("summary") or {}).items():
+        print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f})")
+    rise = result["tasks"].get("rise")
+    if rise:
+        print(f"rise: top {rise['top_above_source']:.3f} above the source at frame {rise['frame']}, truth "
+              f"{rise['truth_top_above_source']:.3f} (ratio {rise['ratio']:.2f})")
+    print("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in result["seconds"].items()) +
+          f"; {result['threads']} threads, load {result['load_average'][0]:.2f}")
+
+
+def plot(result: dict, path: Path) -> Path:
+    """Per-frame PSNR (mean over the task's views) of every predictor, one panel per task."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    tasks = result["tasks"]
+    panels = [(name, tasks[name]) for name in ("nvs", "input", "future") if tasks.get(name)]
+    panels += [(f"what-if {k}", v) for k, v in (tasks.get("whatif") or {}).items()]
+    if not panels:
+        raise UserError("--figure: no image task was scored")
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False)
+    for ax, (title, scored) in zip(axes[0], panels, strict=True):
+        names = next(iter(scored["views"].values())).keys()
+        for name in names:
+            curve = np.mean([v[name]["per_frame_psnr"] for v in scored["views"].values()], axis=0)
+            ax.plot(scored["frames"], curve, label=name)
+        if "late_start" in scored:
+            ax.axvline(scored["late_start"], color="grey", linestyle=":", linewidth=1)
+        ax.set_title(title)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("PSNR (dB), mean over views")
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{Path(result['scene']).name}: input {result['input_view']}, observed {result['observed']}")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+if __name__ == "__main__":
+    typer.run(command)
