@@ -28,7 +28,7 @@ from fluidcore.cameras import Camera, look_at, write_transforms
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
 from fluidcore.render import Gaussians, render
 
-SIM_BOX_HEIGHT = 75.0  # the same units rule as reconstruction (fluidcore.reconstruct.init)
+SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.identify)
 
 
 class SynthError(ValueError):
@@ -52,13 +52,14 @@ class SynthSpec:
     smoke_opacity: float = 0.2
     fps: float = 30.0
     seed: int = 0
+    buoyancy_scale: float = 1.0  # multiple of the ScalarFlow preset's buoyancy (scenes with other physics)
 
     def __post_init__(self) -> None:
         for name in ("frames", "width", "height", "views", "particles_per_step"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise SynthError(f"{name} must be a positive integer, got {value!r}")
-        for name in ("source_radius", "camera_distance", "fps"):
+        for name in ("source_radius", "camera_distance", "fps", "buoyancy_scale"):
             if not getattr(self, name) > 0:
                 raise SynthError(f"{name} must be positive, got {getattr(self, name)}")
         if min(self.box_size) <= 0:
@@ -72,7 +73,8 @@ class SynthSpec:
 
     def config(self) -> PBFConfig:
         scale = SIM_BOX_HEIGHT / self.box_size[1]
-        return replace(PRESETS["scalarflow"], length_scale=scale, h=2.0 / scale, dt=1.0 / self.fps)
+        base = PRESETS["scalarflow"]
+        return replace(base, alpha=base.alpha * self.buoyancy_scale, length_scale=scale, h=2.0 / scale, dt=1.0 / self.fps)
 
     def source(self) -> Source:
         config = self.config()

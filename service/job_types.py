@@ -15,11 +15,12 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from fluidcore.interaction import BallParams, WindParams
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, PRESETS
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
 
 _STRICT = ConfigDict(extra="forbid")
 
 QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
+PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
 
 StartsFrom = Literal["scene", "parent"]
 
@@ -29,6 +30,7 @@ class ReconstructParams(BaseModel):
 
     model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY
+    physics: PhysicsName = DEFAULT_PHYSICS
     frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
 
     @model_validator(mode="after")

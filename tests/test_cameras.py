@@ -444,3 +444,14 @@ def test_cameras_module_does_not_import_torch() -> None:
     code = "import sys, fluidcore.cameras, fluidcore.video; print('torch' in sys.modules)"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert result.stdout.strip() == "False"
+
+
+def test_scene_box_min_max_is_read_and_checked(tmp_path: Path) -> None:
+    path = tmp_path / "transforms.json"
+    path.write_text(json.dumps({"scene_box": {"min": [0.1, 0.0, -0.5], "max": [0.6, 0.75, 0.0]}, "frames": []}))
+    lo, hi = scene_box(path)
+    np.testing.assert_allclose(lo, [0.1, 0.0, -0.5])
+    np.testing.assert_allclose(hi, [0.6, 0.75, 0.0])
+    path.write_text(json.dumps({"scene_box": {"min": [0.1, 0.0, -0.5], "max": [0.0, 0.75, 0.0]}, "frames": []}))
+    with pytest.raises(CameraError, match="scene_box"):
+        scene_box(path)

@@ -85,6 +85,7 @@ def reconstruct(inputs: RunInputs) -> None:
         dict(inputs.videos),
         inputs.run_dir,
         quality=params.quality,
+        physics=params.physics,
         frames=params.frames,
         **_callbacks(inputs),
     )

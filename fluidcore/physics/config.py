@@ -118,6 +118,11 @@ class PBFConfig:
             return math.inf
         return math.hypot(*self.body_acceleration) / self.drag
 
+    def inlet_capacity(self, radius: float, speed: float) -> float:
+        """Particles per step a source ball of `radius` carries away at `speed` at rest density:
+        n0 pi r^2 v dt, n0 = 8 rho0 / h^3 the number density at rest (density 1 = 8 per h^3)."""
+        return 8.0 * self.rho0 / self.h**3 * math.pi * radius**2 * speed * self.dt
+
     @property
     def speed_limit(self) -> float:
         """Largest particle speed (world units / s): a particle never moves more than this * dt per step."""

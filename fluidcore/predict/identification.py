@@ -15,7 +15,8 @@ from fluidcore.runs import FrameState, Run, Scene
 from fluidcore.smoke import SmokeState
 
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
-BUOYANCY_SCALES = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0)  # candidate multiples of the preset buoyancy
+# candidate multiples of the preset buoyancy; never 0: smoke the video showed rising keeps rising
+BUOYANCY_SCALES = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
 
 
 def calibrate_buoyancy(

@@ -7,8 +7,9 @@
 
 Each continues the parent's scene and physics, except that the source seeds no faster than its
 inlet carries particles away at rest density (`rollout.inlet_source`) and, when the parent is a
-reconstruction, the buoyancy is scaled to the one under which physics best replays the
-reconstruction's last frames (`identification.calibrate_buoyancy`) and the appearance height
+reconstruction with preset physics, the buoyancy is scaled to the one under which physics best
+replays the reconstruction's last frames (`identification.calibrate_buoyancy`; physics
+identified from the video, fluidcore.reconstruct.identify, is used as it is) and the appearance height
 profile of its last frame is held (`priors.HeightProfile`); the manifest records all three.
 Each writes an ordinary run folder (fluidcore.runs) with the parent recorded relative to it, so
 rendering is `fluidcore.artifacts`, and a stopped job resumes from its last written frame with
@@ -162,7 +163,8 @@ def _write(
         # the whole window is observed footage, and at an early branch frame (frame 0 above
         # all) the plume has not risen yet to show its speed or its look higher up.
         observed = parent.frames()[-1]
-        buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
+        if parent.manifest["settings"].get("physics", {}).get("mode") != "auto":  # identified physics needs no rescaling
+            buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
         scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
         look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
         profile = HeightProfile.observe(look, scene.up)

@@ -119,7 +119,7 @@ def inlet_source(source: Source, config: PBFConfig) -> Source:
     speed = math.hypot(*source.velocity)
     if config.drag > 0:
         speed = max(speed, config.terminal_speed)
-    capacity = 8.0 * config.rho0 / config.h**3 * math.pi * source.radius**2 * speed * config.dt
+    capacity = config.inlet_capacity(source.radius, speed)
     if speed == 0.0 or source.rate <= capacity:
         return source
     return replace(source, rate=max(1, round(capacity)))

@@ -4,8 +4,7 @@
   smoke) and, only when a view's background is textured, a static image for that view;
 * the smoke mask of a frame: where it differs from the background;
 * the source: where smoke enters the scene (the lowest smoke of the first frames, along the
-  scene's up axis), as a 3D centre and radius;
-* the length scale: simulator units per world unit, from the scene box.
+  scene's up axis), as a 3D centre and radius.
 
 Only the videos handed in are used (never a held-out view), and nothing here is tuned to a
 particular clip: thresholds are in units of the image's own noise or of the scene box.
@@ -25,7 +24,6 @@ FLAT_TOLERANCE = 0.04  # |pixel - background colour| below this counts as flat (
 SMOKE_THRESHOLD = 0.04  # |frame - background| above this is smoke
 SOURCE_FRAMES = 5  # the first frames say where smoke enters
 SOURCE_BAND = 0.1  # the lowest 10% of a view's smoke pixels outline the source
-SIM_BOX_HEIGHT = 75.0  # simulator units spanned by the scene box's height (paper: ScalarFlow x100)
 
 
 class EstimationError(ValueError):
@@ -194,21 +192,3 @@ def estimate_source(
     center = np.clip(center, lo, hi)
     radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, r in px_radii]
     return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels)
-
-
-def length_scale(box: tuple[np.ndarray, np.ndarray], up: Sequence[float] = (0.0, 1.0, 0.0)) -> float:
-    """Simulation units per world unit (`PBFConfig.length_scale`) so the box's height spans
-    SIM_BOX_HEIGHT of them.
-
-    Scaling by the box rather than assuming metres keeps the paper's constants (buoyancy,
-    drag, kernel radius in simulation units) meaningful for scenes in any unit, e.g. an
-    arbitrary-scale COLMAP model; for ScalarFlow's 0.736-tall box it gives ~100, the
-    official release's factor.
-    """
-    up_v = np.asarray(up, dtype=np.float64)
-    up_v = up_v / np.linalg.norm(up_v)
-    lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
-    height = float(np.abs(hi - lo) @ np.abs(up_v))
-    if not height > 0:
-        raise EstimationError(f"box: height along up is {height}; the box must have volume")
-    return SIM_BOX_HEIGHT / height

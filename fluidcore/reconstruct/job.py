@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, batch_progress, no_progress
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, Quality
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -53,13 +53,16 @@ def run_reconstruct(
     progress: Progress | None = None,
     should_cancel: ShouldCancel | None = None,
     source: tuple[Sequence[float], float] | None = None,
+    physics: str = DEFAULT_PHYSICS,
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
 ) -> Path:
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
     `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
-    uses). Returns the run folder. `progress_bar` draws a tqdm bar on stderr (the CLI's).
+    uses). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
+    "fluidnexus"; fluidcore.reconstruct.identify). Returns the run folder. `progress_bar` draws a
+    tqdm bar on stderr (the CLI's).
     With one input view, the generative priors (`generative`, default: the weights of
     `fluidcore.weights.weights_dir()`) replace the symmetry pseudo-views when their weights
     exist; the manifest's "novel_views" and "view_refinement" say what ran or why not.
@@ -100,7 +103,7 @@ def run_reconstruct(
     report(0.0, "prepare")
     rec = prepare(
         cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=_box(cameras_path, cameras),
-        source=source, device=device,
+        source=source, physics=physics, device=device,
     )
     del decoded
     settings = generative or GenerativeSettings()

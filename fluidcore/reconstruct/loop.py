@@ -23,25 +23,23 @@ import math
 import random
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from fluidcore.cameras import Camera
-from fluidcore.physics import PRESETS as PHYSICS_PRESETS
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
+from fluidcore.reconstruct.identify import check_mode, scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
-from fluidcore.reconstruct.presets import Quality, render_size
-from fluidcore.reconstruct.views import ViewTarget, image_loss, symmetry_views
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
+from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
 
-STABILIZATION_STEPS = 20
-KERNEL_RADIUS_SIM = 2.0  # the release's kernel radius (0.02 world = 2 simulation units)
 FrameCallback = Callable[[int, dict[str, float]], None]
 
 
@@ -67,7 +65,9 @@ class Reconstruction:
     source: Source
     up: np.ndarray
     quality: Quality
-    physics_preset: str
+    physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
+    stabilization_steps: int
+    symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
 
     def scene(self) -> Scene:
         return Scene(
@@ -82,7 +82,8 @@ class Reconstruction:
         return {
             "quality": self.quality.to_json(),
             "visual": self.quality.visual_settings(),
-            "physics_preset": self.physics_preset,
+            "physics": self.physics,
+            "symmetry": self.symmetry,
             "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
         }
 
@@ -101,7 +102,7 @@ def prepare(
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
     source: tuple[Sequence[float], float] | None = None,
-    physics_preset: str = "scalarflow",
+    physics: str = DEFAULT_PHYSICS,
     extra_views: Sequence[ViewTarget] = (),
     device: str | torch.device = "cpu",
 ) -> Reconstruction:
@@ -109,15 +110,16 @@ def prepare(
     per input camera, frames of `frame_range` only, at any size with the camera's aspect).
 
     `source` = (centre, radius) in world units when the user knows it; otherwise it is
-    estimated from the first frames. `extra_views` is the slot for generated novel views.
+    estimated from the first frames. `physics` is "auto" (identified from the first input view,
+    fluidcore.reconstruct.identify) or a preset name. `extra_views` is the slot for generated
+    novel views.
     """
     if not videos:
         raise ReconstructionError("videos: at least one input view is needed")
     unknown = sorted(set(videos) - set(cameras))
     if unknown:
         raise ReconstructionError(f"videos: no camera named {unknown} in the cameras file (have {sorted(cameras)})")
-    if physics_preset not in PHYSICS_PRESETS:
-        raise ReconstructionError(f"physics_preset must be one of {sorted(PHYSICS_PRESETS)}, got {physics_preset!r}")
+    check_mode(physics)
     n_frames = frame_range[1] - frame_range[0]
     lengths = {name: len(v) for name, v in videos.items()}
     if any(n != n_frames for n in lengths.values()):
@@ -147,19 +149,19 @@ def prepare(
         center, radius = estimate.center, estimate.radius
     else:
         center, radius = np.asarray(source[0], dtype=np.float64), float(source[1])
-    scale = init.length_scale(box, up_v)
-    base = PHYSICS_PRESETS[physics_preset]
-    config = replace(base, length_scale=scale, h=KERNEL_RADIUS_SIM / scale, gravity=tuple(-9.8 * up_v), dt=1.0 / fps)
-    src = Source(
-        center=tuple(map(float, center)),
-        radius=max(radius, 0.5 * config.h),
-        rate=quality.particles_per_frame,
-        velocity=tuple(map(float, config.terminal_speed * up_v)),
-        seed=quality.seed,
-    )
-    pseudo = []
+    sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
+    first = targets[0]
+    chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
+                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
+    config, src = chosen.config, chosen.source
+    center = np.asarray(src.center)
+    pseudo, symmetry = [], None
     if quality.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
-        pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, quality.symmetry_weight / quality.symmetry_views)
+        agreement = mirror_agreement(targets[0], center, up_v, init.SMOKE_THRESHOLD)
+        weight = quality.symmetry_weight * symmetry_support(agreement) / quality.symmetry_views
+        symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
+        if weight > 0:
+            pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
     return Reconstruction(
         cameras=dict(cameras),
         views=[*targets, *pseudo, *extra_views],
@@ -171,11 +173,13 @@ def prepare(
         background_images=backgrounds,
         smoke_color=smoke_color,
         config=config,
-        box=Box(tuple(map(float, box[0])), tuple(map(float, box[1]))),
+        box=sim_box,
         source=src,
         up=up_v,
         quality=quality,
-        physics_preset=physics_preset,
+        physics=chosen.record,
+        stabilization_steps=chosen.stabilization_steps,
+        symmetry=symmetry,
     )
 
 
@@ -322,7 +326,7 @@ class Reconstructor:
         if done:
             return SmokeState.from_frame(run.read_frame(done[-1]), self.device)
         state = self.simulator.new_state()
-        self.simulator.stabilize(state, STABILIZATION_STEPS)
+        self.simulator.stabilize(state, self.rec.stabilization_steps)
         return SmokeState.start(state, self.rec.channels)
 
 

@@ -133,6 +133,8 @@ PRESETS: dict[str, Quality] = {
 }
 
 
+PHYSICS_MODES = {"auto": "scalarflow", "scalarflow": "scalarflow", "fluidnexus": "fluidnexus_smoke"}  # -> prior preset
+DEFAULT_PHYSICS = "auto"  # identified from the input video (fluidcore.reconstruct.identify), the presets as priors
 DEFAULT_QUALITY = "preview"  # what a job runs at when nobody says: the CLI, the API and the benchmarks alike
 QUALITY_CHOICES = " | ".join(PRESETS)  # for help texts
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import typer
 
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
 from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
@@ -70,6 +70,7 @@ def reconstruct(
     video: list[str] = typer.Option(..., "--video", help="VIEW=path.mp4; repeat for several input views."),
     frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
+    physics: str = typer.Option(DEFAULT_PHYSICS, "--physics", help=" | ".join(PHYSICS_MODES) + ": identified from the video, or a preset"),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
@@ -88,7 +89,7 @@ def reconstruct(
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
-            cameras, parse_videos(video), out, quality=quality, frames=parse_frames(frames),
+            cameras, parse_videos(video), out, quality=quality, physics=physics, frames=parse_frames(frames),
             device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
         )
         emit(as_json, str(path), **run_fields(path))

@@ -1,0 +1,350 @@
+"""Physics identified per scene from the observed input view (issue 12), not taken from a dataset.
+
+The dataset presets (`fluidcore.physics.PRESETS`) hold constants tuned on one capture: their
+buoyancy, in particular, sets how fast a plume rises, and a plume from another source, in
+other units or another gas rises at its own rate. Here the buoyancy (an acceleration along
+up, world units / s^2) and the age of the plume at the first frame are chosen so that the simulated plume, rendered into the input camera, covers
+what the video shows frame after frame:
+
+    observed    the smoke mask of every observed frame (|frame - background| above the noise),
+                pooled onto cells about one kernel radius wide;
+    simulated   the physics of this scene (box, source, kernel radius, drag and rest density of
+                the prior preset) run from an empty box; each step's particles projected into
+                the same camera mark their cells;
+    misfit      mean over the frames of 1 - IoU(simulated cells, observed cells), plus the mean
+                distance between the simulated and observed tops of the plume (the rise, which
+                the IoU of a thin column barely sees) as a fraction of the image, minimised
+                also over the plume's age (how many steps the source had been emitting when
+                frame 0 was taken), which one rollout per candidate answers for every age.
+
+Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
+(a second or two) and compares what the image fit cannot change later: where smoke is. The
+search is coarse to fine (five buoyancies in log steps around one read off the video's rise
+speed; then the source's height and radius around the image estimate of
+`fluidcore.reconstruct.init.estimate_source`, which a smoke edge biases; then two finer
+buoyancy steps), bounded by MAX_EVALUATIONS rollouts.
+
+The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
+not searched on its own), and the inflow rate follows from it: the source seeds what its inlet carries at rest
+density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3), capped by the quality's particle budget. Drag and
+rest density stay the prior's (a silhouette says little about them); they are recorded as
+such. Smoke that rises in the video never gets zero buoyancy: candidates are positive by
+construction and `buoyancy_floor` bounds them below by the acceleration needed to hold the
+observed rise speed against drag.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, replace
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from fluidcore.cameras import Camera
+from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
+from fluidcore.reconstruct.presets import PHYSICS_MODES
+
+MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
+MAX_FRAMES = 45  # observed frames the misfit is measured over (the first ones)
+MAX_EVALUATIONS = 20  # rollouts per identification, all stages together
+OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
+FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
+FLOOR_FRACTION = 0.5  # buoyancy floor: this fraction of drag x observed rise speed
+BUOYANCY_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)  # stage-1 grid around the video's estimate
+SOURCE_LIFTS = (-0.5, 0.0, 0.5)  # source centre moves along up, in radii of the estimate (stage 2)
+SOURCE_SIZES = (0.8, 1.0, 1.25)  # source radius factors (stage 2)
+REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
+
+
+class IdentificationError(ValueError):
+    """The observed frames cannot identify the physics (e.g. no smoke at all)."""
+
+
+@dataclass(frozen=True)
+class Observation:
+    """The input view's smoke, pooled onto cells: what a candidate's rollout must cover."""
+
+    camera: Camera  # at the masks' resolution
+    cells: np.ndarray  # (T, gh, gw) bool
+    cell: int  # pixels per cell side
+    height: np.ndarray  # (gh, gw) each cell's height along the image's up direction, in pixels
+
+    @classmethod
+    def from_masks(cls, camera: Camera, masks: np.ndarray, cell: int, center: np.ndarray, up: np.ndarray) -> Observation:
+        """Pool (T, H, W) bool masks into cells of `cell` x `cell` pixels; heights are measured
+        along the direction in which `up` points in the image at `center`."""
+        from fluidcore.reconstruct.init import image_up
+
+        t, h, w = masks.shape
+        gh, gw = h // cell, w // cell
+        if gh < 2 or gw < 2:
+            raise IdentificationError(f"masks of {w}x{h} px are too small for cells of {cell} px")
+        pooled = masks[:, : gh * cell, : gw * cell].reshape(t, gh, cell, gw, cell).mean(axis=(2, 4))
+        up2d = image_up(camera, center, up)
+        rows, cols = np.mgrid[0:gh, 0:gw]
+        height = ((cols + 0.5) * up2d[0] + (rows + 0.5) * up2d[1]) * cell
+        return cls(camera, pooled > OCCUPIED, cell, height - height.min())
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """(gh, gw) bool: the cells the points fall in, grown by a particle's footprint."""
+        out = np.zeros(self.cells.shape[1:], dtype=bool)
+        if len(points) == 0:
+            return out
+        uv, depth = self.camera.project_numpy(points)
+        col, row = (uv[:, 0] // self.cell).astype(np.int64), (uv[:, 1] // self.cell).astype(np.int64)
+        ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < out.shape[1]) & (row < out.shape[0])
+        out[row[ok], col[ok]] = True
+        return ndimage.binary_dilation(out, iterations=FOOTPRINT)
+
+    def tops(self, cells: np.ndarray) -> np.ndarray:
+        """(T,) height of the highest smoke cell of each frame (pixels; 0 for an empty frame)."""
+        return np.where(cells.any(axis=(1, 2)), np.where(cells, self.height, 0.0).max(axis=(1, 2)), 0.0)
+
+
+@dataclass(frozen=True)
+class Identified:
+    """The identified physics and how it was found (recorded in the run's manifest)."""
+
+    buoyancy: float  # world units / s^2 along up
+    inflow_speed: float  # world units / s along up
+    rate: int  # particles per step
+    age: int  # steps the source had emitted before frame 0
+    misfit: float  # mean 1 - IoU over the frames, at the optimum
+    rise_speed: float  # observed speed of the plume's top (world units / s), what the floor uses
+    floor: float  # the buoyancy floor
+    evaluations: int
+    source_center: list[float]  # world
+    source_radius: float
+    prior: dict  # the starting values (preset) and what stayed the prior's
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def buoyancy_floor(rise_speed: float, drag: float) -> float:
+    """The least buoyancy a plume rising at `rise_speed` may be given (0 when it does not rise).
+
+    Sparse smoke tends to the terminal speed buoyancy / drag, and an inflow's momentum is
+    gone after a few 1/drag; smoke seen rising at speed u therefore needs a buoyancy near
+    drag x u, and never zero. FLOOR_FRACTION leaves room for the inflow's share.
+    """
+    if not math.isfinite(rise_speed) or rise_speed <= 0.0:
+        return 0.0
+    return FLOOR_FRACTION * max(drag, 1e-3) * rise_speed
+
+
+def rise_speed(observation: Observation, center: np.ndarray, fps: float) -> float:
+    """Speed (world units / s) at which the top of the observed smoke climbs, measured at the
+    source's depth by a line fitted over the frames; 0 when it climbs less than a cell over
+    them. Frames whose top
+    is at the image's upper edge are left out (the plume has left the view there)."""
+    camera = observation.camera
+    depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
+    tops = observation.tops(observation.cells)
+    seen = observation.cells.any(axis=(1, 2)) & (tops < observation.height.max() - observation.cell)
+    frames = np.flatnonzero(seen)
+    if len(frames) < 3:
+        return 0.0
+    slope = float(np.polyfit(frames, tops[frames], 1)[0])  # px per frame
+    if slope * (frames[-1] - frames[0]) < observation.cell:  # less than one cell over the window: no climb
+        return 0.0
+    return slope * depth / camera.fx * fps
+
+
+def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> int:
+    """Particles per step the inlet carries at rest density (`PBFConfig.inlet_capacity`), at
+    least 1 and at most `budget` (the quality's resolution)."""
+    return int(min(max(round(config.inlet_capacity(radius, speed)), 1), budget))
+
+
+Candidate = tuple[float, float, float]  # (buoyancy, source lift along up in radii, source radius factor)
+
+
+class _Search:
+    """Rollouts of candidates scored against the observation (cached per candidate)."""
+
+    def __init__(self, observation: Observation, config: PBFConfig, box: Box, source: Source, up: np.ndarray,
+                 budget: int, device: torch.device | str) -> None:
+        self.observation, self.config, self.box, self.source = observation, config, box, source
+        self.up, self.budget, self.device = up, budget, device
+        self.frames = min(len(observation.cells), MAX_FRAMES)
+        self.scores: dict[Candidate, tuple[float, int]] = {}
+
+    def misfit(self, candidate: Candidate) -> tuple[float, int]:
+        """(least misfit over the plume ages, that age) of one candidate."""
+        key = tuple(round(float(x), 9) for x in candidate)
+        if key not in self.scores:
+            self.scores[key] = self._rollout(key)
+        return self.scores[key]
+
+    def parts(self, candidate: Candidate) -> tuple[PBFConfig, Source]:
+        """The simulator's config and source of a candidate (inflow at its terminal speed)."""
+        buoyancy, lift, radius_factor = candidate
+        config = with_buoyancy(self.config, buoyancy, self.up)
+        speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
+        radius = self.source.radius * radius_factor
+        center = np.asarray(self.source.center) + lift * self.source.radius * self.up
+        rate = inlet_rate(radius, speed, config, self.budget)
+        return config, replace(self.source, center=tuple(float(c) for c in center), radius=radius, rate=rate,
+                               velocity=tuple(float(c) for c in speed * self.up))
+
+    def _rollout(self, candidate: Candidate) -> tuple[float, int]:
+        config, source = self.parts(candidate)
+        simulator = Simulator(config, self.box, source, device=self.device)
+        state = simulator.new_state()
+        observed = self.observation.cells[: self.frames]
+        projected = []
+        for _ in range(MAX_AGE + self.frames):
+            simulator.step(state)
+            projected.append(self.observation.project(state.positions[state.alive].cpu().numpy().astype(np.float64)))
+        simulated = np.stack(projected)  # simulated[k] = after k + 1 steps
+        simulated_tops, observed_tops = self.observation.tops(simulated), self.observation.tops(observed)
+        extent = max(float(self.observation.height.max()), 1.0)
+        best, best_age = math.inf, 0
+        for age in range(MAX_AGE + 1):
+            window = simulated[age : age + self.frames]
+            union = (window | observed).sum(axis=(1, 2))
+            inter = (window & observed).sum(axis=(1, 2))
+            score = float(np.mean(1.0 - np.where(union > 0, inter / np.maximum(union, 1), 1.0)))
+            score += float(np.mean(np.abs(simulated_tops[age : age + self.frames] - observed_tops))) / extent
+            if score < best:
+                best, best_age = score, age
+        return best, best_age
+
+
+def with_buoyancy(config: PBFConfig, buoyancy: float, up: np.ndarray) -> PBFConfig:
+    """`config` whose body acceleration is `buoyancy` along `up` (alpha in the config's units)."""
+    gravity_along_up = -float(np.dot(config.gravity, up))  # 9.8 when gravity points down
+    return replace(config, alpha=-buoyancy * config.length_scale / gravity_along_up)
+
+
+def identify(
+    observation: Observation,
+    config: PBFConfig,
+    box: Box,
+    source: Source,
+    up: Sequence[float],
+    budget: int,
+    device: torch.device | str = "cpu",
+    prior_name: str = "",
+) -> Identified:
+    """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
+
+    The inflow speed is the buoyancy's terminal speed rather than a search dimension of its own:
+    on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
+    buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
+    not pin it down. `config` and `source` are the prior (the preset in this scene's units, the estimated
+    source); `budget` caps the particles seeded per step.
+    """
+    if not observation.cells.any():
+        raise IdentificationError("no smoke in the observed frames to identify the physics from")
+    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    speed_obs = rise_speed(observation, np.asarray(source.center), 1.0 / config.dt)
+    prior_buoyancy = float(np.dot(config.body_acceleration, up_v))
+    floor = buoyancy_floor(speed_obs, config.drag)
+    base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
+    search = _Search(observation, config, box, source, up_v, budget, device)
+    best = _best(search, [(base * f, 0.0, 1.0) for f in BUOYANCY_FACTORS], floor)
+    a = best[0]
+    best = _best(search, [(a, lift, size) for lift in SOURCE_LIFTS for size in SOURCE_SIZES], floor)
+    for step in REFINE:
+        a, lift, size = best
+        best = _best(search, [(a / step, lift, size), (a * step, lift, size)], floor)
+    misfit, age = search.misfit(best)
+    _, fitted = search.parts(best)
+    prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
+             "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
+             "source": {"center": list(source.center), "radius": source.radius}}
+    return Identified(best[0], float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
+                      len(search.scores), list(fitted.center), fitted.radius, prior)
+
+
+def _best(search: _Search, grid: list[Candidate], floor: float) -> Candidate:
+    """The candidate with the least misfit over everything scored so far, after scoring the grid
+    (buoyancies clamped to the floor) while fewer than MAX_EVALUATIONS rollouts ran."""
+    for buoyancy, lift, size in grid:
+        if len(search.scores) >= MAX_EVALUATIONS:
+            break
+        search.misfit((max(buoyancy, floor, 1e-6), lift, size))
+    return min(search.scores, key=lambda k: search.scores[k][0])
+
+
+# -- what a reconstruction simulates with ---------------------------------------------------------
+KERNEL_RADII_PER_BOX = 37.5  # resolution: the scene box's height spans this many kernel radii
+KERNEL_RADIUS_SIM = 2.0  # h in the presets' simulation units (the release: 0.02 world = 2 units), so
+# length_scale = 2 / h converts a preset's alpha; an identified buoyancy is in world units already
+PRESET_STABILIZATION_STEPS = 20  # the paper's N_stable, used when the physics is not identified
+
+
+class PhysicsChoiceError(ValueError):
+    """An unknown --physics mode; the message names the choices."""
+
+
+@dataclass(frozen=True)
+class ScenePhysics:
+    """The physics a reconstruction (and every prediction from it) simulates with."""
+
+    config: PBFConfig
+    source: Source
+    stabilization_steps: int  # steps the source emits before frame 0
+    record: dict  # for the manifest: mode, prior preset, identified values (or why none)
+
+
+def check_mode(mode: str) -> str:
+    if mode not in PHYSICS_MODES:
+        raise PhysicsChoiceError(f"physics must be one of {', '.join(PHYSICS_MODES)}, got {mode!r}")
+    return mode
+
+
+def scene_physics(
+    mode: str,
+    camera: Camera,
+    frames: torch.Tensor,
+    background: torch.Tensor,
+    center: np.ndarray,
+    radius: float,
+    box: Box,
+    up: np.ndarray,
+    fps: float,
+    budget: int,
+    seed: int,
+    device: torch.device | str = "cpu",
+) -> ScenePhysics:
+    """Physics for a scene seen by `camera` in `frames` ((T, H, W, C) working-resolution input
+    frames, `background` (H, W, C) or (C,)), with the source estimated at (center, radius).
+
+    The kernel radius is a resolution choice in the scene's own units (its box's height over
+    KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
+    "auto", in world units, so no length scale of another dataset enters them; a preset name
+    keeps that preset's buoyancy (the paper's setting for its datasets). Either way the source seeds what its inlet carries
+    at rest density (`inlet_rate`, capped by `budget`) at the buoyancy's terminal speed.
+    """
+    from fluidcore.reconstruct.init import SMOKE_THRESHOLD
+
+    prior_name = PHYSICS_MODES[check_mode(mode)]
+    h = float(np.abs(np.subtract(box.hi, box.lo)) @ np.abs(up)) / KERNEL_RADII_PER_BOX
+    gravity = tuple(float(c) for c in -9.8 * up)
+    prior = replace(PRESETS[prior_name], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
+    source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
+    record: dict = {"mode": mode, "prior_preset": prior_name, "kernel_radius": h}
+    if mode == "auto":
+        masks = ((frames - background).abs().mean(dim=-1) > SMOKE_THRESHOLD).cpu().numpy()
+        depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
+        cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
+        observation = Observation.from_masks(camera, masks, cell, center, up)
+        found = identify(observation, prior, box, source, up, budget, device, prior_name)
+        config = with_buoyancy(prior, found.buoyancy, up)
+        source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
+        steps = found.age + 1  # identified frame t = after age + t + 1 steps
+        record["identified"] = found.to_json()
+    else:
+        config, steps = prior, PRESET_STABILIZATION_STEPS
+    buoyancy = float(np.dot(config.body_acceleration, up))
+    speed = config.terminal_speed
+    source = replace(source, rate=inlet_rate(source.radius, speed, config, budget), velocity=tuple(float(c) for c in speed * up))
+    record.update({"buoyancy": buoyancy, "inflow_speed": speed, "inflow_rate": source.rate, "drag": config.drag,
+                   "rho0": config.rho0, "stabilization_steps": steps})
+    return ScenePhysics(config, source, steps, record)
