@@ -293,6 +293,7 @@ def test_a_prediction_from_a_reconstruction_records_its_calibration_and_profile(
     chained = Run.open(job.run_predict(run.path, tmp_path / "again", frames=1))
     assert chained.manifest["settings"]["buoyancy_calibration_error"] == {}  # physics is not re-identified on itself
     assert chained.manifest["settings"]["appearance_profile"] == settings["appearance_profile"] is not None
+    assert any("appearance height profile" in prior for prior in settings["priors"])  # named as a prior
 
 
 def _visual(heights: torch.Tensor, colors: torch.Tensor) -> SmokeState:
@@ -354,3 +355,18 @@ def test_a_parent_recorded_by_absolute_path_is_still_read(parent: Path, tmp_path
     manifest["parent"] = str(parent.resolve())  # as runs were written before parents became relative
     (run.path / "manifest.json").write_text(json.dumps(manifest))
     assert Run.open(run.path).parent.path == parent.resolve()
+
+
+def test_identified_physics_is_predicted_with_as_it_is_and_calibration_never_zeroes_buoyancy(parent: Path, tmp_path: Path) -> None:
+    """A reconstruction whose physics was identified from the video (settings physics mode
+    "auto") is continued under exactly that physics; preset physics is still calibrated, over
+    candidate multiples that are all positive (rising smoke never loses its buoyancy)."""
+    assert min(identification.BUOYANCY_SCALES) > 0.0
+    identified = tmp_path / "identified"
+    shutil.copytree(parent, identified)
+    manifest = json.loads((identified / "manifest.json").read_text())
+    manifest["settings"]["physics"] = {"mode": "auto"}
+    (identified / "manifest.json").write_text(json.dumps(manifest))
+    run = Run.open(job.run_predict(identified, tmp_path / "pred", frames=1))
+    assert run.manifest["settings"]["buoyancy_calibration_error"] == {}
+    assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]

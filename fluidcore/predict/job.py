@@ -191,6 +191,8 @@ def _write(
             "buoyancy_scale": buoyancy_scale,
             "buoyancy_calibration_error": calibration,
             "appearance_profile": None if profile is None else profile.to_json(),
+            # a prior, not physics: measured to help the future on the dev scene and ScalarFlow (docs/bench_generalise.md)
+            "priors": [] if profile is None else ["appearance height profile (fluidcore.predict.priors.HeightProfile)"],
             "wind": None if params.wind is None else params.wind.model_dump(),
             "ball": None if params.ball is None else params.ball.model_dump(),
         },
