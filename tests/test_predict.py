@@ -359,7 +359,8 @@ def test_a_parent_recorded_by_absolute_path_is_still_read(parent: Path, tmp_path
 
 def test_identified_physics_is_predicted_with_as_it_is_and_calibration_never_zeroes_buoyancy(parent: Path, tmp_path: Path) -> None:
     """A reconstruction whose physics was identified from the video (settings physics mode
-    "auto") is continued under exactly that physics; preset physics is still calibrated, over
+    "auto") is continued under exactly that physics and without the appearance prior (it lost
+    on ScalarFlow, docs/bench_generalise.md); preset physics is still calibrated, over
     candidate multiples that are all positive (rising smoke never loses its buoyancy)."""
     assert min(identification.BUOYANCY_SCALES) > 0.0
     identified = tmp_path / "identified"
@@ -370,3 +371,4 @@ def test_identified_physics_is_predicted_with_as_it_is_and_calibration_never_zer
     run = Run.open(job.run_predict(identified, tmp_path / "pred", frames=1))
     assert run.manifest["settings"]["buoyancy_calibration_error"] == {}
     assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]
+    assert run.manifest["settings"]["priors"] == [] and run.manifest["settings"]["appearance_profile"] is None
