@@ -264,13 +264,22 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
 
 @pytest.mark.parametrize(
     ("params", "field"),
-    [({"quality": "ultra"}, "quality"), ({"frames": [4, 2]}, "frames"), ({"frames": [0, 99]}, "frames"), ({"speed": 1}, "speed")],
+    [
+        ({"quality": "ultra"}, "quality"), ({"physics": "phiflow"}, "physics"), ({"frames": [4, 2]}, "frames"),
+        ({"frames": [0, 99]}, "frames"), ({"speed": 1}, "speed"),
+    ],
 )
 def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params: dict, field: str) -> None:
     response = reconstruct(service, service.key("alice"), scene_id, **params)
     assert response.status_code == 422
     assert field in response.text
     assert service.queue.sent == []
+
+
+def test_reconstruct_takes_the_physics_choice(service: Service, scene_id: str) -> None:
+    created = reconstruct(service, service.key("alice"), scene_id, physics="scalarflow")
+    assert created.status_code == 202, created.text
+    assert created.json()["params"]["physics"] == "scalarflow"
 
 
 def test_idempotency_key_returns_the_same_job(service: Service, scene_id: str) -> None:
