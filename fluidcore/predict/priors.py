@@ -152,7 +152,8 @@ def refine_future(
     rec = prepare(
         cameras, videos, frame_range=tuple(run.manifest["frame_range"]), fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=(scene.source["center"], scene.source["radius"]), physics_preset=origin.manifest["settings"]["physics_preset"],
+        source=(scene.source["center"], scene.source["radius"]),
+        physics=origin.manifest["settings"].get("physics", {}).get("mode", "scalarflow"),  # runs from before --physics: the preset
         device=device,
     )
     rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets
