@@ -1,15 +1,20 @@
 """Faults inside one job's run (issue 16): a cancel in a stage without frames (prepare) is
 honoured, a storage error while publishing leaves nothing half-published, a runner whose job
-was taken over stops (fencing token), heartbeats keep a silent job alive, and the reaper sends a
-dead worker's job again."""
+was taken over stops (fencing token), heartbeats keep a silent job alive, the reaper sends a
+dead worker's job again, and a restart of Redis or of PostgreSQL mid-run loses no job."""
 
 from __future__ import annotations
 
+import glob
+import os
+import pwd
 import shutil
 import signal
 import subprocess
+import tempfile
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
@@ -182,6 +187,18 @@ def test_a_killed_workers_job_is_picked_up_within_30_s(redis_postgres: Deploymen
             stop(second)
 
 
+def _reap_until_all_succeed(deployment: Deployment, job_ids: list[str], timeout: float) -> list[str]:
+    """Run the reaper every second, as the API does, until every job succeeded (asserted, with
+    each job's state and error otherwise); returns the jobs the reaper sent again."""
+    deadline, reaped = time.monotonic() + timeout, []
+    while time.monotonic() < deadline and {deployment.job(j).state for j in job_ids} != {JobState.SUCCEEDED}:
+        reaped += reap_stale(deployment.sessions, deployment.queue, deployment.settings.job_lease_seconds)
+        time.sleep(1)
+    jobs = [deployment.job(j) for j in job_ids]
+    assert [job.state for job in jobs] == [JobState.SUCCEEDED] * len(jobs), [(job.state, job.error) for job in jobs]
+    return reaped
+
+
 @pytest.mark.skipif(shutil.which("redis-server") is None, reason="needs redis-server")
 def test_a_redis_restart_during_a_run_loses_no_job(tmp_path: Path) -> None:
     """A private Redis (append-only file, as docker-compose.yml runs it) is restarted while one job
@@ -198,13 +215,92 @@ def test_a_redis_restart_during_a_run_loses_no_job(tmp_path: Path) -> None:
         redis.terminate()
         redis.wait(30)
         redis = subprocess.Popen(command)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline and {deployment.job(j).state for j in (running, waiting)} != {JobState.SUCCEEDED}:
-            reap_stale(deployment.sessions, deployment.queue, deployment.settings.job_lease_seconds)
-            time.sleep(1)
-        assert [deployment.job(j).state for j in (running, waiting)] == [JobState.SUCCEEDED] * 2
+        _reap_until_all_succeed(deployment, [running, waiting], timeout=180)
     finally:
         stop(worker)
         redis.terminate()
         redis.wait(30)
+        deployment.engine.dispose()
+
+
+def _run_or_raise(command: list[str]) -> None:
+    """Run a PostgreSQL tool; on failure raise with its output (initdb and pg_ctl say why there)."""
+    done = subprocess.run(command, timeout=120, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(command)} exited {done.returncode}: {done.stderr or done.stdout}")
+
+
+@dataclass(frozen=True)
+class PrivateCluster:
+    """A PostgreSQL cluster of this test's own, which it may stop and start: the shared one on
+    5432 serves other tests at the same time and must never be restarted."""
+
+    pg_ctl: list[str]  # the pg_ctl command line (data folder, log, server options), run as the cluster's owner
+    port: int
+
+    @property
+    def url(self) -> str:
+        return f"postgresql+psycopg://postgres@127.0.0.1:{self.port}/postgres"
+
+    def ctl(self, *args: str) -> None:
+        _run_or_raise([*self.pg_ctl, *args])
+
+
+@pytest.fixture
+def private_postgres() -> Iterator[PrivateCluster]:
+    """initdb + pg_ctl in a temporary folder. PostgreSQL refuses to run as root, so as root the
+    cluster belongs to the `postgres` user (runuser). Stopped and removed even when the test fails."""
+    initdb = shutil.which("initdb") or next(iter(sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"))), None)
+    if initdb is None:
+        pytest.skip("needs PostgreSQL's initdb (not on PATH nor in /usr/lib/postgresql/*/bin)")
+    as_owner: list[str] = []
+    if os.geteuid() == 0:
+        if shutil.which("runuser") is None:
+            pytest.skip("running as root: needs runuser to run PostgreSQL as the postgres user")
+        try:
+            owner = pwd.getpwnam("postgres")
+        except KeyError:
+            pytest.skip("running as root: needs a postgres user to own the private cluster")
+        as_owner = ["runuser", "-u", "postgres", "--"]
+    folder = Path(tempfile.mkdtemp(prefix="fnx-pg-"))  # not under pytest's tmp_path: only root may enter that
+    bin_dir = Path(os.path.realpath(initdb)).parent
+    port = free_port()
+    options = f"-p {port} -k {folder} -c listen_addresses=127.0.0.1 -c fsync=off"  # fsync: a throwaway cluster
+    cluster = PrivateCluster([*as_owner, str(bin_dir / "pg_ctl"), "-D", str(folder / "data"), "-l",
+                              str(folder / "server.log"), "-o", options, "-w", "-t", "30"], port)
+    try:
+        if as_owner:
+            os.chown(folder, owner.pw_uid, owner.pw_gid)
+        _run_or_raise([*as_owner, str(bin_dir / "initdb"), "-D", str(folder / "data"), "--auth=trust", "-U", "postgres",
+                       "-N"])
+        cluster.ctl("start")
+        yield cluster
+    finally:  # whatever state the test left it in (a failed start included): no server outlives the test
+        subprocess.run([*cluster.pg_ctl, "stop", "-m", "immediate"], timeout=60, capture_output=True)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_a_postgres_restart_during_a_run_loses_no_job(tmp_path: Path, private_postgres: PrivateCluster) -> None:
+    """A private PostgreSQL is stopped (fast: sessions are cut, as a restart by an operator or a
+    failover does) while one job runs and another waits in the queue (embedded broker, so the
+    database is the only thing that fails), and started again 3 s later: both finish, none is
+    left running, and the running one resumed from its checkpoints. The worker cannot give the
+    job back while the database is down, so it waits out its lease (16 s) before it resumes."""
+    deployment = Deployment(tmp_path, private_postgres.url, broker_url=None)
+    worker = start_worker(deployment.settings, frame_seconds=0.3)
+    try:
+        running, waiting = deployment.submit(frames=20), deployment.submit(frames=2)
+        wait_for(lambda: len(deployment.storage.list(f"jobs/{running}/run/states/")) >= 3, 120, "three checkpoints")
+        private_postgres.ctl("stop", "-m", "fast")
+        time.sleep(3)  # the runner reads its job row at every frame (0.3 s): it meets the outage
+        private_postgres.ctl("start")
+        reaped = _reap_until_all_succeed(deployment, [running, waiting], timeout=120)
+        assert deployment.job(running).attempts == 2  # the outage did reach the running job: it stopped, then resumed
+        computed = [int(t) for t in (deployment.settings.resolved_work_dir() / f"computed-{running}.txt")
+                    .read_text().split()]
+        assert sorted(set(computed)) == list(range(20))
+        assert len(computed) <= 21  # resumed from its checkpoints: at most the frame in flight computed twice
+        print(f"{len(computed) - 20} frames computed twice, reaped by the test's reaper: {reaped}")
+    finally:
+        stop(worker)
         deployment.engine.dispose()
