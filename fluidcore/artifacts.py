@@ -100,8 +100,7 @@ def render_artifacts(
     """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files. A
     prediction refined by Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/`
     sub-run, the future reconstructed on the refined frames."""
-    from fluidcore.predict.priors import REFINED_RUN
-    from fluidcore.runs import MANIFEST, Run
+    from fluidcore.runs import MANIFEST, REFINED_RUN, Run
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)

@@ -65,6 +65,7 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 BACKGROUND = "background.npz"
 STATES_DIR = "states"
+REFINED_RUN = "refined"  # sub-run of a prediction: the reconstruction on its video-model-refined frames
 GAUSSIAN_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
 
 

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from fluidcore.jobs import JobInputError, Progress, ShouldCancel
-from fluidcore.runs import Run
+from fluidcore.runs import REFINED_RUN, Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
@@ -108,9 +108,6 @@ def _band_means(value: torch.Tensor, band: torch.Tensor, bands: int) -> torch.Te
     sums = value.new_zeros(bands, value.shape[1]).index_add_(0, band, value)
     counts = torch.bincount(band, minlength=bands).clamp(min=1).to(value)
     return sums / counts[:, None]
-
-
-REFINED_RUN = "refined"  # sub-folder of a prediction holding the reconstruction on refined frames
 
 
 def refine_future(
