@@ -166,3 +166,44 @@ def test_the_wind_blows_in_exactly_the_frames_its_window_names() -> None:
         for error in (-1e-9, 1e-9):
             blows = bool(force(p, start + frame * config.dt + error).any())
             assert blows == wind.active(frame), (frame, error)
+
+
+def test_the_air_gains_the_winds_velocity_in_its_window_and_keeps_it() -> None:
+    """The wind moves the air as well as the smoke: the air's velocity is the acceleration
+    integrated over the seconds blown, zero before the window and frozen after it."""
+    from fluidcore.interaction import InteractionParams
+    from fluidcore.physics import PRESETS, Source
+    from fluidcore.predict.interventions import interventions
+
+    wind = WindParams(direction=(0, 0, 1), strength=0.5, profile="uniform", start_frame=3, end_frame=9)
+    config, start = PRESETS["scalarflow"], 2.0
+    air = interventions(InteractionParams(wind=wind), config, Source((0, 0, 0), 0.1, 1), (0, 1, 0), start).air
+    p = torch.zeros(1, 3)
+    speed = lambda frame: float(air(p, start + frame * config.dt)[0, 2])  # noqa: E731
+    assert speed(3) == 0.0
+    assert speed(5) == pytest.approx(0.5 * 2 * config.dt)
+    assert speed(9) == pytest.approx(0.5 * 6 * config.dt) == speed(30)
+
+
+def test_sparse_smoke_moves_with_the_wind_blown_air_not_at_drag_terminal_speed() -> None:
+    """Drag towards still air caps a wind-blown sparse particle at a / k; with the air moving
+    too, the particle keeps up with the air, v = a t."""
+    from dataclasses import replace
+
+    from fluidcore.physics import PRESETS, wind_air, wind_force
+    from fluidcore.physics.step import advance
+
+    config = replace(PRESETS["scalarflow"], alpha=0.0)
+    wind = WindParams(direction=(1, 0, 0), strength=0.3, profile="uniform")
+    force, air = wind_force(wind, lambda time: True), wind_air(wind, lambda time: time)
+    steps = 60
+    speeds = {}
+    for name, field in (("still air", None), ("moving air", air)):
+        x, v = torch.zeros(1, 3), torch.zeros(1, 3)
+        for k in range(steps):
+            out = advance(x, v, config, time=k * config.dt, force=force, air=field)
+            x, v = out.positions, out.velocities
+        speeds[name] = float(v[0, 0])
+    seconds = steps * config.dt  # a lone particle's own kernel density weakens its drag a little
+    assert speeds["still air"] == pytest.approx(wind.strength / config.drag, rel=0.15)
+    assert speeds["moving air"] == pytest.approx(wind.strength * seconds, rel=0.05)

@@ -16,7 +16,9 @@ from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError,
 # Everything below needs torch; it loads on first use, so torch-free callers (the API reading a
 # preset or a scene) can import this package and `fluidcore.physics.config`.
 _LAZY = {
+    "AirField": "forces",
     "ForceField": "forces",
+    "wind_air": "forces",
     "wind_force": "forces",
     "density": "functional",
     "density_residual": "functional",
@@ -33,7 +35,7 @@ _LAZY = {
 __getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
-    "PRESETS", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "PRESETS", "AirField", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
-    "sim_step", "wind_force",
+    "sim_step", "wind_air", "wind_force",
 ]

@@ -17,6 +17,7 @@ if TYPE_CHECKING:  # the edge type is only read here; physics imports nothing fr
     from fluidcore.interaction import WindParams
 
 ForceField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> force (N, 3)
+AirField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> air velocity (N, 3), world units / s
 
 MAX_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float32 after scaling
 
@@ -25,39 +26,67 @@ def wind_force(
     wind: WindParams, blowing: Callable[[float], bool], base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
 ) -> ForceField:
     """The force field of `wind`: strength * direction * gain(z), z = height above `base_height`
-    along `up`, in every step whose start time `blowing(time)` accepts. gain by `wind.profile`:
-
-      exponential  exp(growth * z)         the paper's wind;
-      linear       max(0, 1 + growth * z)  a ramp in height (the official release's force);
-      uniform      1                       the same push everywhere.
+    along `up`, in every step whose start time `blowing(time)` accepts (gain: `wind_acceleration`).
 
     `wind` is the validated edge type (fluidcore.interaction.WindParams: unit direction, finite
     bounded strength and growth, a known profile), so nothing is checked again here; when it
     blows is the caller's clock (`fluidcore.predict.interventions` derives it from the wind's
-    frame window). The exponent is capped at MAX_EXPONENT so a large growth far above the source
-    stays finite; the simulator's speed limit bounds the result.
+    frame window). The simulator's speed limit bounds the result.
     """
-    norm = math.sqrt(sum(c * c for c in up))
-    up_unit = tuple(c / norm for c in up)
-
-    def gain(z: Tensor) -> Tensor:
-        if wind.profile == "linear":
-            return torch.clamp(1.0 + wind.growth * z, min=0.0)
-        if wind.profile == "uniform":
-            return torch.ones_like(z)
-        return torch.exp(torch.clamp(wind.growth * z, max=MAX_EXPONENT))
 
     def force(positions: Tensor, time: float) -> Tensor:
         if not blowing(time):
             return torch.zeros_like(positions)
-        height = positions @ positions.new_tensor(up_unit)
-        return (wind.strength * gain(height - base_height))[:, None] * positions.new_tensor(wind.direction)
+        return wind_acceleration(wind, positions, base_height, up)
 
     return force
 
 
-def drag(velocities: Tensor, density: Tensor, config: PBFConfig) -> Tensor:
-    """Apply f = -k (v - v_env) max(0, 1 - rho/rho0) over one step.
+def wind_air(
+    wind: WindParams, seconds_blown: Callable[[float], float], base_height: float = 0.0, up: Vec3 = (0.0, 1.0, 0.0)
+) -> AirField:
+    """The velocity the wind has given the air around the smoke by `time`.
+
+    A wind is a body force on all the air, not on the smoke alone: the air it pushes carries the
+    smoke, and drag relaxes the smoke towards that moving air. With drag towards still air a
+    wind of acceleration a could only ever move sparse smoke at a / k (a few cm/s here), however
+    long it blew. Nothing in the model slows the air down, so the air's velocity is the force
+    integrated over the time it has blown, `seconds_blown(time)`, and it keeps that velocity
+    after the wind stops.
+    """
+
+    def air(positions: Tensor, time: float) -> Tensor:
+        seconds = seconds_blown(time)
+        if seconds <= 0.0:
+            return torch.zeros_like(positions)
+        return seconds * wind_acceleration(wind, positions, base_height, up)
+
+    return air
+
+
+def wind_acceleration(wind: WindParams, positions: Tensor, base_height: float, up: Vec3) -> Tensor:
+    """strength * direction * gain(z) at `positions` (N, 3), z their height above `base_height`.
+
+    gain by `wind.profile`:
+      exponential  exp(growth * z)         the paper's wind;
+      linear       max(0, 1 + growth * z)  a ramp in height (the official release's force);
+      uniform      1                       the same push everywhere.
+    The exponent is capped at MAX_EXPONENT so a large growth far above the source stays finite.
+    """
+    norm = math.sqrt(sum(c * c for c in up))
+    z = positions @ positions.new_tensor([c / norm for c in up]) - base_height
+    if wind.profile == "linear":
+        gain = torch.clamp(1.0 + wind.growth * z, min=0.0)
+    elif wind.profile == "uniform":
+        gain = torch.ones_like(z)
+    else:
+        gain = torch.exp(torch.clamp(wind.growth * z, max=MAX_EXPONENT))
+    return (wind.strength * gain)[:, None] * positions.new_tensor(wind.direction)
+
+
+def drag(velocities: Tensor, density: Tensor, config: PBFConfig, air: Tensor | None = None) -> Tensor:
+    """Apply f = -k (v - v_env) max(0, 1 - rho/rho0) over one step; v_env is `config.env_velocity`
+    plus `air` (N, 3), the velocity an external field gave the air (`wind_air`), when given.
 
     Integrated exactly (v_env + (v - v_env) exp(-k s dt)) rather than by Euler, so no dt or k
     can overshoot the environment velocity.
@@ -65,6 +94,8 @@ def drag(velocities: Tensor, density: Tensor, config: PBFConfig) -> Tensor:
     if config.drag == 0.0:
         return velocities
     env = velocities.new_tensor(config.env_velocity)
+    if air is not None:
+        env = env + air
     sparse = torch.clamp(1.0 - density / config.rho0, min=0.0)
     decay = torch.exp(-config.drag * config.dt * sparse)[:, None]
     return env + (velocities - env) * decay

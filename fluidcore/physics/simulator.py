@@ -9,7 +9,7 @@ import torch
 
 from fluidcore.physics import checks, source as seeding
 from fluidcore.physics.config import Box, PBFConfig, PhysicsInputError, Source, Sphere
-from fluidcore.physics.forces import ForceField
+from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
 from fluidcore.physics.state import ParticleState
 from fluidcore.physics.step import BACKENDS, advance, use_fused
@@ -32,12 +32,13 @@ class Simulator:
     """PBF smoke in an open box: a source seeds particles, particles leaving the box are retired.
 
     backend: "auto" (the fused C++ kernel on CPU when it builds, torch otherwise), "torch"
-    (reference, any device) or "fused" (CPU only). Spheres, the force field, XSPH and
-    vorticity cost nothing when absent.
+    (reference, any device) or "fused" (CPU only). Spheres, the force field and the air it
+    moves (`force`, `air`: fluidcore.physics.forces), XSPH and vorticity cost nothing when absent.
     """
 
     def __init__(self, config: PBFConfig, box: Box, source: Source | None = None, spheres: Sequence[Sphere] = (),
-                 force: ForceField | None = None, device: torch.device | str = "cpu", backend: str = "auto") -> None:
+                 force: ForceField | None = None, air: AirField | None = None, device: torch.device | str = "cpu",
+                 backend: str = "auto") -> None:
         for value, kind, name in ((config, PBFConfig, "config"), (box, Box, "box")):
             if not isinstance(value, kind):
                 raise PhysicsInputError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
@@ -45,12 +46,13 @@ class Simulator:
             raise PhysicsInputError(f"source must be a Source or None, got {type(source).__name__}")
         if not all(isinstance(s, Sphere) for s in spheres):
             raise PhysicsInputError("spheres must be Sphere instances")
-        if force is not None and not callable(force):
-            raise PhysicsInputError("force must be a callable (positions, time) -> forces, or None")
+        for field, name in ((force, "force"), (air, "air")):
+            if field is not None and not callable(field):
+                raise PhysicsInputError(f"{name} must be a callable (positions, time) -> (N, 3) tensor, or None")
         if backend not in BACKENDS:
             raise PhysicsInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.config, self.box, self.source = config, box, source
-        self.spheres, self.force = tuple(spheres), force
+        self.spheres, self.force, self.air = tuple(spheres), force, air
         self.device, self.backend = torch.device(device), backend
 
     def new_state(self) -> ParticleState:
@@ -64,7 +66,7 @@ class Simulator:
         x = checks.points(state.positions[slots], "state.positions")
         v = checks.points(state.velocities[slots], "state.velocities")
         with torch.no_grad():
-            out = advance(x, v, self.config, time=state.time, force=self.force, spheres=self.spheres,
+            out = advance(x, v, self.config, time=state.time, force=self.force, air=self.air, spheres=self.spheres,
                           fast=use_fused(self.backend, x))
         checks.finite_result(out.positions, "particle positions")
         checks.finite_result(out.velocities, "particle velocities")

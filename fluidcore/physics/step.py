@@ -25,7 +25,7 @@ from torch import Tensor
 from fluidcore.physics import coupling, forces, fused
 from fluidcore.physics.checks import points
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Sphere
-from fluidcore.physics.forces import ForceField
+from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.neighbours import NeighbourList, cell_table, neighbours_torch
 from fluidcore.physics.solver import solve_torch
 from fluidcore.physics.sph import density as sph_density
@@ -68,8 +68,11 @@ def external_force(force: ForceField, positions: Tensor, time: float) -> Tensor:
 
 
 def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: ForceField | None = None,
-            spheres: Sequence[Sphere] = (), fast: bool = False, cache: NeighbourCache | None = None) -> Advanced:
+            air: AirField | None = None, spheres: Sequence[Sphere] = (), fast: bool = False,
+            cache: NeighbourCache | None = None) -> Advanced:
     """Advance particles x, v (N, 3) by one step of config.dt (differentiable when fast=False).
+    `force` is an external acceleration field, `air` the velocity it gave the surrounding air
+    (drag relaxes the smoke towards it; fluidcore.physics.forces.wind_air).
 
     The fused path works on the particles sorted by grid cell: neighbours are then close in
     memory, which makes every solver pass cache-friendly (callers' particle order is arbitrary,
@@ -81,9 +84,9 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
     """
     p = x + config.dt * cap_length(v + config.dt * acceleration(x, config, time, force), config.speed_limit)
     if not fast or cache is not None:
-        return correct(x, p, config, time=time, spheres=spheres, fast=fast, cache=cache)
+        return correct(x, p, config, time=time, air=air, spheres=spheres, fast=fast, cache=cache)
     order = cell_table(p, config.h).order
-    out = correct(x[order], p[order], config, time=time, spheres=spheres, fast=True)
+    out = correct(x[order], p[order], config, time=time, air=air, spheres=spheres, fast=True)
     inverse = torch.empty_like(order)
     inverse[order] = torch.arange(order.shape[0], device=order.device)
     return Advanced(out.positions[inverse], out.velocities[inverse], out.density[inverse], out.iterations)
@@ -95,7 +98,7 @@ def acceleration(x: Tensor, config: PBFConfig, time: float, force: ForceField | 
     return body if force is None else body + external_force(force, x, time)
 
 
-def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, spheres: Sequence[Sphere],
+def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, air: AirField | None, spheres: Sequence[Sphere],
             fast: bool, cache: NeighbourCache | None = None) -> Advanced:
     """Steps 2-6 of the module docstring: from predicted positions p to the step's result."""
     dt = config.dt
@@ -111,7 +114,8 @@ def correct(x: Tensor, p: Tensor, config: PBFConfig, *, time: float, spheres: Se
         contacts = coupling.merge(contacts, after_solve)
         density = fused.density_fused(p, neighbours, config.h) if fast else sph_density(p, *neighbours.pairs(), config.h)
 
-    velocities = forces.drag((p - x) / dt, density, config)
+    air_velocity = None if air is None else points(air(p, time + dt), "air(positions, time)")
+    velocities = forces.drag((p - x) / dt, density, config, air_velocity)
     if config.xsph > 0.0 or config.vorticity > 0.0:
         i, j = neighbours.pairs()
         if config.xsph > 0.0:

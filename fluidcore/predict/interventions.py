@@ -3,20 +3,21 @@
 The parameters arrive validated (fluidcore.interaction: `WindParams`, `BallParams`, checked
 against the run's scene by `InteractionParams.check_scene`) and are counted in new frames from
 the first predicted one. Here they meet the run's scene and clock: frame numbers become
-simulator seconds, the wind becomes a force field (`fluidcore.physics.wind_force`) and the ball
-a moving `Sphere` that enters the scene on its start frame.
+simulator seconds, the wind becomes a force field on the smoke and on the air around it
+(`fluidcore.physics.wind_force`, `wind_air`) and the ball a moving `Sphere` that enters the scene
+on its start frame.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from fluidcore.interaction import BallParams, InteractionParams
-from fluidcore.physics import ForceField, PBFConfig, Source, Sphere, wind_force
+from fluidcore.interaction import BallParams, InteractionParams, WindParams
+from fluidcore.physics import AirField, ForceField, PBFConfig, Source, Sphere, wind_air, wind_force
 
 
 @dataclass(frozen=True)
@@ -29,9 +30,11 @@ class Ball:
 
 @dataclass(frozen=True)
 class Interventions:
-    """What the rollout applies: a force field (or None) and a ball (or None)."""
+    """What the rollout applies: a force field and the air velocity it causes (or None), and a
+    ball (or None)."""
 
     force: ForceField | None = None
+    air: AirField | None = None
     ball: Ball | None = None
 
 
@@ -42,14 +45,23 @@ def interventions(
 
     The wind's strength is given at the source's height, so its growth is measured from there.
     """
-    force = None
+    force = air = None
     if params.wind is not None:
         wind = params.wind
         base_height = float(np.dot(source.center, up))
         blowing = lambda time: wind.active(frame_at(time, start_time, config.dt))  # noqa: E731
         force = wind_force(wind, blowing, base_height, tuple(up))
+        air = wind_air(wind, seconds_blown(wind, start_time, config.dt), base_height, tuple(up))
     ball = None if params.ball is None else ball_sphere(params.ball, start_time, config.dt)
-    return Interventions(force, ball)
+    return Interventions(force, air, ball)
+
+
+def seconds_blown(wind: WindParams, start_time: float, dt: float) -> Callable[[float], float]:
+    """Seconds the wind has blown by simulator time `time` (0 before its first frame, frozen
+    after its last): its window [start_frame, end_frame) in new frames from `start_time`."""
+    begin = start_time + wind.start_frame * dt
+    end = math.inf if wind.end_frame is None else start_time + wind.end_frame * dt
+    return lambda time: max(0.0, min(time, end) - begin)
 
 
 def frame_at(time: float, start_time: float, dt: float) -> int:

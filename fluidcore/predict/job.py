@@ -236,7 +236,7 @@ def _rollout(
     config, box, source = scene.simulator_parts()
     applied = interventions(params, config, source, scene.up, start.particles.time)
     return Rollout(
-        Simulator(config, box, source, force=applied.force, device=device),
+        Simulator(config, box, source, force=applied.force, air=applied.air, device=device),
         source_template(start, source.center),
         velocity_radius=visual["velocity_radius"] * config.h,
         per_physical=visual["per_physical"],
