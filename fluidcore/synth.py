@@ -62,6 +62,9 @@ class SynthSpec:
         for name in ("source_radius", "camera_distance", "fps", "buoyancy_scale"):
             if not getattr(self, name) > 0:
                 raise SynthError(f"{name} must be positive, got {getattr(self, name)}")
+        for name in ("width", "height"):  # H.264 yuv420p pads an odd side, and the video would not fit its camera
+            if getattr(self, name) % 2:
+                raise SynthError(f"{name} must be even (the videos are H.264 yuv420p), got {getattr(self, name)}")
         if min(self.box_size) <= 0:
             raise SynthError(f"box_size must be positive, got {self.box_size}")
         if not (0 <= self.smoke_color <= 1 and 0 < self.smoke_opacity < 1):

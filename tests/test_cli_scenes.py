@@ -80,6 +80,8 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_09={scene / 'videos' / 'view_01.mp4'}", "--out", str(tmp_path / "r")], "view_09")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--frames", "3:1", "--out", str(tmp_path / "r")], "frames")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--quality", "ultra", "--out", str(tmp_path / "r")], "quality")
+    _fails(["synth", "--out", str(tmp_path / "odd"), "--width", "135"], "width must be even")
+    assert not (tmp_path / "odd").exists()
     _fails(["render", str(run_dir), "--camera", "nope", "--out", str(tmp_path / "x.mp4")], "nope")
     _fails(["render", str(tmp_path), "--camera", "view_00", "--out", str(tmp_path / "x.mp4")], "not a run folder")
     _fails(["export", str(run_dir), "--frame", "7", "--out", str(tmp_path / "x.npz")], "frame")
