@@ -44,6 +44,8 @@ class WindParams(BaseModel):
       exponential  exp(growth * z)         the paper's wind (the default);
       linear       max(0, 1 + growth * z)  a ramp in height, as the official release's force;
       uniform      1                       the same push everywhere (growth must be 0).
+    The acceleration drives the air around the smoke as well as the smoke itself, so the smoke is
+    carried by the air the wind sets moving (fluidcore.physics.forces.wind_air).
     Units: `strength` in world units / s^2 (the acceleration at the source height), `growth`
     per world unit of height, `direction` unitless (normalised here). `end_frame` is exclusive;
     None means the wind blows until the end of the run.
