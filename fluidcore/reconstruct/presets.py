@@ -7,7 +7,8 @@ iterations give the same PSNR); `standard` sits between them and is the GPU defa
 
 Loss weights are the official release's: 0.8 L1 + 0.2 (1 - SSIM) for the image, 0.1 L_sim,
 1.0 L_incomp, 0.1 next-step L_incomp; appearance regularisers lambda_c 10, lambda_s 0,
-lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
+lambda_o 8, lambda_r 0.1 plus an anisotropy penalty. The optical-flow term (`flow`) is not the
+release's: it compares the particles' projected motion with the input video's flow.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ class LossWeights:
     rotation: float = 0.1  # lambda_r
     anisotropy: float = 1.0
     max_anisotropy: float = 3.0  # scale ratio above which the anisotropy loss starts
+    flow: float = 1.0  # input-view optical flow against the particles' projected motion (0 = off; reconstruct/flow.py)
 
 
 @dataclass(frozen=True)
@@ -73,7 +75,8 @@ class Quality:
     def from_json(cls, data: Mapping[str, Any]) -> Quality:
         """Inverse of `to_json` (a run manifest's "quality"): a later stage that reconstructs
         again, like Algorithm S2's refinement, fits at the quality the run was made with."""
-        return cls(**{**data, "coarse_to_fine": tuple(data["coarse_to_fine"]), "weights": LossWeights(**data["weights"])})
+        weights = LossWeights(**{"flow": 0.0, **data["weights"]})  # runs from before the flow term: without it
+        return cls(**{**data, "coarse_to_fine": tuple(data["coarse_to_fine"]), "weights": weights})
 
     def visual_settings(self) -> dict[str, Any]:
         """How the visual Gaussians move and are born: recorded in a reconstruction's manifest
