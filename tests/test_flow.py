@@ -4,8 +4,9 @@
   median over confident pixels within 0.25 px: DIS is sub-pixel on textured patches) and the
   confidence is 0 on the empty background;
 * the loss: particles that moved against the flow are pushed along it (gradient descent on
-  the term alone brings their projected displacement to the flow), never along the view ray,
-  and particles where the confidence is 0 feel nothing;
+  the term alone brings their projected displacement along the flow up to the flow's length),
+  never along the view ray; particles faster than the flow, anywhere the flow is zero, or
+  where the confidence is 0 feel nothing (the flow is a lower bound on the smoke's motion);
 * with the weight at 0 no flow is computed and the fit has no flow term (the path before the
   term existed); with it on, the tiny reconstruction still moves its particles the right way.
 """
@@ -20,6 +21,7 @@ from scipy import ndimage
 from fluidcore.cameras import Camera, look_at
 from fluidcore.reconstruct import Reconstructor, get, prepare
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
+from fluidcore.reconstruct.presets import PresetError, Quality
 from fluidcore import synth
 
 SHIFT = (3.0, -2.0)  # px per frame (u right, v down)
@@ -68,16 +70,15 @@ def test_particles_moving_against_the_flow_are_pushed_along_it():
     camera = _camera()
     field = _uniform_field(camera, SHIFT, 1.0)
     p_prev = torch.tensor([[0.0, 0.5, 0.0], [0.05, 0.45, 0.1], [-0.1, 0.55, -0.1]], dtype=torch.float64)
-    h = 0.05
     uv_prev, _ = camera.project(p_prev)
-    wrong = p_prev + torch.tensor([-0.02, 0.0, 0.0], dtype=torch.float64)  # left, the flow goes right
-    observation = FlowObservation(field, 0, p_prev, h)
+    wrong = p_prev + torch.tensor([-0.02, 0.0, 0.0], dtype=torch.float64)  # left, the flow goes right and up
+    observation = FlowObservation(field, 0, p_prev, 0.05)
     p = wrong.clone().requires_grad_(True)
     observation(p).backward()
     moved_uv, _ = camera.project(p.detach() - 1e-3 * p.grad)
     before_uv, _ = camera.project(wrong)
     assert bool(((moved_uv - before_uv)[:, 0] > 0).all()), "a descent step moves them towards the flow (right)"
-    along_ray = p.grad @ torch.as_tensor(camera.world_to_camera[2, :3])
+    along_ray = p.grad @ torch.tensor(camera.world_to_camera[2, :3])
     np.testing.assert_allclose(along_ray.numpy(), 0.0, atol=1e-12)  # flow says nothing about depth
     optimiser = torch.optim.Adam([p], lr=1e-3)
     for _ in range(400):
@@ -85,13 +86,27 @@ def test_particles_moving_against_the_flow_are_pushed_along_it():
         observation(p).backward()
         optimiser.step()
     uv, _ = camera.project(p.detach())
-    np.testing.assert_allclose((uv - uv_prev).numpy(), np.tile(SHIFT, (3, 1)), atol=0.05)
+    direction = torch.tensor(SHIFT, dtype=torch.float64) / np.hypot(*SHIFT)
+    along = (uv - uv_prev) @ direction
+    assert bool((along > np.hypot(*SHIFT) - 0.1).all()), f"they now keep up with the flow: {along}"
+
+
+def test_the_flow_is_a_lower_bound():
+    """Faster than the flow along it, or any motion where the flow is zero: no pull."""
+    camera = _camera()
+    p_prev = torch.tensor([[0.0, 0.5, 0.0]], dtype=torch.float64)
+    right = torch.tensor([[0.05, 0.0, 0.0]], dtype=torch.float64)  # ~2 px right: faster than a 1 px flow
+    for flow, moved in (((1.0, 0.0), p_prev + right), ((0.0, 0.0), p_prev - right), ((0.0, 0.0), p_prev + right)):
+        p = moved.clone().requires_grad_(True)
+        loss = FlowObservation(_uniform_field(camera, flow, 1.0), 0, p_prev, 0.05)(p)
+        loss.backward()
+        assert float(loss.detach()) == 0.0 and float(p.grad.abs().max()) == 0.0, flow
 
 
 def test_no_confidence_no_pull():
     camera = _camera()
     p_prev = torch.tensor([[0.0, 0.5, 0.0]], dtype=torch.float64)
-    p = (p_prev + 0.01).requires_grad_(True)
+    p = (p_prev - 0.01).requires_grad_(True)
     loss = FlowObservation(_uniform_field(camera, SHIFT, 0.0), 0, p_prev, 0.05)(p)
     loss.backward()
     assert float(loss.detach()) == 0.0 and float(p.grad.abs().max()) == 0.0
@@ -124,3 +139,12 @@ def test_flow_weight_zero_is_the_path_without_flow(scene, tmp_path):
     run_on = Reconstructor(on).run(tmp_path / "on")
     assert "flow" in run_on.manifest["frames"][-1]["losses"]
     assert run_on.manifest["settings"]["quality"]["weights"]["flow"] == 1.0
+
+
+def test_runs_from_before_the_flow_term_refit_without_it():
+    manifest = get("preview").to_json()
+    del manifest["weights"]["flow"]
+    assert Quality.from_json(manifest).weights.flow == 0.0
+    assert get("preview").with_overrides(weights={"flow": 0.0}).weights.flow == 0.0
+    with pytest.raises(PresetError, match="loss weights"):
+        get("preview").with_overrides(weights={"flwo": 0.0})

@@ -3,18 +3,17 @@
 The image loss only sees where smoke is; two consecutive frames also say how it moved. Dense
 optical flow (OpenCV's DIS) between frames k and k+1 of the input view gives, at every pixel
 the smoke covers, the image-plane displacement of what that ray sees, in pixels per frame at
-the working resolution. It is computed once, before frame 0, and used twice:
+the working resolution. It is computed once, before frame 0, and asked per particle:
 
     FlowField       flow (T-1, H, W, 2) from frame k to k+1 and a confidence (T-1, H, W) in
                     [0, 1]: 1 where frame k shows smoke and the forward and backward flows
                     agree (a displacement that the backward flow does not undo is an
                     occlusion, a textureless patch or noise), 0 elsewhere;
-    plume_speed     the median upward speed of the smoke it sees, which bounds the identified
-                    buoyancy from below (fluidcore.reconstruct.identify);
-    FlowObservation one frame's loss term for the position fit: each particle's projected
-                    displacement from t-1 to t against the flow sampled where it was at t-1,
-                    weighted by the confidence there, measured in world units at the
-                    particle's depth and in kernel radii squared (like L_sim).
+    FlowObservation one frame's loss term for the position fit: how far each particle's
+                    image-plane displacement from t-1 to t falls short of the flow sampled
+                    where it was at t-1 (the flow is a lower bound, see there), weighted by
+                    the confidence there, in world units at the particle's depth and in
+                    kernel radii squared (like L_sim).
 
 Flow is computed on the smoke's contrast |frame - background| rather than on the frames, so a
 textured background (which does not move) cannot pull the flow towards zero.
@@ -110,33 +109,21 @@ def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor, t
     return FlowField(camera, flow.float().to(device), confidence.to(device))
 
 
-def plume_speed(field: FlowField, center: np.ndarray, up: np.ndarray, fps: float) -> float:
-    """Median speed (world units / s, at the depth of `center`) along `up` of the confident
-    smoke pixels over all frame pairs; 0 without any.
-
-    A lower bound on how fast the smoke's fluid moves: smoke keeps flowing through a pattern
-    that changes slowly (right above a steady source the image hardly changes at all), so the
-    pattern, which is what flow tracks, moves slower than the fluid carrying it, and the
-    median includes the near-still smoke at the source."""
-    from fluidcore.reconstruct.init import image_up
-
-    confident = field.confidence > 0.5
-    if not bool(confident.any()):
-        return 0.0
-    up2d = torch.as_tensor(image_up(field.camera, center, up), dtype=field.flow.dtype, device=field.flow.device)
-    along_up = field.flow[confident] @ up2d  # px per frame
-    depth = float(field.camera.world_to_camera[2, :3] @ center + field.camera.world_to_camera[2, 3])
-    return max(float(along_up.median()), 0.0) * depth / field.camera.fx * fps
-
-
 class FlowObservation:
     """The flow term of one frame's position fit (see the module docstring).
 
-    The particles' positions at t-1 are fixed during the fit, so where they sample the flow,
-    the confidence there and their pixels-to-world scale (depth / focal length) are computed
-    once. The displacement p_t - p_{t-1} is compared in the camera's image plane at the
-    particle's depth (the projection linearised about p_{t-1}): its component along the view
-    ray is not in the term at all, so the flow cannot push a particle in depth.
+    Flow is a lower bound on the smoke's motion, not the motion itself: it tracks the smoke's
+    pattern, and the fluid keeps flowing through a pattern that changes slowly (right above a
+    steady source the image hardly changes while the inflow rises through it). Where the
+    pattern moves, the fluid moves at least as fast along the flow; where it stands still,
+    the fluid may still flow through. The term therefore only penalises a particle whose displacement along the
+    flow's direction falls short of the flow's length, never one that moves faster, and says
+    nothing across the flow: a zero flow asks nothing.
+
+    Displacements are compared in the camera's image plane at the particle's depth (the
+    projection linearised about p_{t-1}): the component along the view ray is not in the term
+    at all, so the flow cannot push a particle in depth. The particles' positions at t-1 are
+    fixed during the fit, so what they sample from the flow is computed once per frame.
     """
 
     def __init__(self, field: FlowField, pair: int, p_prev: torch.Tensor, kernel_radius: float) -> None:
@@ -145,16 +132,18 @@ class FlowObservation:
         camera = field.camera
         uv_prev, depth = camera.project(p_prev)
         flow, confidence = field.sample(pair, uv_prev)
+        focal = torch.tensor([camera.fx, camera.fy], dtype=p_prev.dtype, device=p_prev.device)
+        target = flow.to(p_prev.dtype) * depth.clamp_min(1e-6)[:, None] / focal  # world units in the image plane
         self.p_prev = p_prev
         self.weight = confidence * (depth > 0)
-        focal = torch.tensor([camera.fx, camera.fy], dtype=p_prev.dtype, device=p_prev.device)
-        self.target = flow.to(p_prev.dtype) * depth.clamp_min(1e-6)[:, None] / focal  # world units in the image plane
-        self.image_axes = torch.as_tensor(camera.world_to_camera[:2, :3], dtype=p_prev.dtype, device=p_prev.device)
+        self.length = target.norm(dim=-1)
+        self.direction = target / self.length.clamp_min(1e-12)[:, None]
+        self.image_axes = torch.tensor(camera.world_to_camera[:2, :3], dtype=p_prev.dtype, device=p_prev.device)
         self.kernel_radius = kernel_radius
 
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
-        """mean over particles of confidence x |image-plane displacement - flow|^2 (world units
-        at the particle's depth) / h^2."""
-        moved = (p - self.p_prev) @ self.image_axes.T
-        residual = (moved - self.target) / self.kernel_radius
-        return (self.weight * residual.pow(2).sum(-1)).mean()
+        """mean over particles of confidence x (how far the image-plane displacement along the
+        flow falls short of the flow, world units at the particle's depth)^2 / h^2."""
+        along = ((p - self.p_prev) @ self.image_axes.T * self.direction).sum(-1)
+        shortfall = (self.length - along).clamp_min(0.0) / self.kernel_radius
+        return (self.weight * shortfall.pow(2)).mean()

@@ -30,8 +30,7 @@ density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3), capped by the quality's particle bu
 rest density stay the prior's (a silhouette says little about them); they are recorded as
 such. Smoke that rises in the video never gets zero buoyancy: candidates are positive by
 construction and `buoyancy_floor` bounds them below by the acceleration needed to hold the
-observed rise speed against drag, and, when the input view's optical flow is at hand
-(fluidcore.reconstruct.flow.plume_speed), the speed at which the flow sees the smoke move.
+observed rise speed against drag.
 """
 
 from __future__ import annotations
@@ -115,7 +114,6 @@ class Identified:
     age: int  # steps the source had emitted before frame 0
     misfit: float  # mean 1 - IoU over the frames, at the optimum
     rise_speed: float  # observed speed of the plume's top (world units / s), what the floor uses
-    flow_speed: float | None  # median upward speed the optical flow sees (world units / s); None without flow
     floor: float  # the buoyancy floor
     evaluations: int
     source_center: list[float]  # world
@@ -126,20 +124,16 @@ class Identified:
         return asdict(self)
 
 
-def buoyancy_floor(rise_speed: float, drag: float, flow_speed: float | None = None) -> float:
+def buoyancy_floor(rise_speed: float, drag: float) -> float:
     """The least buoyancy a plume rising at `rise_speed` may be given (0 when it does not rise).
 
     Sparse smoke tends to the terminal speed buoyancy / drag, and an inflow's momentum is
     gone after a few 1/drag; smoke seen rising at speed u therefore needs a buoyancy near
-    drag x u, and never zero. FLOOR_FRACTION leaves room for the inflow's share of the top's
-    rise. `flow_speed`, the median speed at which the optical flow sees the smoke move, is a
-    lower bound on the fluid's speed (`plume_speed`) over the whole observed window, long
-    after the inflow's momentum is gone: the terminal speed must reach it in full.
+    drag x u, and never zero. FLOOR_FRACTION leaves room for the inflow's share.
     """
-    floors = [FLOOR_FRACTION * max(drag, 1e-3) * rise_speed if math.isfinite(rise_speed) and rise_speed > 0.0 else 0.0]
-    if flow_speed is not None and math.isfinite(flow_speed) and flow_speed > 0.0:
-        floors.append(max(drag, 1e-3) * flow_speed)
-    return max(floors)
+    if not math.isfinite(rise_speed) or rise_speed <= 0.0:
+        return 0.0
+    return FLOOR_FRACTION * max(drag, 1e-3) * rise_speed
 
 
 def rise_speed(observation: Observation, center: np.ndarray, fps: float) -> float:
@@ -236,7 +230,6 @@ def identify(
     budget: int,
     device: torch.device | str = "cpu",
     prior_name: str = "",
-    flow_speed: float | None = None,
 ) -> Identified:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
 
@@ -244,15 +237,14 @@ def identify(
     on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
     buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
     not pin it down. `config` and `source` are the prior (the preset in this scene's units, the estimated
-    source); `budget` caps the particles seeded per step; `flow_speed` (optical flow's
-    `plume_speed`, None without flow) raises the buoyancy floor.
+    source); `budget` caps the particles seeded per step.
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     speed_obs = rise_speed(observation, np.asarray(source.center), 1.0 / config.dt)
     prior_buoyancy = float(np.dot(config.body_acceleration, up_v))
-    floor = buoyancy_floor(speed_obs, config.drag, flow_speed)
+    floor = buoyancy_floor(speed_obs, config.drag)
     base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
     search = _Search(observation, config, box, source, up_v, budget, device)
     best = _best(search, [(base * f, 0.0, 1.0) for f in BUOYANCY_FACTORS], floor)
@@ -266,7 +258,7 @@ def identify(
     prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
              "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
              "source": {"center": list(source.center), "radius": source.radius}}
-    return Identified(best[0], float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, flow_speed, floor,
+    return Identified(best[0], float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
                       len(search.scores), list(fitted.center), fitted.radius, prior)
 
 
@@ -320,7 +312,6 @@ def scene_physics(
     budget: int,
     seed: int,
     device: torch.device | str = "cpu",
-    flow_speed: float | None = None,
 ) -> ScenePhysics:
     """Physics for a scene seen by `camera` in `frames` ((T, H, W, C) working-resolution input
     frames, `background` (H, W, C) or (C,)), with the source estimated at (center, radius).
@@ -344,7 +335,7 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, box, source, up, budget, device, prior_name, flow_speed)
+        found = identify(observation, prior, box, source, up, budget, device, prior_name)
         config = with_buoyancy(prior, found.buoyancy, up)
         source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps

@@ -33,7 +33,7 @@ import torch
 from fluidcore.cameras import Camera
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
-from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow, plume_speed
+from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import check_mode, scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
@@ -155,10 +155,8 @@ def prepare(
         center, radius = np.asarray(source[0], dtype=np.float64), float(source[1])
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    flow = input_flow(first.camera, first.frames, first.background, init.SMOKE_THRESHOLD) if quality.weights.flow > 0 else None
-    flow_speed = None if flow is None else plume_speed(flow, np.asarray(center, np.float64), up_v, fps)
     chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device, flow_speed)
+                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
     pseudo, symmetry = [], None
@@ -168,6 +166,7 @@ def prepare(
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
         if weight > 0:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
+    flow = input_flow(first.camera, first.frames, first.background, init.SMOKE_THRESHOLD) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
         views=[*targets, *pseudo, *extra_views],
