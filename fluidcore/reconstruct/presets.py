@@ -35,7 +35,9 @@ class LossWeights:
     rotation: float = 0.1  # lambda_r
     anisotropy: float = 1.0
     max_anisotropy: float = 3.0  # scale ratio above which the anisotropy loss starts
-    flow: float = 1.0  # input-view optical flow against the particles' projected motion (0 = off; reconstruct/flow.py)
+    flow: float = 0.0  # input-view optical flow as a lower bound on the particles' projected motion
+    # (reconstruct/flow.py); off: on the dev scene and ScalarFlow it did not lower the velocity error
+    # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,7 @@ class Quality:
     def from_json(cls, data: Mapping[str, Any]) -> Quality:
         """Inverse of `to_json` (a run manifest's "quality"): a later stage that reconstructs
         again, like Algorithm S2's refinement, fits at the quality the run was made with."""
-        weights = LossWeights(**{"flow": 0.0, **data["weights"]})  # runs from before the flow term: without it
-        return cls(**{**data, "coarse_to_fine": tuple(data["coarse_to_fine"]), "weights": weights})
+        return cls(**{**data, "coarse_to_fine": tuple(data["coarse_to_fine"]), "weights": LossWeights(**data["weights"])})
 
     def visual_settings(self) -> dict[str, Any]:
         """How the visual Gaussians move and are born: recorded in a reconstruction's manifest
