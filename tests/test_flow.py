@@ -8,7 +8,8 @@
   never along the view ray; particles faster than the flow, anywhere the flow is zero, or
   where the confidence is 0 feel nothing (the flow is a lower bound on the smoke's motion);
 * with the weight at 0 no flow is computed and the fit has no flow term (the path before the
-  term existed); with it on, the tiny reconstruction still moves its particles the right way.
+  term existed); with it on, the term is fitted and its weight is in the manifest; a manifest
+  without the weight (runs from before it) and `--set 'weights={...}'` overrides read back.
 """
 
 from __future__ import annotations
