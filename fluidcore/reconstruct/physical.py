@@ -6,7 +6,7 @@ minimise
     w_sim * mean(|p_t - p_sim|^2) / h^2          stay close to what physics predicts
   + w_incomp * L_incomp(p_t)                       no over-dense clumps now
   + w_next * L_incomp(Sim(p_t, u_t))               ... nor one step later (optional: costly)
-  + w_flow * L_flow(p_t)                           move as the input video's optical flow says, in
+  + w_flow * L_flow(p_t)                           keep up with the input video's optical flow in
                                                    the image plane (optional; reconstruct/flow.py)
   + the image loss of the visual Gaussians, which ride on the implied velocity
     u_t = (p_t - p_{t-1}) / dt: old Gaussians are advected by the kernel-interpolated u_t,
