@@ -8,7 +8,9 @@ frame by frame:
              (with `first_frame_factor` times more iterations), the visual Gaussians are born
              on them and their appearance is fitted;
     frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles), positions fitted
-             (fluidcore.reconstruct.physical), u_t = (p_t - p_{t-1}) / dt, visual Gaussians
+             (fluidcore.reconstruct.physical; with the input view's optical flow between
+             frames t-1 and t, fluidcore.reconstruct.flow, when its weight is not 0),
+             u_t = (p_t - p_{t-1}) / dt, visual Gaussians
              advected and their appearance fitted (fluidcore.reconstruct.visual).
 
 Each frame's state is written to the run folder before the next begins. Randomness (view
@@ -31,6 +33,7 @@ import torch
 from fluidcore.cameras import Camera
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
+from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import check_mode, scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
@@ -68,6 +71,7 @@ class Reconstruction:
     physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
     stabilization_steps: int
     symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
+    flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     def scene(self) -> Scene:
         return Scene(
@@ -162,6 +166,7 @@ def prepare(
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
         if weight > 0:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
+    flow = input_flow(first.camera, first.frames, first.background, init.SMOKE_THRESHOLD) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
         views=[*targets, *pseudo, *extra_views],
@@ -180,6 +185,7 @@ def prepare(
         physics=chosen.record,
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
+        flow=flow,
     )
 
 
@@ -270,8 +276,9 @@ class Reconstructor:
         appearance = carry.appearance.cat(new_appearance)
         iterations = q.position_iterations * (q.first_frame_factor if first else 1)
         loss_fn = self._image_loss(index, iterations, chooser)
+        flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, p_prev, config.h)
         p, terms = fit_positions(
-            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility
+            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility, flow
         )
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)

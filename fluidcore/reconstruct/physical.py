@@ -6,6 +6,8 @@ minimise
     w_sim * mean(|p_t - p_sim|^2) / h^2          stay close to what physics predicts
   + w_incomp * L_incomp(p_t)                       no over-dense clumps now
   + w_next * L_incomp(Sim(p_t, u_t))               ... nor one step later (optional: costly)
+  + w_flow * L_flow(p_t)                           keep up with the input video's optical flow in
+                                                   the image plane (optional; reconstruct/flow.py)
   + the image loss of the visual Gaussians, which ride on the implied velocity
     u_t = (p_t - p_{t-1}) / dt: old Gaussians are advected by the kernel-interpolated u_t,
     Gaussians born this frame sit at their parent particle plus a fixed offset.
@@ -92,8 +94,10 @@ def fit_positions(
     iterations: int,
     learning_rate: float,
     next_step: bool,
+    flow: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Adam on p_t (see the module docstring). Returns p_t and the last iteration's loss terms."""
+    """Adam on p_t (see the module docstring); `flow` is L_flow (a `FlowObservation`), None
+    without one. Returns p_t and the last iteration's loss terms."""
     p = problem.p_sim.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam([p], lr=learning_rate * config.h)
     frozen = appearance.detach()
@@ -108,6 +112,8 @@ def fit_positions(
         if next_step and weights.incomp_next > 0:
             p_next, _ = sim_step(p, velocities(p, problem, config.dt), config)
             terms["incomp_next"] = weights.incomp_next * incompressibility_loss(p_next, config)
+        if flow is not None:
+            terms["flow"] = weights.flow * flow(p)
         total = sum(terms.values())
         if not torch.isfinite(total):
             raise FloatingPointError(f"position fit: loss became {float(total.detach())} at iteration {k} ({_floats(terms)})")

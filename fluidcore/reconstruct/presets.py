@@ -7,7 +7,8 @@ iterations give the same PSNR); `standard` sits between them and is the GPU defa
 
 Loss weights are the official release's: 0.8 L1 + 0.2 (1 - SSIM) for the image, 0.1 L_sim,
 1.0 L_incomp, 0.1 next-step L_incomp; appearance regularisers lambda_c 10, lambda_s 0,
-lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
+lambda_o 8, lambda_r 0.1 plus an anisotropy penalty. The optical-flow term (`flow`) is not the
+release's: it compares the particles' projected motion with the input video's flow.
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ class LossWeights:
     rotation: float = 0.1  # lambda_r
     anisotropy: float = 1.0
     max_anisotropy: float = 3.0  # scale ratio above which the anisotropy loss starts
+    flow: float = 0.0  # input-view optical flow as a lower bound on the particles' projected motion
+    # (reconstruct/flow.py); off: on the dev scene and ScalarFlow it did not lower the velocity error
+    # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
 @dataclass(frozen=True)
@@ -81,9 +85,17 @@ class Quality:
         return {"velocity_radius": self.velocity_radius, "per_physical": self.visual_per_physical, "seed": self.seed}
 
     def with_overrides(self, **overrides: Any) -> Quality:
+        """The preset with fields replaced; `weights` may be a mapping of just the loss weights
+        to change (`--set 'weights={"flow": 0}'`)."""
         unknown = set(overrides) - set(self.__dataclass_fields__)
         if unknown:
             raise PresetError(f"quality overrides: unknown fields {sorted(unknown)}")
+        weights = overrides.get("weights")
+        if isinstance(weights, Mapping):
+            bad = set(weights) - set(LossWeights.__dataclass_fields__)
+            if bad:
+                raise PresetError(f"quality overrides: unknown loss weights {sorted(bad)}")
+            overrides = {**overrides, "weights": replace(self.weights, **weights)}
         return replace(self, **overrides)
 
 
