@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 
 from fluidcore.interaction import BallParams, WindParams
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
+from fluidcore.reconstruct.source_hint import SourceHint
 
 _STRICT = ConfigDict(extra="forbid")
 
@@ -26,12 +27,15 @@ StartsFrom = Literal["scene", "parent"]
 
 
 class ReconstructParams(BaseModel):
-    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted."""
+    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
+    `source`: where the smoke comes from, when known (world units; checked against the scene
+    box): one view cannot tell the source's depth, and the whole plume inherits the guess."""
 
     model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY
     physics: PhysicsName = DEFAULT_PHYSICS
     frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
+    source: SourceHint | None = None
 
     @model_validator(mode="after")
     def _ordered(self) -> ReconstructParams:

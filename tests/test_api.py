@@ -248,7 +248,7 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     assert created.status_code == 202, created.text
     job = created.json()
     assert job["state"] == "queued" and job["progress"] == 0.0
-    assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5]}
+    assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None}
     assert service.queue.sent == [(job["id"], "reconstruct")]
     fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
     assert fetched["id"] == job["id"] and fetched["timings"]["started_at"] is None
@@ -274,6 +274,22 @@ def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params:
     assert response.status_code == 422
     assert field in response.text
     assert service.queue.sent == []
+
+
+def test_a_source_hint_is_checked_against_the_capture_box(service: Service, tmp_path: Path) -> None:
+    alice = service.key("alice")
+    files = scene_files(tmp_path)
+    box = {"min": [-0.5, 0.0, -0.5], "max": [0.5, 1.0, 0.5]}
+    files["cameras"].write_text(json.dumps({**json.loads(files["cameras"].read_text()), "scene_box": box}))
+    scene_id = upload(service, alice, files).json()["id"]
+    inside = [0.1, 0.2, -0.1]
+    refused = reconstruct(service, alice, scene_id, source={"center": [box["max"][0] + 1.0, *inside[1:]]})
+    assert refused.status_code == 422 and "outside the scene box" in refused.text
+    assert reconstruct(service, alice, scene_id, source={"center": inside, "radius": -1}).status_code == 422
+    assert service.queue.sent == []
+    created = reconstruct(service, alice, scene_id, source={"center": inside, "radius": 0.05})
+    assert created.status_code == 202, created.text
+    assert created.json()["params"]["source"] == {"center": inside, "radius": 0.05}
 
 
 def test_reconstruct_takes_the_physics_choice(service: Service, scene_id: str) -> None:

@@ -123,8 +123,10 @@ def test_worker_passes_the_physics_to_the_job(monkeypatch: pytest.MonkeyPatch, t
     monkeypatch.setattr(fluidcore.reconstruct.job, "run_reconstruct", lambda *args, **kwargs: seen.update(kwargs))
     monkeypatch.setattr(runners, "_render", lambda inputs: [])
     inputs = runners.RunInputs(
-        job_id="j", job_type=JobType.RECONSTRUCT, params={"physics": "scalarflow"}, run_dir=tmp_path, render_dir=tmp_path,
+        job_id="j", job_type=JobType.RECONSTRUCT, params={"physics": "scalarflow", "source": {"center": [0, 0.1, 0]}},
+        run_dir=tmp_path, render_dir=tmp_path,
         device="cpu", progress=lambda fraction, stage: None, should_cancel=lambda: False, cameras_path=tmp_path, videos={},
     )
     runners.reconstruct(inputs)
     assert seen["physics"] == "scalarflow"
+    assert seen["source"].center == (0.0, 0.1, 0.0) and seen["source"].radius is None

@@ -23,6 +23,7 @@ import torch
 from fluidcore import artifacts, metrics, synth
 from fluidcore.physics import interpolate_velocity
 from fluidcore.reconstruct import Reconstructor, ReconstructionError, get, prepare
+from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError, parse_source
 from fluidcore.runs import Run
 
 INPUT = "view_01"
@@ -34,7 +35,7 @@ def scene() -> synth.SynthScene:
     return synth.generate(synth.SynthSpec(frames=FRAMES, width=48, height=64, views=3, fps=10.0))
 
 
-def _prepare(scene: synth.SynthScene, frames: int = FRAMES, **overrides):
+def _prepare(scene: synth.SynthScene, frames: int = FRAMES, source: SourceHint | None = None, **overrides):
     spec = scene.spec
     quality = get("preview").with_overrides(long_side=64, particles_per_frame=spec.particles_per_step, **overrides)
     box = spec.box()
@@ -45,6 +46,7 @@ def _prepare(scene: synth.SynthScene, frames: int = FRAMES, **overrides):
         fps=spec.fps,
         quality=quality,
         box=(np.array(box.lo), np.array(box.hi)),
+        source=source,
     )
 
 
@@ -94,6 +96,35 @@ def test_estimated_source_is_near_the_true_one(scene):
     assert 0.5 * truth.radius < rec.source.radius < 2 * truth.radius
     assert rec.channels == 1
     np.testing.assert_allclose(rec.background_color, [1.0], atol=0.02)
+
+
+def test_a_known_source_keeps_its_depth_and_its_radius_is_measured_there(scene):
+    """One view cannot tell depth: a user's source centre is kept off the estimate's axis
+    (identification moves it along up only) and recorded in the manifest's settings."""
+    truth = scene.spec.source()
+    forward = scene.cameras[INPUT].forward()
+    hint = SourceHint(center=tuple(np.asarray(truth.center) - 0.1 * forward))  # 10 cm nearer the camera
+    rec, guessed = _prepare(scene, frames=2, source=hint), _prepare(scene, frames=2)
+    up = np.asarray(rec.up)
+
+    def across(point) -> np.ndarray:
+        offset = np.subtract(point, hint.center)
+        return offset - (offset @ up) * up
+
+    assert np.linalg.norm(across(rec.source.center)) < 1e-6
+    assert np.linalg.norm(across(guessed.source.center)) > 0.05
+    assert 0.3 * truth.radius < rec.source.radius < 3 * truth.radius
+    assert rec.settings()["source_hint"] == {"center": list(hint.center), "radius": None}
+    assert guessed.settings()["source_hint"] is None
+
+
+def test_a_source_hint_outside_the_box_or_malformed_is_refused(scene):
+    with pytest.raises(SourceHintError, match="outside the scene box"):
+        _prepare(scene, frames=2, source=SourceHint(center=(9.0, 0.0, 0.0)))
+    for text in ("1,2", "a,b,c", "0,0,0,-1", "0,nan,0"):
+        with pytest.raises(SourceHintError, match="--source"):
+            parse_source(text)
+    assert parse_source("0.1,0.2,0.3,0.05") == SourceHint(center=(0.1, 0.2, 0.3), radius=0.05)
 
 
 def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path):

@@ -87,6 +87,7 @@ def reconstruct(inputs: RunInputs) -> None:
         quality=params.quality,
         physics=params.physics,
         frames=params.frames,
+        source=params.source,
         **_callbacks(inputs),
     )
 

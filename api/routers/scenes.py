@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import tempfile
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, HTTPException, UploadFile, status
 from sqlalchemy import func, select
@@ -114,10 +114,17 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     if job is not None:
         manifest = json.loads(storage.read_bytes(f"{run_prefix(job.id)}/manifest.json"))
         return SceneGeometry.model_validate(scene_info.from_run_manifest(manifest))
+    return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
+
+
+def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
+    """`fluidcore.scene_info.from_cameras_file` of a stored scene's uploaded camera file."""
+    from fluidcore import scene_info
+
     with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
         path = Path(tmp) / Path(scene.cameras_key).name
         storage.get_file(scene.cameras_key, path)
-        return capture_geometry(path)
+        return scene_info.from_cameras_file(path)
 
 
 def capture_geometry(cameras_path: Path) -> SceneGeometry:

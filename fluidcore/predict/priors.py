@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from fluidcore.jobs import JobInputError, Progress, ShouldCancel
+from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import REFINED_RUN, Run
 from fluidcore.smoke import Appearance, SmokeState
 
@@ -149,7 +150,7 @@ def refine_future(
     rec = prepare(
         cameras, videos, frame_range=tuple(run.manifest["frame_range"]), fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=(scene.source["center"], scene.source["radius"]),
+        source=SourceHint(center=tuple(scene.source["center"]), radius=scene.source["radius"]),
         physics=origin.manifest["settings"].get("physics", {}).get("mode", "scalarflow"),  # runs from before --physics: the preset
         device=device,
     )

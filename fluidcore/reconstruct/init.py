@@ -164,12 +164,14 @@ def estimate_source(
     masks: Mapping[str, np.ndarray],
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
+    center: Sequence[float] | None = None,
 ) -> SourceEstimate:
     """Source centre and radius from the smoke masks of the first frames of each input view.
 
     Two or more views triangulate the centre. One view leaves depth open: the centre is put
     on the input ray where it passes closest to the box's vertical axis (the box is where the
-    smoke is). Masks may be at any resolution; cameras are scaled to match them.
+    smoke is). A known `center` (the user's) is kept, and only the radius is measured, at its
+    depth. Masks may be at any resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)
@@ -185,7 +187,9 @@ def estimate_source(
         sx = cameras[name].width / mask.shape[2]
         pixels[name] = (u * sx, v * cameras[name].height / mask.shape[1], r * sx)
         px_radii.append((camera, r))
-    if len(origins) >= 2:
+    if center is not None:
+        center = np.asarray(center, dtype=np.float64)
+    elif len(origins) >= 2:
         center = closest_point_to_rays(np.array(origins), np.array(directions))
     else:
         center = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +19,7 @@ import numpy as np
 
 from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, batch_progress, no_progress
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
+from fluidcore.reconstruct.source_hint import SourceHint
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -52,7 +53,7 @@ def run_reconstruct(
     device: str = "cpu",
     progress: Progress | None = None,
     should_cancel: ShouldCancel | None = None,
-    source: tuple[Sequence[float], float] | None = None,
+    source: SourceHint | None = None,
     physics: str = DEFAULT_PHYSICS,
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
@@ -61,7 +62,8 @@ def run_reconstruct(
 
     `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
     uses). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
-    "fluidnexus"; fluidcore.reconstruct.identify). Returns the run folder. `progress_bar` draws a
+    "fluidnexus"; fluidcore.reconstruct.identify). `source`: where the user knows the smoke's
+    source to be (otherwise estimated; one view leaves its depth to a guess). Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
     With one input view, the generative priors (`generative`, default: the weights of
     `fluidcore.weights.weights_dir()`) replace the symmetry pseudo-views when their weights

@@ -37,6 +37,7 @@ from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import check_mode, scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
+from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import fit_appearance, spawn
 from fluidcore.render import Gaussians, render
@@ -71,6 +72,7 @@ class Reconstruction:
     physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
     stabilization_steps: int
     symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
+    source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     def scene(self) -> Scene:
@@ -88,6 +90,7 @@ class Reconstruction:
             "visual": self.quality.visual_settings(),
             "physics": self.physics,
             "symmetry": self.symmetry,
+            "source_hint": self.source_hint,
             "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
         }
 
@@ -105,7 +108,7 @@ def prepare(
     quality: Quality,
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
-    source: tuple[Sequence[float], float] | None = None,
+    source: SourceHint | None = None,
     physics: str = DEFAULT_PHYSICS,
     extra_views: Sequence[ViewTarget] = (),
     device: str | torch.device = "cpu",
@@ -113,8 +116,8 @@ def prepare(
     """Targets, background, source and physics for reconstructing `videos` (uint8 (T, H, W, 3)
     per input camera, frames of `frame_range` only, at any size with the camera's aspect).
 
-    `source` = (centre, radius) in world units when the user knows it; otherwise it is
-    estimated from the first frames. `physics` is "auto" (identified from the first input view,
+    `source` is where the user knows the source to be (its radius, if not given, is measured at
+    that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` is the slot for generated
     novel views.
     """
@@ -148,11 +151,13 @@ def prepare(
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)
 
-    if source is None:
-        estimate = init.estimate_source(cameras, masks, box, up_v)
+    if source is not None:
+        source.check_in_box(*box)
+    if source is None or source.radius is None:
+        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center)
         center, radius = estimate.center, estimate.radius
     else:
-        center, radius = np.asarray(source[0], dtype=np.float64), float(source[1])
+        center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
     chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
@@ -186,6 +191,7 @@ def prepare(
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
         flow=flow,
+        source_hint=None if source is None else source.model_dump(mode="json"),
     )
 
 

@@ -71,6 +71,9 @@ def reconstruct(
     frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
     physics: str = typer.Option(DEFAULT_PHYSICS, "--physics", help=" | ".join(PHYSICS_MODES) + ": identified from the video, or a preset"),
+    source: str | None = typer.Option(
+        None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
+    ),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
@@ -84,12 +87,14 @@ def reconstruct(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
+    from fluidcore.reconstruct.source_hint import parse_source
 
     with user_errors(ValueError):
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=quality, physics=physics, frames=parse_frames(frames),
+            source=None if source is None else parse_source(source),
             device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
         )
         emit(as_json, str(path), **run_fields(path))
