@@ -160,11 +160,19 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#video-list canvas")).to_have_count(len(scene["videos"]))
     sync_api.expect(page.locator("#camera-summary")).to_contain_text(f"{len(scene['videos'])} cameras")
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    source = page.get_by_label("Smoke source")
+    source.fill("0, 0.075")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Smoke source: expected x, y, z")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     page.get_by_label("End frame").fill("2")
     page.screenshot(path=screens / "upload.png", full_page=True)
     page.locator("#upload-button").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("uploaded; reconstruction", timeout=SERVER_MS)
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
+    sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
+    assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05} and sent["physics"] == "auto"
 
     # chaining: a prediction started on the unfinished reconstruction waits for it; one is
     # cancelled while it waits and sent again with Retry

@@ -54,6 +54,11 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   if (cameraError) problems.push(`Camera file: ${cameraError}`);
   if (!videos.length) problems.push("Add at least one video, named after its camera.");
   const cameras = parsed && parsed.cameras;
+  const source = parseSource($("source").value);
+  if (source.error) problems.push(source.error);
+  else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
+    problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
+  }
   if (!cameras) return problems;
   const known = cameras.map((c) => c.name).join(", ");
   const taken = new Map();
@@ -73,6 +78,22 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
     }
   }
   return problems;
+}
+
+/** "x, y, z[, r]" -> {value: {center, radius?}} (empty text: {value: null}) or {error}; the API's SourceHint. */
+function parseSource(text) {
+  if (!text.trim()) return { value: null };
+  const numbers = text.split(",").map((part) => (part.trim() ? Number(part) : NaN));
+  if (![3, 4].includes(numbers.length) || !numbers.every(Number.isFinite) || (numbers.length === 4 && numbers[3] <= 0)) {
+    return { error: `Smoke source: expected x, y, z or x, y, z, radius (radius > 0) in world units, got "${text}".` };
+  }
+  const value = { center: numbers.slice(0, 3) };
+  if (numbers.length === 4) value.radius = numbers[3];
+  return { value };
+}
+
+function insideBox(point, box) {
+  return point.every((c, k) => box.lo[k] <= c && c <= box.hi[k]);
 }
 
 function render() {
@@ -145,7 +166,9 @@ async function submit(event, onDone) {
 }
 
 function reconstructRequest(scene) {
-  const params = { quality: $("quality").value };
+  const params = { quality: $("quality").value, physics: $("physics").value };
+  const source = parseSource($("source").value).value;
+  if (source) params.source = source;
   const start = Number($("frame-start").value || 0), end = $("frame-end").value;
   if (start > 0 || end) params.frames = [start, end ? Number(end) : scene.n_frames];
   return { type: "reconstruct", scene_id: scene.id, params };
@@ -155,6 +178,7 @@ function reset() {
   Object.assign(state, { camerasFile: null, parsed: null, cameraError: null, videos: [] });
   $("upload-files").value = "";
   $("scene-name").value = "";
+  $("source").value = "";
   $("upload-progress").hidden = true;
   $("upload-error").textContent = "";
   render();
@@ -172,5 +196,6 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
+  $("source").addEventListener("input", render);
   render();
 }
