@@ -58,6 +58,8 @@ class Quality:
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
     symmetry_weight: float  # their total loss weight relative to the input view
     initial_opacity: float = 0.3  # of a newborn visual Gaussian
+    min_scale: float = 0.25  # a visual Gaussian's extent (standard deviation per axis) stays within
+    max_scale: float = 1.0  # [min_scale, max_scale] kernel radii (fluidcore.reconstruct.visual)
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

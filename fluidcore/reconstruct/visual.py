@@ -2,16 +2,24 @@
 
 They are born with the physical particles (a few per new physical particle, jittered around
 it), move with the physical velocity field (kernel-interpolated from the physical particles,
-forward Euler), and after each frame's positions are settled their colour, scale, opacity and
-rotation are fitted to the images with temporal regularisation (paper: lambda_c 10,
-lambda_s 0, lambda_o 8, lambda_r 0.1, plus an anisotropy penalty that keeps splats from
-degenerating into needles that only look right from the input view).
+forward Euler), and after each frame's positions are settled their scale, opacity and rotation
+are fitted to the images with temporal regularisation (paper: lambda_c 10, lambda_s 0,
+lambda_o 8, lambda_r 0.1, plus an anisotropy penalty that keeps splats from degenerating into
+needles that only look right from the input view).
+
+The fit is tied to the physics so that it cannot paint the input view over a wrong 3D state
+(docs/bench_generalise.md measured a free fit 21 dB better on the input view than on novel
+views): smoke of one kind under one light has one colour, so all Gaussians share the scene's
+smoke colour (one fitted parameter; density shows through opacity), and a Gaussian's extent is
+bounded to a range of kernel radii, so it can become neither a paint stroke thinner than the
+particles resolve nor a sheet wider than the particle it rides on.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
@@ -73,6 +81,29 @@ def anisotropy(log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
     return torch.relu(ratio - max_ratio).mean()
 
 
+@dataclass(frozen=True)
+class ScaleBounds:
+    """The range (world units) a visual Gaussian's standard deviation is kept in, on every axis."""
+
+    low: float
+    high: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.low < self.high:
+            raise ValueError(f"scale bounds must satisfy 0 < low < high, got {self.low}, {self.high}")
+
+    def log_scales(self, free: torch.Tensor) -> torch.Tensor:
+        """Log-scales inside the bounds from unconstrained values (a sigmoid between the log bounds)."""
+        lo, hi = math.log(self.low), math.log(self.high)
+        return lo + (hi - lo) * torch.sigmoid(free)
+
+    def free(self, log_scales: torch.Tensor) -> torch.Tensor:
+        """Inverse of `log_scales`; scales at or beyond a bound start just inside it, where the
+        sigmoid still passes a gradient."""
+        lo, hi = math.log(self.low), math.log(self.high)
+        return torch.logit(((log_scales - lo) / (hi - lo)).clamp(0.01, 0.99))
+
+
 def fit_appearance(
     means: torch.Tensor,
     appearance: Appearance,
@@ -81,28 +112,39 @@ def fit_appearance(
     iterations: int,
     learning_rates: dict[str, float],
     weights: LossWeights,
+    bounds: ScaleBounds,
 ) -> tuple[Appearance, float]:
-    """Adam on colour, scale, opacity and rotation with the Gaussians' positions fixed.
+    """Adam on the shared smoke colour and the Gaussians' scale (within `bounds`), opacity and
+    rotation, with their positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
-    weighted photometric loss. Returns the fitted appearance and the last total loss.
+    weighted photometric loss. The colour starts from the previous frame's (the mean of
+    `appearance` on the first frame). Returns the fitted appearance (every row carrying the
+    shared colour) and the last total loss.
     """
-    params = appearance.detach()
-    for tensor in (params.log_scales, params.quats, params.opacity_logits, params.colors):
-        tensor.requires_grad_(True)
+    start = previous if len(previous) else appearance
+    color = start.colors.detach().mean(0).clone().requires_grad_(True)
+    free_scales = bounds.free(appearance.log_scales.detach()).requires_grad_(True)
+    opacity_logits = appearance.opacity_logits.detach().clone().requires_grad_(True)
+    quats = appearance.quats.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam(
         [
-            {"params": [params.colors], "lr": learning_rates["color"]},
-            {"params": [params.log_scales], "lr": learning_rates["scale"]},
-            {"params": [params.opacity_logits], "lr": learning_rates["opacity"]},
-            {"params": [params.quats], "lr": learning_rates["rotation"]},
+            {"params": [color], "lr": learning_rates["color"]},
+            {"params": [free_scales], "lr": learning_rates["scale"]},
+            {"params": [opacity_logits], "lr": learning_rates["opacity"]},
+            {"params": [quats], "lr": learning_rates["rotation"]},
         ]
     )
+
+    def current() -> Appearance:
+        return Appearance(bounds.log_scales(free_scales), quats, opacity_logits, color.expand(len(appearance), -1))
+
     last = float("nan")
     for k in range(iterations):
         optimiser.zero_grad(set_to_none=True)
+        params = current()
         loss = image_loss(params.gaussians(means), k) + regularisation(params, previous, weights)
         loss.backward()
         optimiser.step()
         last = float(loss.detach())
-    return params.detach(), last
+    return current().detach(), last

@@ -1,0 +1,62 @@
+"""The visual layer's ties to the physics (fluidcore.reconstruct.visual).
+
+The image loss here is a stand-in that rewards exactly what a free per-Gaussian fit would do to
+paint one view: some Gaussians pulled to needles or sheets, each Gaussian towards its own
+colour. The tied fit must keep every scale within its bounds and one colour for all.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fluidcore.reconstruct.presets import LossWeights
+from fluidcore.reconstruct.visual import ScaleBounds, fit_appearance
+from fluidcore.render import Gaussians
+from fluidcore.smoke import Appearance
+
+RATES = {"color": 0.05, "scale": 0.2, "opacity": 0.05, "rotation": 0.01}
+
+
+def _appearance(n: int, scale: float, generator: torch.Generator) -> Appearance:
+    return Appearance(
+        log_scales=torch.full((n, 3), math.log(scale)),
+        quats=torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1),
+        opacity_logits=torch.zeros(n),
+        colors=torch.rand((n, 3), generator=generator),
+    )
+
+
+def test_scales_stay_in_bounds_and_the_colour_is_shared():
+    g = torch.Generator().manual_seed(0)
+    n = 12
+    pull = torch.where(torch.arange(n)[:, None] % 2 == 0, 1.0, -1.0).repeat(1, 3)  # half grow, half shrink
+    wanted = torch.rand((n, 3), generator=g)  # a different colour for every Gaussian
+
+    def painter(gaussians: Gaussians, k: int) -> torch.Tensor:
+        return -(pull * gaussians.log_scales).mean() + (gaussians.colors - wanted).pow(2).mean()
+
+    bounds = ScaleBounds(0.005, 0.02)
+    start = _appearance(n, 0.01, g)
+    first_frame = start.select(torch.zeros(n, dtype=torch.bool))  # nothing to regularise towards
+    fitted, loss = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 300, RATES, LossWeights(), bounds)
+
+    scales = fitted.log_scales.exp()
+    assert math.isfinite(loss)
+    assert float(scales.min()) >= bounds.low * (1 - 1e-5) and float(scales.max()) <= bounds.high * (1 + 1e-5)
+    assert float(scales[0::2].min()) > 0.9 * bounds.high  # the pull did act, up to the bound
+    assert float(scales[1::2].max()) < 1.1 * bounds.low
+    assert torch.allclose(fitted.colors, fitted.colors[:1].expand(n, -1))
+    assert torch.allclose(fitted.colors[0], wanted.mean(0), atol=0.05)  # the one colour that fits them all best
+
+
+def test_scale_bounds_round_trip_and_refuse_an_empty_range():
+    bounds = ScaleBounds(0.5, 2.0)
+    inside = torch.log(torch.tensor([[0.6, 1.0, 1.9]]))
+    assert torch.allclose(bounds.log_scales(bounds.free(inside)), inside, atol=1e-5)
+    outside = torch.log(torch.tensor([[0.01, 100.0, 1.0]]))
+    assert bool((bounds.log_scales(bounds.free(outside)).exp() <= 2.0).all())
+    with pytest.raises(ValueError):
+        ScaleBounds(1.0, 1.0)
