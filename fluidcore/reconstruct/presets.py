@@ -83,9 +83,17 @@ class Quality:
         return {"velocity_radius": self.velocity_radius, "per_physical": self.visual_per_physical, "seed": self.seed}
 
     def with_overrides(self, **overrides: Any) -> Quality:
+        """The preset with `overrides` replacing fields; `weights` may be a mapping of just the
+        loss weights to change (as `--set weights={"scale": 8}` gives it)."""
         unknown = set(overrides) - set(self.__dataclass_fields__)
         if unknown:
             raise PresetError(f"quality overrides: unknown fields {sorted(unknown)}")
+        weights = overrides.get("weights")
+        if isinstance(weights, Mapping):
+            bad = set(weights) - set(LossWeights.__dataclass_fields__)
+            if bad:
+                raise PresetError(f"quality overrides: unknown loss weights {sorted(bad)}")
+            overrides = {**overrides, "weights": replace(self.weights, **weights)}
         return replace(self, **overrides)
 
 
