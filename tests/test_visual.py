@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from fluidcore.reconstruct.presets import LossWeights
-from fluidcore.reconstruct.visual import ScaleBounds, fit_appearance
+from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance
 from fluidcore.render import Gaussians
 from fluidcore.smoke import Appearance
 
@@ -41,7 +41,7 @@ def test_scales_stay_in_bounds_and_the_colour_is_shared():
     bounds = ScaleBounds(0.005, 0.02)
     start = _appearance(n, 0.01, g)
     first_frame = start.select(torch.zeros(n, dtype=torch.bool))  # nothing to regularise towards
-    fitted, loss = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 300, RATES, LossWeights(), bounds)
+    fitted, loss = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 300, RATES, LossWeights(), bounds, OpacityTie(math.inf))
 
     scales = fitted.log_scales.exp()
     assert math.isfinite(loss)

@@ -40,7 +40,7 @@ from fluidcore.reconstruct.identify import check_mode, scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
-from fluidcore.reconstruct.visual import ScaleBounds, fit_appearance, spawn
+from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
@@ -291,6 +291,7 @@ class Reconstructor:
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
             ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
+            OpacityTie(q.opacity_spread),
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities

@@ -12,6 +12,7 @@ lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -60,6 +61,7 @@ class Quality:
     initial_opacity: float = 0.3  # of a newborn visual Gaussian
     min_scale: float = 0.25  # a visual Gaussian's extent (standard deviation per axis) stays within
     max_scale: float = 1.0  # [min_scale, max_scale] kernel radii (fluidcore.reconstruct.visual)
+    opacity_spread: float = math.inf  # logits a Gaussian's opacity may stray from the scene's shared one
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

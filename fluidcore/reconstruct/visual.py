@@ -104,6 +104,25 @@ class ScaleBounds:
         return torch.logit(((log_scales - lo) / (hi - lo)).clamp(0.01, 0.99))
 
 
+@dataclass(frozen=True)
+class OpacityTie:
+    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity: the
+    particles carry equal masses of smoke, so density shows mainly through where they are."""
+
+    spread: float  # 0: one opacity for all; math.inf: free per Gaussian
+
+    def logits(self, shared: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+        if math.isinf(self.spread):
+            return free
+        return shared + self.spread * torch.tanh(free)
+
+    def free(self, logits: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
+        """Inverse of `logits` (deviations beyond the spread start just inside it)."""
+        if math.isinf(self.spread):
+            return logits.clone()
+        return torch.atanh(((logits - shared) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
+
+
 def fit_appearance(
     means: torch.Tensor,
     appearance: Appearance,
@@ -113,6 +132,7 @@ def fit_appearance(
     learning_rates: dict[str, float],
     weights: LossWeights,
     bounds: ScaleBounds,
+    opacity: OpacityTie,
 ) -> tuple[Appearance, float]:
     """Adam on the shared smoke colour and the Gaussians' scale (within `bounds`), opacity and
     rotation, with their positions fixed.
@@ -125,19 +145,21 @@ def fit_appearance(
     start = previous if len(previous) else appearance
     color = start.colors.detach().mean(0).clone().requires_grad_(True)
     free_scales = bounds.free(appearance.log_scales.detach()).requires_grad_(True)
-    opacity_logits = appearance.opacity_logits.detach().clone().requires_grad_(True)
+    shared_opacity = start.opacity_logits.detach().mean().clone().requires_grad_(True)
+    free_opacity = opacity.free(appearance.opacity_logits.detach(), shared_opacity.detach()).requires_grad_(True)
     quats = appearance.quats.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam(
         [
             {"params": [color], "lr": learning_rates["color"]},
             {"params": [free_scales], "lr": learning_rates["scale"]},
-            {"params": [opacity_logits], "lr": learning_rates["opacity"]},
+            {"params": [shared_opacity, free_opacity], "lr": learning_rates["opacity"]},
             {"params": [quats], "lr": learning_rates["rotation"]},
         ]
     )
 
     def current() -> Appearance:
-        return Appearance(bounds.log_scales(free_scales), quats, opacity_logits, color.expand(len(appearance), -1))
+        logits = opacity.logits(shared_opacity, free_opacity)
+        return Appearance(bounds.log_scales(free_scales), quats, logits, color.expand(len(appearance), -1))
 
     last = float("nan")
     for k in range(iterations):
