@@ -60,3 +60,23 @@ def test_scale_bounds_round_trip_and_refuse_an_empty_range():
     assert bool((bounds.log_scales(bounds.free(outside)).exp() <= 2.0).all())
     with pytest.raises(ValueError):
         ScaleBounds(1.0, 1.0)
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.5])
+def test_opacities_stay_within_the_spread_of_the_shared_one(spread):
+    g = torch.Generator().manual_seed(1)
+    n = 10
+    wanted = torch.linspace(-4.0, 4.0, n)  # a painter wants every opacity different
+
+    def painter(gaussians: Gaussians, k: int) -> torch.Tensor:
+        return (gaussians.opacity_logits - wanted).pow(2).mean()
+
+    start = _appearance(n, 0.01, g)
+    first_frame = start.select(torch.zeros(n, dtype=torch.bool))
+    tie = OpacityTie(spread)
+    fitted, _ = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 200, RATES, LossWeights(),
+                               ScaleBounds(0.005, 0.02), tie)
+    logits = fitted.opacity_logits
+    assert float(logits.max() - logits.min()) <= 2 * spread + 1e-5
+    if spread > 0:
+        assert float(logits.max() - logits.min()) > spread  # the deviations were used, up to the tie

@@ -7,12 +7,12 @@ iterations give the same PSNR); `standard` sits between them and is the GPU defa
 
 Loss weights are the official release's: 0.8 L1 + 0.2 (1 - SSIM) for the image, 0.1 L_sim,
 1.0 L_incomp, 0.1 next-step L_incomp; appearance regularisers lambda_c 10, lambda_s 0,
-lambda_o 8, lambda_r 0.1 plus an anisotropy penalty.
+lambda_o 8, lambda_r 0.1 plus an anisotropy penalty. The visual layer's ties to the particles
+(one colour, one opacity, bounded extent) are this project's, not the paper's (issue 12).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -59,9 +59,14 @@ class Quality:
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
     symmetry_weight: float  # their total loss weight relative to the input view
     initial_opacity: float = 0.3  # of a newborn visual Gaussian
-    min_scale: float = 0.25  # a visual Gaussian's extent (standard deviation per axis) stays within
-    max_scale: float = 1.0  # [min_scale, max_scale] kernel radii (fluidcore.reconstruct.visual)
-    opacity_spread: float = math.inf  # logits a Gaussian's opacity may stray from the scene's shared one
+    # The visual layer's ties to the particles (fluidcore.reconstruct.visual): a Gaussian's extent
+    # (standard deviation per axis) stays within [min_scale, max_scale] kernel radii, from the
+    # Poly6 kernel's own spread (1/sqrt(11) = 0.30 h) to its support; its opacity within
+    # opacity_spread logits of the scene's one shared opacity (0: density only from where the
+    # particles are; math.inf: free per Gaussian, as before issue 12).
+    min_scale: float = 0.3
+    max_scale: float = 1.0
+    opacity_spread: float = 0.0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

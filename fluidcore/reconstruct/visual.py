@@ -8,11 +8,16 @@ lambda_o 8, lambda_r 0.1, plus an anisotropy penalty that keeps splats from dege
 needles that only look right from the input view).
 
 The fit is tied to the physics so that it cannot paint the input view over a wrong 3D state
-(docs/bench_generalise.md measured a free fit 21 dB better on the input view than on novel
-views): smoke of one kind under one light has one colour, so all Gaussians share the scene's
-smoke colour (one fitted parameter; density shows through opacity), and a Gaussian's extent is
-bounded to a range of kernel radii, so it can become neither a paint stroke thinner than the
-particles resolve nor a sheet wider than the particle it rides on.
+(a free per-Gaussian fit was 21 dB better on the dev scene's input view than on its novel views,
+docs/bench_generalise.md):
+* smoke of one kind under one light has one colour: all Gaussians share the scene's smoke
+  colour, one fitted parameter;
+* the particles carry equal masses of smoke, so density shows through where they are: the
+  opacity is the scene's one shared opacity, each Gaussian allowed `OpacityTie.spread` logits
+  from it (0 by default);
+* a Gaussian's extent stays between the spread of the SPH kernel that carries its particle's
+  smoke and the kernel's support (`ScaleBounds`): neither a paint stroke thinner than the
+  particles resolve nor a sheet wider than the particle it rides on.
 """
 
 from __future__ import annotations
@@ -106,8 +111,7 @@ class ScaleBounds:
 
 @dataclass(frozen=True)
 class OpacityTie:
-    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity: the
-    particles carry equal masses of smoke, so density shows mainly through where they are."""
+    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity."""
 
     spread: float  # 0: one opacity for all; math.inf: free per Gaussian
 
@@ -134,13 +138,13 @@ def fit_appearance(
     bounds: ScaleBounds,
     opacity: OpacityTie,
 ) -> tuple[Appearance, float]:
-    """Adam on the shared smoke colour and the Gaussians' scale (within `bounds`), opacity and
-    rotation, with their positions fixed.
+    """Adam on the shared smoke colour and opacity, and on the Gaussians' scale (within
+    `bounds`), opacity (within `opacity` of the shared one) and rotation, positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
-    weighted photometric loss. The colour starts from the previous frame's (the mean of
-    `appearance` on the first frame). Returns the fitted appearance (every row carrying the
-    shared colour) and the last total loss.
+    weighted photometric loss. The shared colour and opacity start from the previous frame's
+    means (`appearance`'s on the first frame). Returns the fitted appearance (per Gaussian, as
+    the renderer and the run folder take it) and the last total loss.
     """
     start = previous if len(previous) else appearance
     color = start.colors.detach().mean(0).clone().requires_grad_(True)
