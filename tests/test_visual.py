@@ -7,12 +7,13 @@ colour. The tied fit must keep every scale within its bounds and one colour for 
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
 import torch
 
-from fluidcore.reconstruct.presets import LossWeights
+from fluidcore.reconstruct.presets import LossWeights, PresetError, Quality, get
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance
 from fluidcore.render import Gaussians
 from fluidcore.smoke import Appearance
@@ -41,7 +42,7 @@ def test_scales_stay_in_bounds_and_the_colour_is_shared():
     bounds = ScaleBounds(0.005, 0.02)
     start = _appearance(n, 0.01, g)
     first_frame = start.select(torch.zeros(n, dtype=torch.bool))  # nothing to regularise towards
-    fitted, loss = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 300, RATES, LossWeights(), bounds, OpacityTie(math.inf))
+    fitted, loss = fit_appearance(torch.zeros((n, 3)), start, first_frame, painter, 300, RATES, LossWeights(), bounds, OpacityTie(None))
 
     scales = fitted.log_scales.exp()
     assert math.isfinite(loss)
@@ -80,3 +81,11 @@ def test_opacities_stay_within_the_spread_of_the_shared_one(spread):
     assert float(logits.max() - logits.min()) <= 2 * spread + 1e-5
     if spread > 0:
         assert float(logits.max() - logits.min()) > spread  # the deviations were used, up to the tie
+
+
+def test_the_ties_are_quality_fields_that_round_trip_and_take_partial_weight_overrides():
+    quality = get("preview").with_overrides(opacity_spread=None, weights={"scale": 8.0})
+    assert quality.weights.scale == 8.0 and quality.weights.opacity == LossWeights().opacity
+    assert Quality.from_json(json.loads(json.dumps(quality.to_json(), allow_nan=False))) == quality
+    with pytest.raises(PresetError, match="loss weights"):
+        get("preview").with_overrides(weights={"colour": 1.0})

@@ -63,10 +63,10 @@ class Quality:
     # (standard deviation per axis) stays within [min_scale, max_scale] kernel radii, from the
     # Poly6 kernel's own spread (1/sqrt(11) = 0.30 h) to its support; its opacity within
     # opacity_spread logits of the scene's one shared opacity (0: density only from where the
-    # particles are; math.inf: free per Gaussian, as before issue 12).
+    # particles are; None: free per Gaussian, as before issue 12).
     min_scale: float = 0.3
     max_scale: float = 1.0
-    opacity_spread: float = 0.0
+    opacity_spread: float | None = 0.0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

@@ -113,16 +113,16 @@ class ScaleBounds:
 class OpacityTie:
     """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity."""
 
-    spread: float  # 0: one opacity for all; math.inf: free per Gaussian
+    spread: float | None  # 0: one opacity for all; None: free per Gaussian
 
     def logits(self, shared: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
-        if math.isinf(self.spread):
+        if self.spread is None:
             return free
         return shared + self.spread * torch.tanh(free)
 
     def free(self, logits: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
         """Inverse of `logits` (deviations beyond the spread start just inside it)."""
-        if math.isinf(self.spread):
+        if self.spread is None:
             return logits.clone()
         return torch.atanh(((logits - shared) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
 
