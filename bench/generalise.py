@@ -12,7 +12,8 @@ computed in the same run):
               baselines: blank (the background colour estimated from the input view),
               copy_input (the input frame at the same t shown as that view)
     input     the reconstruction from the input view itself (input-view fit; shown next to nvs:
-              a fit far above the novel views means the 3D is wrong where no camera looks)
+              a fit far above the novel views means the 3D is wrong where no camera looks), and
+              the reconstruction's own per-frame fit and one-step forecast of the input view
     future    prediction from frame B-1, frames B..B+F-1, every camera with truth
               baselines: blank, freeze (the input view's frame B-1 held, on every view)
     velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
@@ -149,6 +150,7 @@ class Protocol:
             out["tasks"]["input"] = self.score(self.gt, [self.input_view], frames, {
                 "method": self._render([recon]), "blank": self._blank(recon),
             })
+            out["tasks"]["input"]["reconstruction"] = _fit_and_forecast(recon)
         predicted = None
         if ("future" in tasks or "velocity" in tasks) and n_future > 0:
             predicted = self._timed("predict", lambda: self._predict(recon.path, self.folder / "predict", n_future))
@@ -399,6 +401,18 @@ def _branch(recon: Any, last: int, out: Path) -> Any:
     return run
 
 
+def _fit_and_forecast(recon: Any) -> dict[str, float]:
+    """The reconstruction's own input-view signals, mean over its frames (working resolution):
+    "fit" after each frame's fit, "forecast" of each frame by the state carried from the frame
+    before, scored before that frame was fitted (fluidcore.reconstruct.loop). Neither needs a
+    held-out camera; a fit far above its forecast paints the view instead of explaining it."""
+    import numpy as np
+
+    losses = [frame["losses"] for frame in recon.manifest["frames"]]
+    keys = {"fit": "input_psnr", "forecast": "forecast_psnr"}
+    return {name: float(np.mean([entry[key] for entry in losses])) for name, key in keys.items() if all(key in e for e in losses)}
+
+
 # -- output ------------------------------------------------------------------------------------
 def _rows(result: dict) -> list[tuple[str, str, dict]]:
     """(task, predictor, {"psnr", "ssim"}) for every scored mean."""
@@ -422,6 +436,9 @@ def print_table(result: dict) -> None:
     for task, name, value in _rows(result):
         ssim = f"{value['ssim']:7.4f}" if "ssim" in value else f"{'':>7}"
         print(f"{task:<16} {name:<12} {value['psnr']:7.2f} {ssim}")
+    signals = (result["tasks"].get("input") or {}).get("reconstruction")
+    if signals:
+        print(f"{'input (own)':<16} " + ", ".join(f"{k} {v:.2f}" for k, v in signals.items()) + " (working resolution, all frames)")
     velocity = result["tasks"].get("velocity")
     for part, v in ((velocity or {}).get("summary") or {}).items():
         print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f})")

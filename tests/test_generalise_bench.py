@@ -161,4 +161,5 @@ def test_bench_runs_end_to_end_on_a_synth_scene(synth_dir: Path, tmp_path: Path)
     assert result["tasks"]["future"]["frames"] == [4, 5]
     assert set(result["tasks"]["nvs"]["views"]) == {"view_00", "view_02"}
     assert result["tasks"]["velocity"]["summary"]["observed"]["zero_epe"] > 0
+    assert set(result["tasks"]["input"]["reconstruction"]) == {"fit", "forecast"}
     assert figure.stat().st_size > 1000

@@ -72,6 +72,18 @@ def test_input_view_is_reproduced_and_novel_views_beat_blank(scene, run):
             assert metrics.psnr(pred, truth) > blank + 5.0, name
 
 
+def test_forecast_of_each_unseen_frame_is_recorded_from_the_input_view_alone(run):
+    """forecast_psnr scores the carried state on frame t before frame t is fitted; the run was
+    given the input camera only, so the only views it fits or scores are that camera and its
+    symmetry pseudo-views."""
+    fitted_views = {v["camera"].split("~")[0] for v in run.manifest["settings"]["views"]}
+    assert fitted_views == {INPUT}
+    losses = [frame["losses"] for frame in run.manifest["frames"]]
+    assert all(np.isfinite(entry["forecast_psnr"]) and np.isfinite(entry["input_psnr"]) for entry in losses)
+    later = losses[1:]  # frame 0 forecasts from the untrained newborn look
+    assert np.mean([e["input_psnr"] for e in later]) >= np.mean([e["forecast_psnr"] for e in later]) - 0.5
+
+
 def test_particles_move_the_right_way(scene, run):
     radius = 2.0 * run.scene.physics["h"]
     for t in range(1, FRAMES):

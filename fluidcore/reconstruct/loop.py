@@ -13,6 +13,11 @@ frame by frame:
              u_t = (p_t - p_{t-1}) / dt, visual Gaussians
              advected and their appearance fitted (fluidcore.reconstruct.visual).
 
+Before a frame's fit, the carried state advected by the simulator is rendered in the input view
+and scored against the frame it has not yet seen ("forecast_psnr" in the frame's losses, next
+to the fitted "input_psnr"): a held-out-frame check that needs no other camera. An appearance
+that paints the input view over a wrong 3D state fits well and forecasts badly.
+
 Each frame's state is written to the run folder before the next begins. Randomness (view
 choice, spawn jitter, source seeding) is a function of (seed, frame) only, and every frame
 starts from the saved float32 state, so a resumed run computes exactly what an uninterrupted
@@ -39,7 +44,7 @@ from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visua
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
-from fluidcore.reconstruct.visual import fit_appearance, spawn
+from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import Run, Scene
 from fluidcore.smoke import SmokeState
@@ -273,13 +278,14 @@ class Reconstructor:
             spread=0.25 * config.h,
             scale=0.35 * config.h,
             opacity=q.initial_opacity,
-            color=torch.from_numpy(rec.smoke_color).to(self.device),
+            color=carry.appearance.colors.mean(0) if len(carry.appearance) else torch.from_numpy(rec.smoke_color).to(self.device),
             generator=generator,
         )
         problem = PositionProblem(
             p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), q.velocity_radius * config.h
         )
         appearance = carry.appearance.cat(new_appearance)
+        forecast = self._input_psnr(index, visual_means(p_sim, problem, config.dt), appearance)
         iterations = q.position_iterations * (q.first_frame_factor if first else 1)
         loss_fn = self._image_loss(index, iterations, chooser)
         flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, p_prev, config.h)
@@ -297,10 +303,12 @@ class Reconstructor:
             app_iterations,
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
+            ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
+            OpacityTie(q.opacity_spread),
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
-        losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance)}
+        losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
         smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses

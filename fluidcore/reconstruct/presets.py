@@ -8,7 +8,9 @@ iterations give the same PSNR); `standard` sits between them and is the GPU defa
 Loss weights are the official release's: 0.8 L1 + 0.2 (1 - SSIM) for the image, 0.1 L_sim,
 1.0 L_incomp, 0.1 next-step L_incomp; appearance regularisers lambda_c 10, lambda_s 0,
 lambda_o 8, lambda_r 0.1 plus an anisotropy penalty. The optical-flow term (`flow`) is not the
-release's: it compares the particles' projected motion with the input video's flow.
+release's: it compares the particles' projected motion with the input video's flow. The visual
+layer's ties to the particles (one colour, one opacity, bounded extent) are this project's, not
+the paper's (issue 12).
 """
 
 from __future__ import annotations
@@ -62,6 +64,14 @@ class Quality:
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
     symmetry_weight: float  # their total loss weight relative to the input view
     initial_opacity: float = 0.3  # of a newborn visual Gaussian
+    # The visual layer's ties to the particles (fluidcore.reconstruct.visual): a Gaussian's extent
+    # (standard deviation per axis) stays within [min_scale, max_scale] kernel radii, from the
+    # Poly6 kernel's own spread (1/sqrt(11) = 0.30 h) to its support; its opacity within
+    # opacity_spread logits of the scene's one shared opacity (0: density only from where the
+    # particles are; None: free per Gaussian, as before issue 12).
+    min_scale: float = 0.3
+    max_scale: float = 1.0
+    opacity_spread: float | None = 0.0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02
@@ -86,7 +96,7 @@ class Quality:
 
     def with_overrides(self, **overrides: Any) -> Quality:
         """The preset with fields replaced; `weights` may be a mapping of just the loss weights
-        to change (`--set 'weights={"flow": 0}'`)."""
+        to change (`--set 'weights={"flow": 1}'`)."""
         unknown = set(overrides) - set(self.__dataclass_fields__)
         if unknown:
             raise PresetError(f"quality overrides: unknown fields {sorted(unknown)}")

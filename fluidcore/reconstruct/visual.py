@@ -2,16 +2,29 @@
 
 They are born with the physical particles (a few per new physical particle, jittered around
 it), move with the physical velocity field (kernel-interpolated from the physical particles,
-forward Euler), and after each frame's positions are settled their colour, scale, opacity and
-rotation are fitted to the images with temporal regularisation (paper: lambda_c 10,
-lambda_s 0, lambda_o 8, lambda_r 0.1, plus an anisotropy penalty that keeps splats from
-degenerating into needles that only look right from the input view).
+forward Euler), and after each frame's positions are settled their scale, opacity and rotation
+are fitted to the images with temporal regularisation (paper: lambda_c 10, lambda_s 0,
+lambda_o 8, lambda_r 0.1, plus an anisotropy penalty that keeps splats from degenerating into
+needles that only look right from the input view).
+
+The fit is tied to the physics so that it cannot paint the input view over a wrong 3D state
+(a free per-Gaussian fit was 21 dB better on the dev scene's input view than on its novel views,
+docs/bench_generalise.md):
+* smoke of one kind under one light has one colour: all Gaussians share the scene's smoke
+  colour, one fitted parameter;
+* the particles carry equal masses of smoke, so density shows through where they are: the
+  opacity is the scene's one shared opacity, each Gaussian allowed `OpacityTie.spread` logits
+  from it (0 by default);
+* a Gaussian's extent stays between the spread of the SPH kernel that carries its particle's
+  smoke and the kernel's support (`ScaleBounds`): neither a paint stroke thinner than the
+  particles resolve nor a sheet wider than the particle it rides on.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 
@@ -73,6 +86,47 @@ def anisotropy(log_scales: torch.Tensor, max_ratio: float) -> torch.Tensor:
     return torch.relu(ratio - max_ratio).mean()
 
 
+@dataclass(frozen=True)
+class ScaleBounds:
+    """The range (world units) a visual Gaussian's standard deviation is kept in, on every axis."""
+
+    low: float
+    high: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.low < self.high:
+            raise ValueError(f"scale bounds must satisfy 0 < low < high, got {self.low}, {self.high}")
+
+    def log_scales(self, free: torch.Tensor) -> torch.Tensor:
+        """Log-scales inside the bounds from unconstrained values (a sigmoid between the log bounds)."""
+        lo, hi = math.log(self.low), math.log(self.high)
+        return lo + (hi - lo) * torch.sigmoid(free)
+
+    def free(self, log_scales: torch.Tensor) -> torch.Tensor:
+        """Inverse of `log_scales`; scales at or beyond a bound start just inside it, where the
+        sigmoid still passes a gradient."""
+        lo, hi = math.log(self.low), math.log(self.high)
+        return torch.logit(((log_scales - lo) / (hi - lo)).clamp(0.01, 0.99))
+
+
+@dataclass(frozen=True)
+class OpacityTie:
+    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity."""
+
+    spread: float | None  # 0: one opacity for all; None: free per Gaussian
+
+    def logits(self, shared: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+        if self.spread is None:
+            return free
+        return shared + self.spread * torch.tanh(free)
+
+    def free(self, logits: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
+        """Inverse of `logits` (deviations beyond the spread start just inside it)."""
+        if self.spread is None:
+            return logits.clone()
+        return torch.atanh(((logits - shared) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
+
+
 def fit_appearance(
     means: torch.Tensor,
     appearance: Appearance,
@@ -81,28 +135,42 @@ def fit_appearance(
     iterations: int,
     learning_rates: dict[str, float],
     weights: LossWeights,
+    bounds: ScaleBounds,
+    opacity: OpacityTie,
 ) -> tuple[Appearance, float]:
-    """Adam on colour, scale, opacity and rotation with the Gaussians' positions fixed.
+    """Adam on the shared smoke colour and opacity, and on the Gaussians' scale (within
+    `bounds`), opacity (within `opacity` of the shared one) and rotation, positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
-    weighted photometric loss. Returns the fitted appearance and the last total loss.
+    weighted photometric loss. The shared colour and opacity start from the previous frame's
+    means (`appearance`'s on the first frame). Returns the fitted appearance (per Gaussian, as
+    the renderer and the run folder take it) and the last total loss.
     """
-    params = appearance.detach()
-    for tensor in (params.log_scales, params.quats, params.opacity_logits, params.colors):
-        tensor.requires_grad_(True)
+    start = previous if len(previous) else appearance
+    color = start.colors.detach().mean(0).clone().requires_grad_(True)
+    free_scales = bounds.free(appearance.log_scales.detach()).requires_grad_(True)
+    shared_opacity = start.opacity_logits.detach().mean().clone().requires_grad_(True)
+    free_opacity = opacity.free(appearance.opacity_logits.detach(), shared_opacity.detach()).requires_grad_(True)
+    quats = appearance.quats.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam(
         [
-            {"params": [params.colors], "lr": learning_rates["color"]},
-            {"params": [params.log_scales], "lr": learning_rates["scale"]},
-            {"params": [params.opacity_logits], "lr": learning_rates["opacity"]},
-            {"params": [params.quats], "lr": learning_rates["rotation"]},
+            {"params": [color], "lr": learning_rates["color"]},
+            {"params": [free_scales], "lr": learning_rates["scale"]},
+            {"params": [shared_opacity, free_opacity], "lr": learning_rates["opacity"]},
+            {"params": [quats], "lr": learning_rates["rotation"]},
         ]
     )
+
+    def current() -> Appearance:
+        logits = opacity.logits(shared_opacity, free_opacity)
+        return Appearance(bounds.log_scales(free_scales), quats, logits, color.expand(len(appearance), -1))
+
     last = float("nan")
     for k in range(iterations):
         optimiser.zero_grad(set_to_none=True)
+        params = current()
         loss = image_loss(params.gaussians(means), k) + regularisation(params, previous, weights)
         loss.backward()
         optimiser.step()
         last = float(loss.detach())
-    return params.detach(), last
+    return current().detach(), last
