@@ -9,7 +9,7 @@
   where the confidence is 0 feel nothing (the flow is a lower bound on the smoke's motion);
 * with the weight at 0 no flow is computed and the fit has no flow term (the path before the
   term existed); with it on, the term is fitted and its weight is in the manifest; a manifest
-  without the weight (runs from before it) and `--set 'weights={...}'` overrides read back.
+  without the weight (runs from before it) reads back.
 """
 
 from __future__ import annotations
