@@ -59,10 +59,9 @@ class FlowField:
         return values[:, :2], values[:, 2]
 
 
-def contrast_images(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
-    """uint8 (T, H, W): the smoke's contrast |frame - background| (channel mean), its
+def contrast_images(contrast: np.ndarray) -> np.ndarray:
+    """uint8 (T, H, W) of the smoke's contrast (T, H, W) |frame - background|, its
     CONTRAST_PERCENTILE over the video mapped to 255."""
-    contrast = (frames - background).abs().mean(dim=-1).cpu().numpy()
     top = max(float(np.percentile(contrast, CONTRAST_PERCENTILE)), 1e-6)
     return np.clip(contrast * (255.0 / top), 0, 255).astype(np.uint8)
 
@@ -94,8 +93,8 @@ def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor, t
     """DIS flow between consecutive `frames` ((T, H, W, C) float in [0, 1], `camera` at their
     resolution, `background` (H, W, C) or (C,)), with the confidence of the module docstring;
     a pixel is smoke where its contrast exceeds `threshold`."""
-    images = contrast_images(frames, background)
-    smoke = ((frames - background).abs().mean(dim=-1) > threshold).cpu().numpy()
+    contrast = (frames - background).abs().mean(dim=-1).cpu().numpy()  # channel mean
+    images, smoke = contrast_images(contrast), contrast > threshold
     flows, confidences = [], []
     for k in range(len(images) - 1):
         forward = _dis(images[k], images[k + 1])
