@@ -92,7 +92,8 @@ def interact(
         from fluidcore.predict.job import run_interact
 
         check_device(device)
-        path = run_interact(run, out, params, frames=frames, from_frame=from_frame, context=JobContext(device, _ProgressBar()))
+        context = JobContext(device, _ProgressBar())
+        path = run_interact(run, out, params, frames=frames, from_frame=from_frame, context=context)
         emit(as_json, str(path), **run_fields(path))
 
 
