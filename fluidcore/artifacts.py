@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluidcore.jobs import JobInputError
+from fluidcore.jobs import JobContext, JobInputError
 
 ORBIT_FRAMES = 120  # a full turn lasts at least this many frames (4 s at 30 fps)
 
@@ -145,5 +145,6 @@ def factual_frames(run, camera, device: str = "cpu") -> np.ndarray:  # noqa: ANN
         return render_frames(parent, camera, frames, device)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-factual-") as tmp:
         branch = int(run.manifest["settings"]["branch_frame"])
-        factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch, device=device))
+        factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch,
+                                      context=JobContext(device=device)))
         return render_frames(factual, camera, frames, device)

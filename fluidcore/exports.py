@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.runs import FrameState, Run
 
@@ -35,7 +36,7 @@ MAX_VOXELS = 256**3  # a density grid larger than this (64 MiB of float32) is re
 DENSITY_SPACING = 0.5  # default voxel size, in kernel radii h
 
 
-class ExportError(ValueError):
+class ExportError(InputError):
     """The frame cannot be exported as asked; the message names the option."""
 
 

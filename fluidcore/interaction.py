@@ -21,6 +21,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from fluidcore.errors import InputError
+
 Vec3 = tuple[float, float, float]
 
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
@@ -29,7 +31,7 @@ MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far p
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-class InteractionError(ValueError):
+class InteractionError(InputError):
     """Counterfactual parameters that cannot be applied; the message names the field."""
 
 

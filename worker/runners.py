@@ -1,6 +1,7 @@
-"""Job runners: the only place the worker calls fluidcore (the "Jobs" contract in
-docs/architecture.md). fluidcore and torch are imported inside the runner bodies, so
-the Celery app, the API and the tests of the service logic load without them.
+"""Job runners: the only place the worker calls fluidcore's jobs (the "Jobs" contract in
+docs/architecture.md). The science and torch are imported inside the runner bodies, so the
+Celery app, the API and the tests of the service logic load without them; only the torch-free
+`fluidcore.jobs` (the progress, cancellation and context types) is imported here.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
 files to publish besides the run folder itself (MP4 per camera, orbit video, a what-if's
@@ -16,14 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from fluidcore.jobs import JobContext, Progress, ShouldCancel
 from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams
-
-Progress = Callable[[float, str], None]
-ShouldCancel = Callable[[], bool]
-
-
-class JobCancelled(Exception):
-    """The runner stopped because should_cancel() said so (fluidcore's Cancelled, translated)."""
 
 
 @dataclass(frozen=True)
@@ -40,12 +35,13 @@ class RunInputs:
     videos: Mapping[str, Path] | None = None  # reconstruct: camera name -> video
     parent_run: Path | None = None  # predict / interact / resimulate
 
+    @property
+    def context(self) -> JobContext:
+        """The device and callbacks as the fluidcore job entries take them."""
+        return JobContext(self.device, self.progress, self.should_cancel)
+
 
 Runner = Callable[[RunInputs], list[Path]]
-
-
-def _callbacks(inputs: RunInputs) -> dict[str, Any]:
-    return {"device": inputs.device, "progress": inputs.progress, "should_cancel": inputs.should_cancel}
 
 
 def _render(inputs: RunInputs) -> list[Path]:
@@ -57,16 +53,11 @@ def _render(inputs: RunInputs) -> list[Path]:
     return [*render_artifacts(inputs.run_dir, inputs.render_dir), *export_artifacts(inputs.run_dir, inputs.render_dir)]
 
 
-def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
-    """Run a fluidcore job, then render it; fluidcore's Cancelled becomes JobCancelled."""
+def _rendered(run: Callable[[RunInputs], None]) -> Runner:
+    """Run a fluidcore job, then render it; its Cancelled and InputError reach the executor as raised."""
 
     def runner(inputs: RunInputs) -> list[Path]:
-        from fluidcore.jobs import Cancelled
-
-        try:
-            run(inputs)
-        except Cancelled as exc:
-            raise JobCancelled(str(exc)) from exc
+        run(inputs)
         return _render(inputs)
 
     runner.__name__ = run.__name__
@@ -74,7 +65,7 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
     return runner
 
 
-@_translating_cancel
+@_rendered
 def reconstruct(inputs: RunInputs) -> None:
     from fluidcore.reconstruct.job import run_reconstruct
 
@@ -88,39 +79,39 @@ def reconstruct(inputs: RunInputs) -> None:
         physics=params.physics,
         frames=params.frames,
         source=params.source,
-        **_callbacks(inputs),
+        context=inputs.context,
     )
 
 
-@_translating_cancel
+@_rendered
 def predict(inputs: RunInputs) -> None:
     from fluidcore.predict.job import run_predict
 
     params = PredictParams.model_validate(inputs.params)
-    run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, **_callbacks(inputs))
+    run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, context=inputs.context)
 
 
-@_translating_cancel
+@_rendered
 def interact(inputs: RunInputs) -> None:
+    from fluidcore.interaction import InteractionParams
     from fluidcore.predict.job import run_interact
 
     params = InteractParams.model_validate(inputs.params)
     run_interact(
         inputs.parent_run,
         inputs.run_dir,
+        InteractionParams(wind=params.wind, ball=params.ball),
         frames=params.frames,
-        wind=params.wind,
-        ball=params.ball,
         from_frame=params.from_frame,
-        **_callbacks(inputs),
+        context=inputs.context,
     )
 
 
-@_translating_cancel
+@_rendered
 def resimulate(inputs: RunInputs) -> None:
     from fluidcore.predict.job import run_resimulate
 
-    run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
+    run_resimulate(inputs.parent_run, inputs.run_dir, context=inputs.context)
 
 
 FLUIDCORE_RUNNERS: dict[JobType, Runner] = {

@@ -15,6 +15,7 @@ from functools import lru_cache
 from celery import Task
 from celery.signals import worker_process_init
 
+from fluidcore.errors import internal_error
 from service.celery_app import make_celery, task_name
 from service.database import make_engine, make_sessionmaker
 from service.job_types import JobType
@@ -67,8 +68,9 @@ def _run(task: Task, job_id: str) -> str | None:
         raise task.retry(countdown=busy.retry_in, max_retries=None) from None
     except TRANSIENT_ERRORS as exc:
         if task.request.retries >= settings.max_transient_retries:
+            error = internal_error(log, exc, f"job {job_id}")  # the fault's text may hold SQL or hosts
             return executor().finish(
-                job_id, JobState.FAILED, error=f"gave up after {task.request.retries} retries: {exc}"
+                job_id, JobState.FAILED, error=f"gave up after {task.request.retries} retries: {error}: see the worker log"
             )
         countdown = min(300, 10 * 2**task.request.retries)
         log.warning("job %s: transient fault, retry in %d s: %s", job_id, countdown, exc)

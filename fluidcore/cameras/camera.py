@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from fluidcore.errors import InputError
+
 if TYPE_CHECKING:  # pragma: no cover - typing only
     import torch
 
@@ -25,7 +27,7 @@ ORTHONORMAL_TOLERANCE = 1e-4  # max |R R^T - I|; poses stored as float32 are ~1e
 _NEAR_DEPTH = 1e-9  # |z| below this is clamped in project() so uv stays finite
 
 
-class CameraError(ValueError):
+class CameraError(InputError):
     """A camera (or a camera file) is invalid; the message names the offending field."""
 
 

@@ -59,7 +59,7 @@ def synth(
     """Simulate and render a small synthetic plume with known ground truth (try the pipeline without data)."""
     from fluidcore import synth as synth_module
 
-    with user_errors(ValueError):
+    with user_errors():
         spec = synth_module.SynthSpec(frames=frames, width=width, height=height, views=views, seed=seed)
         path = synth_module.write(synth_module.generate(spec), out)
     typer.echo(str(path))
@@ -85,17 +85,17 @@ def reconstruct(
     With one video and novel-view weights in the models folder, generated views of the other
     cameras join the fit (see `fluidnexus models`)."""
     from fluidcore.generative.stages import GenerativeSettings
-    from fluidcore.jobs import parse_frames
+    from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
     from fluidcore.reconstruct.source_hint import parse_source
 
-    with user_errors(ValueError):
+    with user_errors():
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=quality, physics=physics, frames=parse_frames(frames),
             source=None if source is None else parse_source(source),
-            device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
+            progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit(as_json, str(path), **run_fields(path))
 
@@ -122,7 +122,7 @@ def render(
     from fluidcore.runs import Run
     from fluidcore.video import write_mp4
 
-    with user_errors(ValueError):
+    with user_errors():
         if out is None and png_dir is None:
             raise UserError("give --out video.mp4 and/or --png-dir DIR")
         if camera is None:
@@ -178,6 +178,6 @@ def export(
     """Write one frame: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd)."""
     from fluidcore.exports import export_frame
 
-    with user_errors(ValueError):
+    with user_errors():
         path = export_frame(run, frame, fmt, out)
     emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
