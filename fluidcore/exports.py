@@ -241,6 +241,8 @@ def export_sequence(
     missing = sorted(set(range(start, end)) - set(run.frames()))
     if missing:
         raise ExportError(f"frames {start}:{end}: frame {missing[0]} is not a finished frame of {_held(run, run_dir)}")
+    if Path(out_dir).exists() and not Path(out_dir).is_dir():
+        raise ExportError(f"out: {out_dir} is a file; a sequence goes into a folder")
     return [_write(run, t, fmt, Path(out_dir) / export_name(t, fmt)) for t in range(start, end)]
 
 

@@ -6,7 +6,7 @@ tinyvdb (0.9) reads and edits .vdb files but cannot start a grid from nothing. W
 need from a smoke cache is a small part of the format, written here from OpenVDB's own
 description of it (io/Archive, tree/*Node writeTopology and writeBuffers):
 
-- file format 224 (what OpenVDB 6.1 to 10 write; newer versions read it);
+- file format 224 (what OpenVDB 4 to 12 write and 13 reads);
 - one grid per named array, on the standard 5-4-3 tree (root, 32^3 and 16^3 internal nodes,
   8^3 leaves); only leaves holding a non-zero voxel are stored and, in them, only the non-zero
   (active) voxels: OpenVDB's active-mask compression, the one it uses for fog volumes;
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-FILE_VERSION = 224  # OpenVDB's OPENVDB_FILE_VERSION_MULTIPASS_IO
-LIBRARY_VERSION = (10, 0)  # the library release whose files have this layout
+FILE_VERSION = 224  # OpenVDB's OPENVDB_FILE_VERSION_MULTIPASS_IO, the newest that OpenVDB 12 reads without a warning
+LIBRARY_VERSION = (10, 0)  # a library release that writes this layout (Debian's python3-openvdb)
 MAGIC = 0x56444220  # "VDB " read as a little-endian integer
 ACTIVE_MASK = 0x2  # per-grid compression flag: nodes store their active values only
 INACTIVE_ARE_BACKGROUND = 0  # per-node flag: every inactive value is the background (zero)

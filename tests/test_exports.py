@@ -154,3 +154,10 @@ def test_bad_frame_ranges_are_refused_before_writing(run_dir, tmp_path, args, me
     result = runner.invoke(app, ["export", str(run_dir), "--format", "ply", "--out", str(tmp_path / "seq"), *args])
     assert result.exit_code == 2 and f"error: {message}" in result.output, result.output
     assert not (tmp_path / "seq").exists()
+
+
+def test_a_sequence_into_a_file_is_refused(run_dir, tmp_path):
+    (tmp_path / "taken").write_text("mine")
+    result = runner.invoke(app, ["export", str(run_dir), "--frames", "0:1", "--format", "ply", "--out", str(tmp_path / "taken")])
+    assert result.exit_code == 2 and "is a file; a sequence goes into a folder" in result.output
+    assert (tmp_path / "taken").read_text() == "mine"
