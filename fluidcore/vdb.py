@@ -38,9 +38,7 @@ LOWER_SPAN = 1 << (LOWER + LEAF)  # voxels across a lower internal node (128)
 UPPER_SPAN = 1 << (UPPER + LOWER + LEAF)  # voxels across an upper internal node (4096)
 
 
-def write_vdb(
-    path: str | Path, grids: Mapping[str, np.ndarray], origin: np.ndarray, voxel_size: float, creator: str = "fluidnexus"
-) -> None:
+def write_vdb(path: str | Path, grids: Mapping[str, np.ndarray], origin: np.ndarray, voxel_size: float) -> None:
     """Write `grids` (name -> (X, Y, Z) or (X, Y, Z, 3) array, zero = empty) to one .vdb file,
     all with the transform `origin` (3,) (world position of voxel [0, 0, 0]'s centre) and
     `voxel_size` (world units)."""
@@ -55,7 +53,7 @@ def write_vdb(
         if not np.all(np.isfinite(array)):
             raise ValueError(f"grid {name!r} holds non-finite values")
         tree_type = _tree_type(array)
-        head, body = _grid(name, array, transform, creator)
+        head, body = _grid(name, array, transform)
         descriptor = _string(name) + _string(tree_type) + _string("")  # "": not an instance
         grid_pos = out.tell() + len(descriptor) + 24
         block_pos = grid_pos + len(head)
@@ -70,14 +68,14 @@ def _tree_type(values: np.ndarray) -> str:
     return f"Tree_{kinds[values.ndim]}_{UPPER}_{LOWER}_{LEAF}"
 
 
-def _grid(name: str, values: np.ndarray, transform: bytes, creator: str) -> tuple[bytes, bytes]:
+def _grid(name: str, values: np.ndarray, transform: bytes) -> tuple[bytes, bytes]:
     """(compression, metadata, transform and topology; the leaves' values) of one grid."""
     vector = values.ndim == 4
     active = np.any(values != 0, axis=3) if vector else values != 0
     leaves = _leaf_origins(active)
     meta: dict[str, tuple[str, bytes]] = {
         "class": ("string", b"unknown" if vector else b"fog volume"),
-        "creator": ("string", creator.encode()),
+        "creator": ("string", b"fluidnexus"),
         "name": ("string", name.encode()),
         "file_voxel_count": ("int64", struct.pack("<q", int(active.sum()))),
     }
