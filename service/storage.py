@@ -49,7 +49,7 @@ def scene_prefix(scene_id: str) -> str:
 
 def job_prefix(job_id: str) -> str:
     """A job: `run/` is its run folder (checkpoints, states, manifest), `videos/` its rendered
-    MP4s, `exports/` its last frame in every export format."""
+    MP4s, `exports/` its last frame in every export format and every frame as VDB."""
     return f"jobs/{job_id}"
 
 

@@ -5,7 +5,7 @@ Celery app, the API and the tests of the service logic load without them; only t
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
 files to publish besides the run folder itself (MP4 per camera, orbit video, a what-if's
-side-by-side, and the last frame in every `fluidcore.exports` format). Each reads its
+side-by-side, the last frame in every `fluidcore.exports` format, every frame as VDB). Each reads its
 parameters through its type's model in `service.job_types`, so defaults live there only.
 """
 
@@ -45,7 +45,8 @@ Runner = Callable[[RunInputs], list[Path]]
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    """The videos (a what-if adds its side-by-side) and the last frame in every export format."""
+    """The videos (a what-if adds its side-by-side), the last frame in every export format and
+    the run's frames as a VDB sequence (fluidcore.exports.export_artifacts)."""
     from fluidcore.artifacts import render_artifacts
     from fluidcore.exports import export_artifacts
 

@@ -170,14 +170,27 @@ def _write_pngs(folder: Path, video, frames: list[int]) -> None:  # noqa: ANN001
 
 def export(
     run: Path = RUN_ARG,
-    frame: int = typer.Option(..., "--frame", help="Frame number (as in the run's manifest)."),
-    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd (docs/exports.md)."),
-    out: Path = typer.Option(..., "--out", help="File to write."),
+    frame: int | None = typer.Option(None, "--frame", help="Frame number (as in the run's manifest); default: the last."),
+    frames: str | None = typer.Option(
+        None, "--frames", help="START:END (end excluded): a numbered sequence of these frames into the folder --out."
+    ),
+    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd | vdb (docs/exports.md)."),
+    out: Path = typer.Option(..., "--out", help="File to write; with --frames, the folder for the sequence."),
     as_json: bool = JSON_OPT,
 ) -> None:
-    """Write one frame: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd)."""
-    from fluidcore.exports import export_frame
+    """Write a frame or a sequence: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd, vdb)."""
+    from fluidcore.exports import export_frame, export_sequence, last_frame
+    from fluidcore.jobs import parse_frames
 
     with user_errors():
-        path = export_frame(run, frame, fmt, out)
-    emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
+        if frame is not None and frames is not None:
+            raise UserError("give --frame (one file) or --frames START:END (a sequence), not both")
+        wanted = parse_frames(frames)
+        if wanted is None:
+            frame = last_frame(run) if frame is None else frame
+            path = export_frame(run, frame, fmt, out)
+            emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
+        else:
+            paths = export_sequence(run, wanted, fmt, out)
+            emit(as_json, "\n".join(map(str, paths)), run=str(run), frames=list(wanted), format=fmt, out=str(out),
+                 files=[p.name for p in paths])
