@@ -100,6 +100,7 @@ def render_artifacts(
     """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files. A
     prediction refined by Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/`
     sub-run, the future reconstructed on the refined frames."""
+    from fluidcore.names import safe_join
     from fluidcore.runs import MANIFEST, REFINED_RUN, Run
     from fluidcore.video import write_mp4
 
@@ -111,12 +112,12 @@ def render_artifacts(
     written = []
     what_if = run.kind == "interact"
     for name, camera in (cameras or run.cameras()).items():
-        written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera, interventions=what_if), fps=run.fps))
+        written.append(write_mp4(safe_join(out, f"{name}.mp4"), render_frames(run, camera, interventions=what_if), fps=run.fps))
     written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
     if (run.path / REFINED_RUN / MANIFEST).is_file():
         refined = Run.open(run.path / REFINED_RUN)
         for name, camera in (cameras or refined.cameras()).items():
-            written.append(write_mp4(out / f"refined_{name}.mp4", render_frames(refined, camera), fps=refined.fps))
+            written.append(write_mp4(safe_join(out, f"refined_{name}.mp4"), render_frames(refined, camera), fps=refined.fps))
     if what_if:
         camera = run.cameras()[run.manifest["input_views"][0]]
         written.append(write_mp4(out / "side_by_side.mp4", render_side_by_side(run, camera), fps=run.fps))
