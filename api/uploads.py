@@ -171,8 +171,14 @@ def _check_file_paths(cameras: dict[str, Camera]) -> None:
 def _check_cameras(cameras: dict[str, Camera], settings: Settings) -> None:
     """Count, size and plausible intrinsics/extrinsics of every camera, with or without a video:
     the worker renders every camera, so a camera's pixels cost memory even with no footage."""
+    from fluidcore.artifacts import check_camera_names
     from fluidcore.cameras import CameraError, check_ranges
+    from fluidcore.jobs import JobInputError
 
+    try:
+        check_camera_names(list(cameras))
+    except JobInputError as exc:
+        raise UploadRejected(f"cameras: {exc}") from None
     if len(cameras) > settings.max_cameras:
         raise UploadRejected(f"cameras: {len(cameras)} cameras, more than the limit of {settings.max_cameras}")
     total = 0

@@ -19,6 +19,20 @@ import numpy as np
 from fluidcore.jobs import JobContext, JobInputError
 
 ORBIT_FRAMES = 120  # a full turn lasts at least this many frames (4 s at 30 fps)
+SCENE_VIDEOS = ("orbit", "side_by_side")  # render_artifacts' videos that belong to no camera
+REFINED_PREFIX = "refined_"
+
+
+def check_camera_names(names: Sequence[str]) -> None:
+    """Raise JobInputError when a camera's video would take the file name of another video of
+    `render_artifacts` (a camera named `orbit`, or `refined_x` beside `x`): two artifacts under
+    one name would make the job's publication fail. The API applies it to uploads, before any work."""
+    for name in names:
+        if name in SCENE_VIDEOS or (name.startswith(REFINED_PREFIX) and name[len(REFINED_PREFIX):] in names):
+            raise JobInputError(
+                f"camera {name!r}: its video would have the name of another video of the job "
+                f"({', '.join(SCENE_VIDEOS)}, {REFINED_PREFIX}<camera>); rename the camera"
+            )
 
 
 def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
@@ -107,6 +121,7 @@ def render_artifacts(
     run = Run.open(run_dir)
     if not run.frames():
         raise JobInputError(f"run: {run_dir} has no finished frames to render")
+    check_camera_names(list(cameras or run.cameras()))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []

@@ -19,6 +19,7 @@ from typer.testing import CliRunner
 
 from fluidcore import cameras
 from fluidcore.cameras import CameraError
+from fluidcore.jobs import JobInputError
 from fluidcore.names import UnsafeName, UnsafePath, check_name, check_relative, safe_join
 from fluidnexus.cli import app
 from service.models import Scene
@@ -219,6 +220,18 @@ def test_artifact_names_are_looked_up_never_joined(service: Service, clip: Path)
         assert response.content != clip.read_bytes()
 
 
+def test_a_camera_whose_video_takes_another_videos_name_is_a_422(service: Service, clip: Path) -> None:
+    """A camera named `orbit` (or `refined_cam0` beside `cam0`) passes the naming rule, but its
+    MP4 would share a name with another video of the job; before, the job ran to its end and
+    failed publishing on the artifact table's unique name."""
+    alice = service.key("alice")
+    for names in (["cam0", "orbit"], ["cam0", "side_by_side"], ["cam0", "refined_cam0"]):
+        frames = [{**camera_entry(name, 32, 24, 0.5 * i), "file_path": None} for i, name in enumerate(names)]
+        response = _upload(service, alice, frames, {"cam0.mp4": clip})
+        assert response.status_code == 422 and response.json()["detail"].startswith(f"cameras: camera {names[1]!r}: ")
+    assert _stored(service) == (0, [])
+
+
 # -- the CLI -----------------------------------------------------------------------------------------
 
 runner = CliRunner()
@@ -265,3 +278,5 @@ def test_render_artifacts_never_writes_outside_its_folder(tmp_path: Path) -> Non
     with pytest.raises(UnsafePath):
         render_artifacts(run.path, out, cameras={"../../escaped": _camera()})
     assert not (tmp_path / "escaped.mp4").exists()
+    with pytest.raises(JobInputError, match="camera 'orbit'"):
+        render_artifacts(run.path, out, cameras={"orbit": _camera()})
