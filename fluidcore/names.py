@@ -27,9 +27,10 @@ from fluidcore.errors import InputError
 NAME_MAX_CHARS = 64
 RELATIVE_MAX_PARTS = 8  # "sparse/0/cameras.bin" has 3; deeper is no capture layout we know
 NAME_RULE = (
-    f"1 to {NAME_MAX_CHARS} characters from A-Z a-z 0-9 '.' '_' '-', not starting with '.' and without '..'"
+    f"1 to {NAME_MAX_CHARS} characters from A-Z a-z 0-9 '.' '_' '-', starting with a letter or digit, without '..'"
 )
-_NAME = re.compile(rf"[A-Za-z0-9_-][A-Za-z0-9._-]{{0,{NAME_MAX_CHARS - 1}}}")
+# First a letter or digit: not '.' (hidden files, '.', '..') and not '-' (read as an option by tools).
+_NAME = re.compile(rf"[A-Za-z0-9][A-Za-z0-9._-]{{0,{NAME_MAX_CHARS - 1}}}")
 
 
 class UnsafeName(InputError):
