@@ -19,6 +19,20 @@ import numpy as np
 from fluidcore.jobs import JobContext, JobInputError
 
 ORBIT_FRAMES = 120  # a full turn lasts at least this many frames (4 s at 30 fps)
+SCENE_VIDEOS = ("orbit", "side_by_side")  # render_artifacts' videos that belong to no camera
+REFINED_PREFIX = "refined_"
+
+
+def check_camera_names(names: Sequence[str]) -> None:
+    """Raise JobInputError when a camera's video would take the file name of another video of
+    `render_artifacts` (a camera named `orbit`, or `refined_x` beside `x`): two artifacts under
+    one name would make the job's publication fail. The API applies it to uploads, before any work."""
+    for name in names:
+        if name in SCENE_VIDEOS or (name.startswith(REFINED_PREFIX) and name[len(REFINED_PREFIX):] in names):
+            raise JobInputError(
+                f"camera {name!r}: its video would have the name of another video of the job "
+                f"({', '.join(SCENE_VIDEOS)}, {REFINED_PREFIX}<camera>); rename the camera"
+            )
 
 
 def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
@@ -100,23 +114,25 @@ def render_artifacts(
     """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files. A
     prediction refined by Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/`
     sub-run, the future reconstructed on the refined frames."""
+    from fluidcore.names import safe_join
     from fluidcore.runs import MANIFEST, REFINED_RUN, Run
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)
     if not run.frames():
         raise JobInputError(f"run: {run_dir} has no finished frames to render")
+    check_camera_names(list(cameras or run.cameras()))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
     what_if = run.kind == "interact"
     for name, camera in (cameras or run.cameras()).items():
-        written.append(write_mp4(out / f"{name}.mp4", render_frames(run, camera, interventions=what_if), fps=run.fps))
+        written.append(write_mp4(safe_join(out, f"{name}.mp4"), render_frames(run, camera, interventions=what_if), fps=run.fps))
     written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
     if (run.path / REFINED_RUN / MANIFEST).is_file():
         refined = Run.open(run.path / REFINED_RUN)
         for name, camera in (cameras or refined.cameras()).items():
-            written.append(write_mp4(out / f"refined_{name}.mp4", render_frames(refined, camera), fps=refined.fps))
+            written.append(write_mp4(safe_join(out, f"refined_{name}.mp4"), render_frames(refined, camera), fps=refined.fps))
     if what_if:
         camera = run.cameras()[run.manifest["input_views"][0]]
         written.append(write_mp4(out / "side_by_side.mp4", render_side_by_side(run, camera), fps=run.fps))

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from service.settings import Settings
 from fluidcore.files import atomic_output
+from fluidcore.names import safe_join
 
 CHUNK = 1024 * 1024
 
@@ -63,8 +64,8 @@ def log_key(job_id: str) -> str:
 
 
 def check_key(key: str) -> str:
-    """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
-    if not key or "\\" in key or any(part in ("", ".", "..") for part in key.split("/")):
+    """Reject absolute keys, '..', empty parts, backslashes and NUL: a key is a plain relative path."""
+    if not key or "\\" in key or "\0" in key or any(part in ("", ".", "..") for part in key.split("/")):
         raise InvalidKey(f"invalid storage key {key!r}")
     return key
 
@@ -134,7 +135,7 @@ class LocalStorage(Storage):
         self.root.mkdir(parents=True, exist_ok=True)
 
     def _path(self, key: str) -> Path:
-        return self.root / check_key(key)
+        return safe_join(self.root, check_key(key))
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
         target = self._path(key)

@@ -17,7 +17,7 @@ from fluidcore.errors import InputError
 from service.database import make_engine, make_sessionmaker, migrate, session_scope
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.settings import Settings
-from service.storage import LocalStorage, Storage, StorageError, run_prefix
+from service.storage import LocalStorage, Storage, StorageError, log_key, run_prefix
 from worker.execution import RUN_SHARE, JobBusy, JobExecutor
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
@@ -275,6 +275,22 @@ def test_an_input_error_fails_the_job_with_its_message(world: World) -> None:
     assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
     job = world.get(job_id)
     assert job.state == JobState.FAILED and job.error == message and job.finished_at is not None
+
+
+def test_an_internal_errors_text_stays_out_of_the_job_log_its_owner_reads(world: World) -> None:
+    """Issue 20: a raw SQL IntegrityError reached the job's owner. The incident id is in the job's
+    log (GET /v1/jobs/{id}/logs); the SQL and the traceback only in the worker's own log."""
+    error = IntegrityError("INSERT INTO artifacts (job_id, name) VALUES (?, ?)", ("j1", "videos/x.mp4"), Exception("UNIQUE"))
+
+    def failing(inputs: RunInputs) -> list[Path]:
+        raise error
+
+    job_id = world.job(scene_id=world.scene())
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
+    incident = re.fullmatch(r"internal error \(id ([0-9a-f]{12})\): see the worker log", world.get(job_id).error or "")
+    assert incident is not None
+    job_log = world.storage.read_bytes(log_key(job_id)).decode()
+    assert incident[1] in job_log and "INSERT INTO" not in job_log and "Traceback" not in job_log
 
 
 @pytest.mark.parametrize(

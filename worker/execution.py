@@ -22,6 +22,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from fluidcore.errors import InputError, internal_error
 from fluidcore.jobs import Cancelled
+from fluidcore.names import safe_join
 from service import webhooks
 from service.chaining import release_children
 from service.database import session_scope
@@ -34,6 +35,9 @@ from worker.runners import Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
 log = logging.getLogger(__name__)
+# Internal errors are logged here, outside the loggers JobLog copies into the job's log: its owner
+# reads that log (GET /v1/jobs/{id}/logs), and the exception's text may hold SQL or paths.
+incidents = logging.getLogger("fluidnexus.incidents")
 
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
@@ -162,7 +166,7 @@ class JobExecutor:
             limit = self.settings.job_soft_time_limit
             return self.finish(job_id, JobState.FAILED, reporter, error=f"time limit of {limit} s exceeded")
         except Exception as exc:  # a bug: its text (a stack, SQL, a path) stays in the worker's log
-            error = f"{internal_error(log, exc, f'job {job_id}')}: see the worker log"
+            error = f"{internal_error(incidents, exc, f'job {job_id}')}: see the worker log"
             return self.finish(job_id, JobState.FAILED, reporter, error=error)
         finally:
             reporter.stop_heartbeat()
@@ -252,7 +256,7 @@ class JobExecutor:
             if scene is None:
                 raise InputError(f"scene {scene_id} no longer exists")
             cameras_key, video_keys = scene.cameras_key, {c: v["key"] for c, v in scene.videos.items()}
-        local = {key: folder / PurePosixPath(key).name for key in [cameras_key, *video_keys.values()]}
+        local = {key: safe_join(folder, PurePosixPath(key).name) for key in [cameras_key, *video_keys.values()]}
         for key, path in local.items():
             self.storage.get_file(key, path)
         return {"cameras_path": local[cameras_key], "videos": {c: local[k] for c, k in video_keys.items()}}

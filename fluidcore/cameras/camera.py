@@ -59,6 +59,17 @@ def check_rigid(matrix: np.ndarray, field_name: str) -> np.ndarray:
     return m
 
 
+def check_camera_name(name: object, field_name: str) -> str:
+    """`name` if it follows the naming rule (fluidcore.names), else CameraError naming the field.
+    Every camera reader applies it: a camera's name becomes a file name and a storage key."""
+    from fluidcore.names import UnsafeName, check_name
+
+    try:
+        return check_name(name, field_name)
+    except UnsafeName as error:
+        raise CameraError(str(error)) from None
+
+
 def _as_float(value: object, field_name: str) -> float:
     if isinstance(value, bool):
         raise CameraError(f"{field_name} must be a number, got {value!r}")

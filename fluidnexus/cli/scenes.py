@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
 from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
@@ -40,6 +41,7 @@ def parse_videos(items: list[str]) -> dict[str, Path]:
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
             raise UserError(f"--video must look like VIEW=path.mp4, got {item!r}")
+        check_name(name, "--video: VIEW")
         if name in videos:
             raise UserError(f"--video: view {name!r} given twice")
         if not Path(path).is_file():
