@@ -1,7 +1,10 @@
 """Scene uploads: spool every part to a private folder, validate all of it, and only then store.
 
 Validation uses fluidcore's torch-free readers (`fluidcore.cameras.load`,
-`fluidcore.video.probe`), so what the API accepts is exactly what the worker can read.
+`fluidcore.video.read_header` and `verify`), so what the API accepts is exactly what the worker
+can read. Costs are capped before they are paid: a video's size and length are checked in its
+headers before any frame is decoded, and then every frame is decoded under the camera's pixel
+count and a frame cap (docs/service.md "Limits").
 Nothing touches storage until the whole upload is known to be good, and a failed store
 removes what it had written, so a bad request never leaves or loses anything.
 """
@@ -19,7 +22,7 @@ from service.storage import Storage
 
 if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
     from fluidcore.cameras import Camera
-    from fluidcore.video import VideoInfo
+    from fluidcore.video import VideoHeader, VideoInfo
 
 
 class UploadRejected(ValueError):
@@ -114,7 +117,7 @@ def validate_scene(
 ) -> ValidatedScene:
     """Check the spooled cameras file and videos in `folder`; raise UploadRejected naming the problem."""
     from fluidcore.cameras import CameraError, load
-    from fluidcore.video import VideoError, probe
+    from fluidcore.video import VideoError, read_header, verify
 
     try:
         cameras = load(folder / cameras_file)
@@ -134,11 +137,13 @@ def validate_scene(
             raise UploadRejected(
                 f"video: {filename!r} and {videos[camera_name].filename!r} are both for camera {camera_name!r}"
             )
-        try:
-            info = probe(folder / filename)
+        camera = cameras[camera_name]
+        try:  # the header first: a video that cannot fit is refused before a frame is decoded
+            _check_header(filename, read_header(folder / filename, settings.max_camera_pixels), camera, settings)
+            info = verify(folder / filename, camera.width * camera.height, settings.max_video_frames)
         except VideoError as exc:
-            raise UploadRejected(f"video: {filename}: {exc}") from None
-        _check_video(filename, info, cameras[camera_name], settings)
+            raise UploadRejected(f"video: {exc}") from None
+        _check_video(filename, info, camera, settings)
         videos[camera_name] = SpooledVideo(
             camera_name, filename, folder / filename, size, info.width, info.height, float(info.fps),
             info.n_frames, info.codec,
@@ -197,6 +202,28 @@ def _check_cameras(cameras: dict[str, Camera], settings: Settings) -> None:
     if total > settings.max_scene_pixels:
         raise UploadRejected(
             f"cameras: {total} pixels over all cameras, more than the limit of {settings.max_scene_pixels} per scene"
+        )
+
+
+def _check_header(filename: str, header: VideoHeader, camera: Camera, settings: Settings) -> None:
+    """What the headers declare against the camera and the limits. Pixel counts are compared
+    (a phone's display rotation, known only from a decoded frame, swaps width and height), then
+    decoding is capped at the camera's pixels, so a header that lies is caught by `verify`."""
+    from fluidcore.cameras import CameraError, check_video_size
+
+    if header.width and header.height and header.width * header.height != camera.width * camera.height:
+        try:
+            check_video_size(camera, filename, header.width, header.height)
+        except CameraError as exc:
+            raise UploadRejected(str(exc)) from None
+    if header.n_frames > settings.max_video_frames:
+        raise UploadRejected(
+            f"video: {filename} has {header.n_frames} frames, more than the limit of {settings.max_video_frames}"
+        )
+    if header.n_frames and header.fps > 0 and header.n_frames / header.fps > settings.max_video_seconds:
+        raise UploadRejected(
+            f"video: {filename} lasts {header.n_frames / header.fps:.1f} s, longer than the limit of "
+            f"{settings.max_video_seconds:g} s"
         )
 
 
