@@ -183,7 +183,7 @@ def test_an_upload_with_an_idempotency_key_is_stored_once(service: Service, scen
     for response in (post(service, alice, other, **{"Idempotency-Key": "k1"}), renamed):
         assert response.status_code == 422
         assert response.json()["detail"] == (
-            f"Idempotency-Key 'k1' was already used for a different upload (scene {first.json()['id']})"
+            f"Idempotency-Key 'k1' was already used for a different request (scene {first.json()['id']})"
         )
     assert (service.count(Scene), service.storage.list("")) == (1, keys)
 

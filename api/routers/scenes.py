@@ -15,6 +15,7 @@ from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep
 from api.errors import error_responses
+from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
 from fluidcore.names import safe_join
@@ -79,7 +80,7 @@ def create_scene(
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
             sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
         request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name])
-        if idempotency_key is not None and (existing := _replay(session, owner, idempotency_key, request_hash)):
+        if idempotency_key is not None and (existing := replay(session, Scene, owner, idempotency_key, request_hash)):
             response.headers["Idempotent-Replayed"] = "true"
             return scene_out(existing, scene_geometry(session, storage, existing))
         if cameras_name is None:
@@ -100,7 +101,7 @@ def create_scene(
                 storage.delete(key)
             if isinstance(exc, IntegrityError) and idempotency_key is not None:
                 # a concurrent upload with the same key won the race: answer with its scene
-                existing = _replay(session, owner, idempotency_key, request_hash)
+                existing = replay(session, Scene, owner, idempotency_key, request_hash)
                 if existing is not None:
                     response.headers["Idempotent-Replayed"] = "true"
                     return scene_out(existing, scene_geometry(session, storage, existing))
@@ -117,16 +118,6 @@ def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fiel
             digest.update(hashlib.file_digest(handle, "sha256").digest())
     return digest.hexdigest()
 
-
-def _replay(session: Session, owner: str, key: str, request_hash: str) -> Scene | None:
-    """The scene an earlier upload with this key made; 422 when that upload was a different one."""
-    scene = session.scalars(select(Scene).where(Scene.owner == owner, Scene.idempotency_key == key)).first()
-    if scene is not None and scene.request_hash != request_hash:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"Idempotency-Key {key!r} was already used for a different upload (scene {scene.id})",
-        )
-    return scene
 
 
 @router.get("", response_model=Page[SceneOut])
