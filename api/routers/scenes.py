@@ -13,11 +13,11 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep, ValidatorsDep
 from api.errors import error_responses
 from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
-from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
 from service.models import Job, JobState, Scene, new_id
 from service.storage import Storage, run_prefix, scene_prefix
@@ -45,6 +45,7 @@ def create_scene(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
+    validators: ValidatorsDep,
     response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
     cameras: Annotated[
@@ -79,14 +80,14 @@ def create_scene(
             if filename in sizes or filename == cameras_name:
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
             sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
-        request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name])
-        if idempotency_key is not None and (existing := replay(session, Scene, owner, idempotency_key, request_hash)):
-            response.headers["Idempotent-Replayed"] = "true"
-            return scene_out(existing, scene_geometry(session, storage, existing))
-        if cameras_name is None:
-            cameras_name = single_camera_file(folder, sizes, fov, distance, up)
-        validated = validate_scene(folder, cameras_name, sizes, settings)
-        geometry = capture_geometry(folder / cameras_name)
+        request_hash = None
+        if idempotency_key is not None:
+            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name])
+            if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
+                response.headers["Idempotent-Replayed"] = "true"
+                return scene_out(existing, scene_geometry(session, storage, existing))
+        single = None if fov is None else (fov, distance, up)
+        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
@@ -99,14 +100,14 @@ def create_scene(
             session.rollback()
             for key in keys.values():
                 storage.delete(key)
-            if isinstance(exc, IntegrityError) and idempotency_key is not None:
+            if isinstance(exc, IntegrityError) and idempotency_key is not None and request_hash is not None:
                 # a concurrent upload with the same key won the race: answer with its scene
                 existing = replay(session, Scene, owner, idempotency_key, request_hash)
                 if existing is not None:
                     response.headers["Idempotent-Replayed"] = "true"
                     return scene_out(existing, scene_geometry(session, storage, existing))
             raise
-    return scene_out(scene, geometry)
+    return scene_out(scene, SceneGeometry.model_validate(geometry))
 
 
 def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
@@ -117,7 +118,6 @@ def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fiel
         with (folder / filename).open("rb") as handle:
             digest.update(hashlib.file_digest(handle, "sha256").digest())
     return digest.hexdigest()
-
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -170,13 +170,6 @@ def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
         path = safe_join(tmp, Path(scene.cameras_key).name)
         storage.get_file(scene.cameras_key, path)
         return scene_info.from_cameras_file(path)
-
-
-def capture_geometry(cameras_path: Path) -> SceneGeometry:
-    """Box and cameras of an uploaded camera file (no source before a reconstruction)."""
-    from fluidcore import scene_info
-
-    return SceneGeometry.model_validate(scene_info.from_cameras_file(cameras_path))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
