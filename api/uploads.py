@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import mimetypes
 import multiprocessing
+import os
 import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -27,6 +28,8 @@ from service.storage import Storage
 if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
     from fluidcore.cameras import Camera
     from fluidcore.video import VideoHeader, VideoInfo
+
+NICE = 10  # the validation processes' niceness: polling first (measured in `Validators`)
 
 
 class UploadRejected(ValueError):
@@ -202,11 +205,13 @@ def check_upload(
 
 
 class Validators:
-    """`check_upload` in a pool of processes, so the API's event loop and request threads never
-    wait for an upload's parsing and decoding: in the API process, 20 uploaders of the dev
-    scene's view cut polling from 450 to 90 GET/s (bench/load.py, 20 s, 2 cores), each poll
-    queueing for the GIL behind upload threads. Forked from a fork server (the API has threads;
-    the server has the readers imported, so a process starts in milliseconds), started on first
+    """`check_upload` in a pool of processes at nice 10, so the API's event loop and request
+    threads never wait for an upload's parsing and decoding. bench/load.py, 200 pollers + 20
+    uploaders of the dev scene's view, 20 s on 2 busy cores: polling made 450 GET/s without
+    uploads; with them, 90 GET/s (p99 3.6 s) when uploads were checked on the API's threads
+    (each poll queued for the GIL), 172 (p99 2.9 s) in processes, 280 (p99 1.8 s) in processes
+    at nice 10, uploads still at 8.8/s. Forked from a fork server (the API has threads; the
+    server has the readers imported, so a process starts in milliseconds), started on first
     use, at most `workers` at once; a pool whose process died (a crashing decoder) is replaced."""
 
     def __init__(self, workers: int) -> None:
@@ -219,7 +224,7 @@ class Validators:
             if self._pool is None:
                 context = multiprocessing.get_context("forkserver")
                 context.set_forkserver_preload([__name__, "fluidcore.video", "fluidcore.cameras", "fluidcore.scene_info"])
-                self._pool = ProcessPoolExecutor(self.workers, mp_context=context)
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=context, initializer=os.nice, initargs=(NICE,))
             return self._pool
 
     def check(

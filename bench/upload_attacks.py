@@ -9,8 +9,9 @@ then `--rounds` times sends four hostile uploads at once:
   - `zip_bomb`: a 0.5 MB COLMAP zip whose points3D.txt unpacks to 500 MiB of zeros;
   - `zip_20k`: a 2.5 MB COLMAP zip of 20,000 `sparse/N/cameras.txt` members.
 Reported per upload: status, seconds to the answer, the answer's message; and the server's peak
-resident memory (VmHWM of its process: the API runs in one process with `--no-worker`) before and
-after. Targets: every upload refused (4xx) within 2 s, server peak RSS <= 512 MB.
+resident memory (VmHWM of its process, `--no-worker`) before and after, and that of each upload
+validation process below it (api.uploads.Validators). Targets: every upload refused (4xx) within
+2 s, server peak RSS <= 512 MB.
 """
 
 from __future__ import annotations
@@ -112,6 +113,15 @@ def attacks(folder: Path) -> dict[str, Parts]:
     }
 
 
+def descendants(pid: int) -> list[int]:
+    """Processes below `pid` (the server's upload validators), from /proc."""
+    found = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            found += [int(child), *descendants(int(child))]
+    return found
+
+
 def peak_rss_mb(pid: int) -> float:
     """VmHWM (peak resident set) of a process, MB."""
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -143,10 +153,13 @@ def run_attacks(rounds: int) -> dict[str, Any]:
                 for result in pool.map(send, uploads):
                     results.append({"round": round_index, **result})
         peak = peak_rss_mb(server.pid)
+        validators = {pid: peak_rss_mb(pid) for pid in descendants(server.pid)}
     return {
         "rounds": rounds,
         "server_peak_rss_mb_before": baseline,
         "server_peak_rss_mb": peak,
+        "validator_peak_rss_mb": validators,
+        "total_peak_rss_mb": peak + sum(validators.values()),
         "slowest_s": max(r["seconds"] for r in results),
         "all_refused": all(400 <= r["status"] < 500 for r in results),
         "targets": {"refused_within_s": REFUSE_WITHIN_S, "peak_rss_mb": PEAK_RSS_MB},
@@ -170,6 +183,8 @@ def command(
     for r in result["uploads"]:
         message = json.loads(r["detail"]).get("detail", "") if r["detail"].startswith("{") else r["detail"]
         print(f"{r['upload']:<14} {r['round']:5d} {r['status']:6d} {r['seconds']:8.3f}  {str(message)[:90]}")
+    validators = ", ".join(f"{mb:.0f}" for mb in result["validator_peak_rss_mb"].values())
+    print(f"validation processes' peak RSS: {validators} MB; server + validators {result['total_peak_rss_mb']:.0f} MB")
     print(f"server peak RSS {result['server_peak_rss_mb']:.0f} MB (at start {result['server_peak_rss_mb_before']:.0f} MB), "
           f"slowest answer {result['slowest_s']:.2f} s, all refused: {result['all_refused']}")
 
