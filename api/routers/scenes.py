@@ -115,7 +115,7 @@ def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fiel
     tells a retried upload from a different one under the same Idempotency-Key."""
     digest = hashlib.sha256(json.dumps([cameras_name, videos, fields]).encode())
     for filename in ([cameras_name] if cameras_name else []) + videos:
-        with (folder / filename).open("rb") as handle:
+        with safe_join(folder, filename).open("rb") as handle:
             digest.update(hashlib.file_digest(handle, "sha256").digest())
     return digest.hexdigest()
 
