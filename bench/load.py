@@ -139,9 +139,10 @@ def dev_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     from fluidcore.video import write_mp4
 
     yy, xx = np.mgrid[0:480, 0:270]
-    noise = np.random.default_rng(0).integers(0, 24, (150, 480, 270), dtype=np.uint8)
+    grain = np.random.default_rng(0).integers(0, 6, (480, 270), dtype=np.uint8)  # a fixed sensor pattern
     frames = np.stack([
-        (np.exp(-((xx - 135) ** 2 / 900 + (yy - 400 + 2 * t) ** 2 / 4000)) * 200).astype(np.uint8) + noise[t]
+        (np.exp(-((xx - 135 - 20 * np.sin(yy / 40 + t / 10)) ** 2 / 900 + (yy - 400 + 2 * t) ** 2 / 4000)) * 200)
+        .astype(np.uint8) + grain
         for t in range(150)
     ])
     path = write_mp4(folder / f"{DEV_VIEW}.mp4", np.repeat(frames[..., None], 3, axis=-1))
