@@ -190,3 +190,30 @@ def test_an_upload_with_an_idempotency_key_is_stored_once(service: Service, scen
     bobs = post(service, bob, upload_parts(scene_dir), **{"Idempotency-Key": "k1"})
     assert bobs.status_code == 201 and bobs.json()["id"] != first.json()["id"]
     assert json.loads(service.client.get("/v1/scenes", headers=alice).text)["total"] == 1
+
+
+def test_a_validation_process_that_dies_is_replaced(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
+    """A decoder that crashes its process answers that upload with a 422, and the next upload
+    gets a fresh pool instead of a broken one."""
+    import shutil
+
+    from api.uploads import UploadRejected, Validators
+    from service.settings import Settings
+
+    for path in scene_dir.values():
+        shutil.copy(path, tmp_path / path.name)
+    sizes = {f"{name}.mp4": (tmp_path / f"{name}.mp4").stat().st_size for name in ("cam0", "cam1")}
+    settings = Settings(data_dir=tmp_path / "data")
+    validators = Validators(1)
+    try:
+        assert validators.check(tmp_path, "transforms.json", sizes, None, settings)[0].n_frames == 6
+        crashed = validators._pool
+        for process in list(crashed._processes.values()):  # what a segfaulting decoder does to it
+            process.kill()
+            process.join()
+        with pytest.raises(UploadRejected, match="stopped the process that checked them"):
+            validators.check(tmp_path, "transforms.json", sizes, None, settings)
+        assert validators.check(tmp_path, "transforms.json", sizes, None, settings)[0].n_frames == 6
+        assert validators._pool is not crashed
+    finally:
+        validators.close()
