@@ -373,6 +373,26 @@ def test_broker_down_fails_the_job_with_503(tmp_path: Path, scene_dir: dict[str,
         assert [j["state"] for j in jobs] == ["failed"]
 
 
+def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
+    tmp_path: Path, scene_dir: dict[str, Path]
+) -> None:
+    """Issue 20 item 4: the retry a 503 invites (same Idempotency-Key, broker back) creates and queues
+    a job; it used to replay the failed one with `Idempotent-Replayed: true` forever."""
+    queue = RecordingQueue(fail=True)
+    for service in make_service(tmp_path, queue=queue):
+        alice = service.key("alice")
+        scene = upload(service, alice, scene_dir).json()["id"]
+        body = {"type": "reconstruct", "scene_id": scene, "params": {}}
+        key = {**alice, "Idempotency-Key": "k"}
+        assert service.client.post("/v1/jobs", json=body, headers=key).status_code == 503
+        queue.fail = False
+        retried = service.client.post("/v1/jobs", json=body, headers=key)
+        assert retried.status_code == 202 and "idempotent-replayed" not in retried.headers
+        assert retried.json()["state"] == "queued" and queue.sent == [(retried.json()["id"], "reconstruct")]
+        replayed = service.client.post("/v1/jobs", json=body, headers=key)  # now the key is bound to it
+        assert replayed.headers["idempotent-replayed"] == "true" and replayed.json()["id"] == retried.json()["id"]
+
+
 # -- artifacts and isolation ----------------------------------------------------------------------------
 
 def add_artifact(service: Service, job_id: str, name: str, data: bytes, kind: str = "video") -> None:

@@ -41,7 +41,8 @@ def create_job(
     response: Response,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> JobOut:
-    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job.
+    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job
+    that was queued (a 503 binds nothing: the retry creates the job).
 
     A continuation may name a parent that is still queued or running: it waits (stage "waiting
     for job PARENT") and starts when the parent succeeds, or fails saying why the parent did not.
@@ -85,7 +86,10 @@ def create_job(
     try:
         job.task_id = queue.enqueue(job.id, job.type)
     except QueueUnavailable as exc:
+        # The key is released: the retry the 503 invites must create a job and queue it, not
+        # replay this one that never reached a worker.
         job.state, job.error, job.finished_at = JobState.FAILED, str(exc), utcnow()
+        job.idempotency_key = None
         session.commit()
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
     session.commit()
