@@ -18,6 +18,7 @@ from api.auth import create_key
 from service.database import session_scope
 from service.models import Artifact, Job, JobState, Scene
 from service.settings import Settings
+from service.worker_beats import WorkerBeacon
 from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,9 +123,15 @@ print(sorted(m for m in sys.modules if m == "torch" or m.startswith("torch.")))
 def test_health_ready_and_web_page(sqlite_service: Service) -> None:
     client = sqlite_service.client
     assert client.get("/healthz").json() == {"status": "ok", "checks": {}}
+    no_worker = client.get("/readyz")  # issue 20 item 3: jobs sent now would only wait
+    assert no_worker.status_code == 503 and no_worker.json()["checks"]["worker"].startswith("error: no worker")
+    beacon = WorkerBeacon(sqlite_service.sessions, "host:1", period_s=60)
+    beacon.beat()
     ready = client.get("/readyz")
     assert ready.status_code == 200
-    assert ready.json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok"}
+    assert ready.json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok", "worker": "ok"}
+    beacon.stop()  # a worker that shut down is not counted
+    assert client.get("/readyz").status_code == 503
     page = client.get("/")
     assert page.status_code == 200 and "/docs" in page.text
     assert client.get("/openapi.json").json()["info"]["title"] == "FluidNexus"
