@@ -314,7 +314,8 @@ class JobExecutor:
         if webhook is not None:
             url, owner, body = webhook
             secret = webhooks.owner_secret(signing_key(self.settings), owner)
-            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body)
+            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body,
+                                           allow_private=self.settings.webhook_allow_private)
         if self.queue is not None:
             with self.sessions() as session:
                 release_children(session, job_id, self.queue)

@@ -16,6 +16,7 @@ from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, Sett
 from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import capture_geometry_of, owned_scene
 from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
+from service import webhooks
 from service.chaining import release_children, waiting_stage
 from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError
 from service.job_types import InteractParams, JobType
@@ -56,6 +57,8 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
+    if request.webhook is not None:
+        _check_webhook(str(request.webhook), settings)
     waits_for = _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
@@ -184,6 +187,14 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
             f"Idempotency-Key {key!r} was already used for a different request (job {job.id})",
         )
     return job
+
+
+def _check_webhook(url: str, settings: Settings) -> None:
+    """An internal target is a 422 now; the worker checks the address again when it connects."""
+    try:
+        webhooks.check_target(url, settings.webhook_allow_private)
+    except webhooks.RefusedTarget as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"webhook: {exc}") from None
 
 
 def _check_references(
