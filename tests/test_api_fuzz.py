@@ -3,8 +3,8 @@ example count, every check except `positive_data_acceptance`, must find no 5xx a
 that breaks the OpenAPI schema (status codes, bodies, headers, content types, 405 + Allow).
 
 `positive_data_acceptance` is left out on purpose: it expects every schema-valid request to be
-accepted, but the API has rules JSON Schema cannot state (frames end after start, wind or ball,
-a non-zero wind direction, parameters checked against the scene or the parent run), and their
+accepted, but the API has rules JSON Schema cannot state (frames end after start, a non-zero
+wind direction, parameters checked against the scene or the parent run), and their
 answer is a 422 naming the field.
 """
 

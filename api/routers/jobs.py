@@ -249,7 +249,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
     frame against its finished frames, read from its manifest: a ball outside the box, a wind
     that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
     later."""
-    from fluidcore.interaction import InteractionError, InteractionParams
+    from fluidcore.interaction import InteractionError
 
     try:
         manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
@@ -263,7 +263,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
             f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
         )
     try:
-        InteractionParams(wind=params.wind, ball=params.ball).check_scene(manifest.get("scene") or {}, params.frames)
+        params.check_scene(manifest.get("scene") or {}, params.frames)
     except InteractionError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params: {exc}") from None
 
