@@ -385,3 +385,15 @@ def test_a_postgres_restart_during_a_run_loses_no_job(tmp_path: Path, private_po
     finally:
         stop(worker)
         deployment.engine.dispose()
+
+
+def test_progress_never_drops_while_a_resumed_job_prepares(world: World) -> None:
+    """Issue 20 item 9: a job resumed at 0.43 reported 0 while it prepared again."""
+    from worker.execution import ProgressReporter
+
+    job_id = world.job(scene_id=world.scene(), state=JobState.RUNNING, progress=0.43, lease_token=2)
+    reporter = ProgressReporter(world.sessions, job_id, token=2)
+    reporter.report(0.0, "preparing")
+    assert world.get(job_id).progress == 0.43 and world.get(job_id).stage == "preparing"
+    reporter.report(0.6, "fit")
+    assert world.get(job_id).progress == 0.6

@@ -397,7 +397,8 @@ class JobLog(logging.Handler):
 
 
 class ProgressReporter:
-    """Writes progress, stage, per-stage seconds and the lease heartbeat to the job row.
+    """Writes progress (never lower than stored), stage, per-stage seconds and the lease heartbeat
+    to the job row.
 
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
@@ -429,7 +430,9 @@ class ProgressReporter:
         self._last_write = now
         with session_scope(self.sessions) as session:
             job = self.owned(session)
-            job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
+            # Never below what was stored: a resumed run prepares again from 0 before it reaches
+            # its checkpoints, and a client's progress bar must not jump back.
+            job.progress, job.stage, job.heartbeat_at = max(job.progress or 0.0, fraction), stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
             self.cancelled = job.cancel_requested
 
