@@ -1,6 +1,6 @@
 """Load on a live `fluidnexus serve` over loopback: pollers, listers and uploads at once (issue 16).
 
-    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--json]
+    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--computing] [--json]
 
 Starts `fluidnexus serve --no-worker` on 127.0.0.1 with a fresh data folder (`--backend
 postgres`: a fresh database on the local PostgreSQL and a key prefix of its own on the local
@@ -8,7 +8,8 @@ Redis, both removed afterwards), creates a key, a scene and one job, then for `-
   - `--clients` closed-loop clients, half polling the job (GET /v1/jobs/{id}), half listing
     (GET /v1/jobs/{id}/artifacts and GET /v1/jobs, alternately);
   - `--uploads` clients uploading a two-camera scene (POST /v1/scenes) again and again;
-  - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own.
+  - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own;
+  - with `--computing`, serve's embedded worker reconstructs the job meanwhile (issue 20).
 Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
 answers by class (2xx/4xx/5xx), timeouts and connection errors. Everything is bounded: the
 clients stop at the deadline, the server is stopped after, and nothing but 127.0.0.1 is
@@ -109,6 +110,18 @@ def tiny_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     return parts
 
 
+def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
+    """A synthetic plume (fluidcore.synth) that reconstructs: the job `--computing` keeps the worker
+    busy with (30 frames of 2 views at 48x64 outlast a 60 s load on 2 cores)."""
+    from fluidcore import synth
+
+    transforms = synth.write(synth.generate(synth.SynthSpec(frames=30, width=48, height=64, views=2)), folder / "plume")
+    parts = {"cameras": ("transforms.json", transforms.read_bytes(), "application/json")}
+    for path in sorted((transforms.parent / "videos").glob("*.mp4")):
+        parts[path.stem] = (path.name, path.read_bytes(), "video/mp4")
+    return parts
+
+
 def multipart(scene: dict[str, tuple[str, bytes, str]]) -> list[tuple[str, tuple[str, bytes, str]]]:
     return [("cameras" if name == "cameras" else "video", part) for name, part in scene.items()]
 
@@ -155,8 +168,9 @@ def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
 
 
 @contextmanager
-def live_server(backend: str, log: Path | None = None) -> Iterator[Server]:
-    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job."""
+def live_server(backend: str, log: Path | None = None, worker: bool = False) -> Iterator[Server]:
+    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job
+    (`worker`: with its embedded worker, which computes the job while the load runs)."""
     import httpx
 
     fluidnexus = Path(sys.executable).with_name("fluidnexus")
@@ -167,17 +181,22 @@ def live_server(backend: str, log: Path | None = None) -> Iterator[Server]:
         port = free_port()
         base_url = f"http://{HOST}:{port}"
         out = (log or Path(tmp) / "server.log").open("w")
-        process = subprocess.Popen([fluidnexus, "serve", "--host", HOST, "--port", str(port), "--no-worker"],
-                                   env=env, stdout=out, stderr=subprocess.STDOUT)
+        serve = [fluidnexus, "serve", "--host", HOST, "--port", str(port), *([] if worker else ["--no-worker"])]
+        process = subprocess.Popen(serve, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             _wait_healthy(base_url, process)
             scene = tiny_scene(Path(tmp))
             headers = {"Authorization": f"Bearer {key}"}
             with httpx.Client(base_url=base_url, headers=headers, timeout=30) as client:
-                created = client.post("/v1/scenes", files=multipart(scene))
+                created = client.post("/v1/scenes", files=multipart(plume_scene(Path(tmp)) if worker else scene))
                 created.raise_for_status()
                 job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": created.json()["id"]})
                 job.raise_for_status()
+                deadline = time.monotonic() + STARTUP_TIMEOUT_S
+                while worker and client.get(f"/v1/jobs/{job.json()['id']}").json()["state"] == "queued":
+                    if time.monotonic() > deadline:  # the load must start with the job computing
+                        raise UserError(f"the embedded worker did not start the job within {STARTUP_TIMEOUT_S:g} s")
+                    time.sleep(0.2)
             yield Server(base_url, key, job.json()["id"], scene, backend)
         finally:
             process.send_signal(signal.SIGINT)
@@ -335,10 +354,16 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
 
 
 def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
-    """The load phase against a `live_server`; returns the JSON result."""
+    """The load phase against a `live_server`; returns the JSON result, with the job's state at the end
+    (with `--computing`, "running" shows the worker computed through the whole load)."""
+    import httpx
+
     result = asyncio.run(_load(server, seconds, clients, uploads, timeout))
     result["load_average"] = os.getloadavg()
     result["cpus"] = os.cpu_count()
+    job = httpx.get(f"{server.base_url}/v1/jobs/{server.job_id}", headers={"Authorization": f"Bearer {server.key}"},
+                    timeout=30).json()
+    result["job_after"] = {"state": job["state"], "stage": job["stage"], "progress": job["progress"]}
     return result
 
 
@@ -350,17 +375,21 @@ def command(
     timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Per-request timeout, seconds."),
     server_log: Path | None = typer.Option(None, "--server-log", help="Keep the server's log here."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    computing: bool = typer.Option(
+        False, "--computing", help="Serve with the embedded worker, which computes the job during the load."
+    ),
 ) -> None:
     """Requests/s and p50/p99 per route under concurrent polling, listing and uploads."""
     with user_errors():
         if backend not in ("sqlite", "postgres"):
             raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
-        with live_server(backend, server_log) as server:
+        with live_server(backend, server_log, worker=computing) as server:
             result = run_load(server, seconds, clients, uploads, timeout)
     if json_out:
         echo_json(result)
         return
-    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s, timeout {timeout:g} s, "
+    computed = f", job {result['job_after']['state']} at {result['job_after']['progress']:.2f}" if computing else ""
+    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
           f"{result['cpus']} CPUs, load {result['load_average'][0]:.2f}")
     print(f"{'route':<30} {'req/s':>7} {'p50 s':>7} {'p99 s':>7} {'max s':>7} {'2xx':>6} {'4xx':>5} {'5xx':>5} {'t/o':>4} {'err':>4}")
     for route, r in result["routes"].items():
