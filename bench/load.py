@@ -47,6 +47,7 @@ HOST = "127.0.0.1"  # loopback only: this benchmark never targets another addres
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 REDIS_URL = "redis://127.0.0.1:6379/0"
 HEALTH_PERIOD_S = 0.25
+NO_WORKER = "503_no_worker"  # /readyz of a server run --no-worker: every check ok but the worker's
 STARTUP_TIMEOUT_S = 60.0
 
 
@@ -57,6 +58,7 @@ class Server:
     job_id: str
     scene: dict[str, tuple[str, bytes, str]]  # multipart parts: field -> (filename, content, type)
     backend: str
+    worker: bool = False  # without one, /readyz answers 503 "no worker" by design (NO_WORKER)
 
 
 @dataclass
@@ -67,7 +69,7 @@ class RouteStats:
 
     def record(self, outcome: str, seconds: float, failure: str | None = None) -> None:
         self.classes[outcome] += 1
-        if outcome in ("2xx", "4xx", "5xx"):
+        if outcome in ("2xx", "4xx", "5xx", NO_WORKER):
             self.latencies.append(seconds)
         if failure is not None and len(self.examples) < 3:
             self.examples.append(failure)
@@ -84,7 +86,7 @@ class RouteStats:
             "p50_s": quantile(0.50),
             "p99_s": quantile(0.99),
             "max_s": ordered[-1] if ordered else None,
-            **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error")},
+            **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error", NO_WORKER)},
             "failures": self.examples,
         }
 
@@ -197,7 +199,7 @@ def live_server(backend: str, log: Path | None = None, worker: bool = False) -> 
                     if time.monotonic() > deadline:  # the load must start with the job computing
                         raise UserError(f"the embedded worker did not start the job within {STARTUP_TIMEOUT_S:g} s")
                     time.sleep(0.2)
-            yield Server(base_url, key, job.json()["id"], scene, backend)
+            yield Server(base_url, key, job.json()["id"], scene, backend, worker)
         finally:
             process.send_signal(signal.SIGINT)
             try:
@@ -327,6 +329,8 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
                         response = probe.get(path)
                         outcome = f"{response.status_code // 100}xx"
                         failure = f"{response.status_code} {response.text[:200]}" if response.status_code >= 400 else None
+                        if path == "/readyz" and not server.worker and _only_the_worker_missing(response):
+                            outcome, failure = NO_WORKER, None
                     except httpx.TransportError as exc:
                         outcome, failure = "error", repr(exc)
                     stats[f"GET {path}"].record(outcome, time.perf_counter() - start, failure)
@@ -351,6 +355,11 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
         "total_errors": sum(r["error"] for r in routes.values()),
         "health_max_s": max(routes[r]["max_s"] or 0.0 for r in ("GET /healthz", "GET /readyz") if r in routes),
     }
+
+
+def _only_the_worker_missing(response: Any) -> bool:
+    checks = response.json().get("checks", {}) if response.status_code == 503 else {}
+    return checks.get("worker", "ok") != "ok" and all(v == "ok" for k, v in checks.items() if k != "worker")
 
 
 def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
