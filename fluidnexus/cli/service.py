@@ -114,14 +114,15 @@ class WorkerSupervisor:
             code = self.process.wait()
             if self._stopping.is_set():
                 return
+            # A worker that ran a while before dying starts the back-off again; one dying at boot backs off.
+            if time.monotonic() - started > RESTART_DELAYS_S[-1]:
+                delay = RESTART_DELAYS_S[0]
             typer.echo(f"embedded worker {self.process.pid} died (exit {code}); restarting in {delay:.0f} s", err=True)
             self._clean_up_after(self.process.pid)
             if self._stopping.wait(delay):
                 return
             self.process = _start_worker(self.settings.resolved_data_dir())
-            # A worker that ran a while before dying starts the back-off again; one dying at boot backs off.
-            ran_long = time.monotonic() - started > RESTART_DELAYS_S[-1]
-            delay = RESTART_DELAYS_S[0] if ran_long else min(delay * 2, RESTART_DELAYS_S[-1])
+            delay = min(delay * 2, RESTART_DELAYS_S[-1])
 
     def _clean_up_after(self, pid: int) -> None:
         from service.queue import requeue_orphans
