@@ -318,7 +318,8 @@ class JobExecutor:
         if webhook is not None:
             url, owner, body = webhook
             secret = webhooks.owner_secret(signing_key(self.settings), owner)
-            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body)
+            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body,
+                                           allow_private=self.settings.webhook_allow_private)
         if self.queue is not None:
             with self.sessions() as session:
                 release_children(session, job_id, self.queue)
@@ -400,7 +401,8 @@ class JobLog(logging.Handler):
 
 
 class ProgressReporter:
-    """Writes progress, stage, per-stage seconds and the lease heartbeat to the job row.
+    """Writes progress (never lower than stored), stage, per-stage seconds and the lease heartbeat
+    to the job row.
 
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
@@ -432,7 +434,9 @@ class ProgressReporter:
         self._last_write = now
         with session_scope(self.sessions) as session:
             job = self.owned(session)
-            job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
+            # Never below what was stored: a resumed run prepares again from 0 before it reaches
+            # its checkpoints, and a client's progress bar must not jump back.
+            job.progress, job.stage, job.heartbeat_at = max(job.progress or 0.0, fraction), stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
             self.cancelled = job.cancel_requested
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fluidcore.interaction import InteractionError, InteractionParams
+from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
@@ -99,8 +99,7 @@ def run_interact(
     frame 0 re-simulates the whole clip with the intervention from the start, a mid-clip frame
     asks "what if the wind had started here".
     """
-    if params.wind is None and params.ball is None:
-        raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
+    params = parse_interaction(params.wind, params.ball, Intervention)  # the one rule: a wind, a ball or both
     return _continue(parent_run, out_dir, Continuation("interact", params), frames, from_frame, context)
 
 

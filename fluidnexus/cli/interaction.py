@@ -84,11 +84,11 @@ def interact(
     as_json: bool = JSON_OPT,
 ) -> None:
     """Ask what if: a wind, a ball in the plume's way, or both, from any frame of RUN (default: after its last)."""
-    from fluidcore.interaction import parse_interaction
+    from fluidcore.interaction import Intervention, parse_interaction
     from fluidcore.jobs import JobContext
 
     with user_errors():
-        params = parse_interaction(wind, ball)  # the edge: bad JSON or values fail here, before torch loads
+        params = parse_interaction(wind, ball, Intervention)  # the edge: bad JSON or values fail here, before torch loads
         from fluidcore.predict.job import run_interact
 
         check_device(device)
