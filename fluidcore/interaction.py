@@ -17,9 +17,12 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+if TYPE_CHECKING:
+    from fluidcore.runs import Scene
 
 Vec3 = tuple[float, float, float]
 
@@ -143,26 +146,24 @@ class InteractionParams(BaseModel):
     wind: WindParams | None = None
     ball: BallParams | None = None
 
-    def check_scene(self, scene: Mapping[str, Any], frames: int) -> None:
-        """Reject parameters that are valid in general but meaningless in this run's scene (the
-        "scene" entry of a run manifest, fluidcore.runs, read as plain JSON so the API can refuse
-        a job before queueing it, without torch; the prediction job asks the same before it
-        writes anything).
+    def require_intervention(self) -> None:
+        """A what-if needs something to change: a wind, a ball or both (a prediction asks for
+        neither). The API's request model and the interact job both ask here."""
+        if self.wind is None and self.ball is None:
+            raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
+
+    def check_scene(self, scene: Scene, frames: int) -> None:
+        """Reject parameters that are valid in general but meaningless in this run's scene
+        (`fluidcore.runs.Scene`, torch-free, so the API can refuse a job before queueing it; the
+        prediction job asks the same before it writes anything).
 
         A wind is absurd when, at its peak inside the box, it alone would take a particle at
         rest past the simulator's speed limit within one step (a * dt > speed_limit, one kernel
         radius per step): from there on the speed clamp, not the wind, decides the motion.
         """
-        try:
-            physics, source = scene["physics"], scene["source"]
-            lo, hi, up = tuple(scene["box"]["lo"]), tuple(scene["box"]["hi"]), tuple(scene["up"])
-            dt, h = float(physics["dt"]), float(physics["h"])
-            center = source["center"]
-        except (KeyError, TypeError) as exc:
-            raise InteractionError(f"run scene: malformed ({exc!r} missing)") from None
-        # PBFConfig.speed_limit: max_speed when set, else one kernel radius per step.
-        speed_limit = float(physics.get("max_speed") or h / dt)
-        base_height = sum(u * c for u, c in zip(up, center))
+        lo, hi, up = scene.box_lo, scene.box_hi, scene.up
+        dt, speed_limit = scene.physics.dt, scene.physics.speed_limit
+        base_height = sum(u * c for u, c in zip(up, scene.source.center))
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)

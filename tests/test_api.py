@@ -340,7 +340,7 @@ def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) 
     further = service.client.post("/v1/jobs", json=chained, headers=alice)  # runs continue runs of any kind
     assert further.status_code == 202 and further.json()["parent_job_id"] == created.json()["id"]
 
-    for bad, field in (({"frames": 10}, "wind, ball or both"),
+    for bad, field in (({"frames": 10}, "a wind, a ball or both"),
                        ({"frames": 10, "wind": {"direction": [0, 0, 0], "strength": 1}}, "direction"),
                        ({"frames": 100000, "ball": {"center": [0, 0.5, 0], "radius": 0.1}}, "frames"),
                        ({"frames": 10, "ball": {"center": [3, 0.5, 0], "radius": 0.1}}, "ball")):  # outside the box

@@ -85,7 +85,7 @@ def test_forecast_of_each_unseen_frame_is_recorded_from_the_input_view_alone(run
 
 
 def test_particles_move_the_right_way(scene, run):
-    radius = 2.0 * run.scene.physics["h"]
+    radius = 2.0 * run.scene.physics.h
     for t in range(1, FRAMES):
         state = run.read_frame(t)
         alive = state.alive

@@ -12,9 +12,8 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fluidcore.runs import MANIFEST
 from service.storage import Storage
-
-MANIFEST = "manifest.json"
 
 
 def _content_type(path: Path) -> str:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
@@ -104,6 +103,7 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     """From the latest succeeded reconstruction of the scene (its run knows the source), else
     from the uploaded cameras file alone."""
     from fluidcore import scene_info
+    from fluidcore.runs import MANIFEST, RunRecord
 
     job = session.scalars(
         select(Job)
@@ -112,8 +112,8 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
         .limit(1)
     ).first()
     if job is not None:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(job.id)}/manifest.json"))
-        return SceneGeometry.model_validate(scene_info.from_run_manifest(manifest))
+        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job.id)}/{MANIFEST}"), f"job {job.id}'s run")
+        return SceneGeometry.model_validate(scene_info.from_run(record))
     return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
 
 

@@ -21,19 +21,17 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
-from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
-from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams
+from fluidcore.interaction import BallParams, InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
 from fluidcore.physics import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
 from fluidcore.predict.rollout import Rollout, continued_scene, source_template
-from fluidcore.runs import Run, Scene
+from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind, Scene, VisualSettings
 from fluidcore.smoke import SmokeState
 
 if TYPE_CHECKING:
@@ -58,7 +56,7 @@ def run_predict(
     `fluidcore.weights.weights_dir()`), refine and reconstruct them (`priors.refine_future`,
     Algorithm S2)."""
     return _continue(
-        parent_run, out_dir, "predict", frames, from_frame, InteractionParams(), device, progress, should_cancel, generative
+        parent_run, out_dir, RunKind.PREDICT, frames, from_frame, InteractionParams(), device, progress, should_cancel, generative
     )
 
 
@@ -84,9 +82,8 @@ def run_interact(
     asks "what if the wind had started here".
     """
     params = InteractionParams(wind=wind, ball=ball)
-    if params.wind is None and params.ball is None:
-        raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
-    return _continue(parent_run, out_dir, "interact", frames, from_frame, params, device, progress, should_cancel)
+    params.require_intervention()
+    return _continue(parent_run, out_dir, RunKind.INTERACT, frames, from_frame, params, device, progress, should_cancel)
 
 
 def run_resimulate(
@@ -101,13 +98,13 @@ def run_resimulate(
     initial state itself, every later frame is physics only."""
     parent = _open_parent(parent_run)
     first, stop = parent.frames()[0], parent.frames()[-1] + 1
-    return _write(parent, out_dir, "resimulate", first, (first, stop), InteractionParams(), device, progress, should_cancel)
+    return _write(parent, out_dir, RunKind.RESIMULATE, first, (first, stop), InteractionParams(), device, progress, should_cancel)
 
 
 def _continue(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
-    kind: str,
+    kind: RunKind,
     frames: int,
     from_frame: int | None,
     params: InteractionParams,
@@ -144,7 +141,7 @@ def _open_parent(path: str | os.PathLike[str]) -> Run:
 def _write(
     parent: Run,
     out_dir: str | os.PathLike[str],
-    kind: str,
+    kind: RunKind,
     start_frame: int,
     frame_range: tuple[int, int],
     params: InteractionParams,
@@ -159,49 +156,50 @@ def _write(
     scene = continued_scene(parent.scene)
     start = SmokeState.from_frame(parent.read_frame(start_frame), device)
     buoyancy_scale, calibration, profile, observed = 1.0, {}, None, None
-    if kind != "resimulate" and parent.kind == "reconstruct":
+    parent_settings = parent.settings
+    if kind is not RunKind.RESIMULATE and isinstance(parent_settings, ReconstructSettings):
         # Identified physics (fluidcore.reconstruct.identify) is used as it is, without the height-profile
         # prior: with it the future scored +0.33 dB on the dev scene but -0.17 dB on ScalarFlow
         # (docs/bench_generalise.md). Preset physics keeps the paper path: calibration and the prior,
         # both taken from the reconstruction's last frames even for a branch from an earlier one:
         # the whole window is observed footage, and at an early branch frame (frame 0 above all)
         # the plume has not risen yet to show its speed or its look higher up.
-        if parent.manifest["settings"].get("physics", {}).get("mode") != "auto":
+        if parent_settings.physics_mode != "auto":
             observed = parent.frames()[-1]
             buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
             look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
             profile = HeightProfile.observe(look, scene.up)
-        scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
-    elif kind != "resimulate" and parent.manifest["settings"].get("appearance_profile"):
-        profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
+        scene = scene.with_buoyancy_scaled(buoyancy_scale)
+    elif kind is not RunKind.RESIMULATE and parent_settings.appearance_profile:
+        profile = HeightProfile.from_json(parent_settings.appearance_profile)  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
-    params.check_scene(scene.to_json(), n_frames)  # before anything is written
+    params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
     run = Run.create(
         out_dir,
         kind=kind,
         cameras=parent.cameras(),
-        input_views=parent.manifest["input_views"],
+        input_views=parent.input_views,
         frame_range=frame_range,
         fps=parent.fps,
         channels=parent.channels,
         background_color=parent.background_color,
         scene=scene,
-        settings={
-            "branch_frame": start_frame,  # the parent frame this run continues from
-            "visual": visual_settings,
-            "parent_source_rate": parent.scene.source["rate"],
-            "identified_on_frame": observed,
-            "buoyancy_scale": buoyancy_scale,
-            "buoyancy_calibration_error": calibration,
-            "appearance_profile": None if profile is None else profile.to_json(),
-            "priors": [] if profile is None else ["appearance height profile (fluidcore.predict.priors.HeightProfile)"],
-            "wind": None if params.wind is None else params.wind.model_dump(),
-            "ball": None if params.ball is None else params.ball.model_dump(),
-        },
+        settings=ContinuationSettings(
+            branch_frame=start_frame,
+            visual=visual_settings,
+            parent_source_rate=parent.scene.source.rate,
+            identified_on_frame=observed,
+            buoyancy_scale=buoyancy_scale,
+            buoyancy_calibration_error=calibration,
+            appearance_profile=None if profile is None else profile.to_json(),
+            priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
+            wind=params.wind,
+            ball=params.ball,
+        ),
         parent=parent.path,
     )
-    run.update(refinement="pending: runs after the last simulated frame" if kind == "predict" else NOT_REFINED)
+    run.update(refinement="pending: runs after the last simulated frame" if kind is RunKind.PREDICT else NOT_REFINED)
     rollout = _rollout(scene, start, params, visual_settings, device, profile)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
     report = progress or no_progress
@@ -215,7 +213,7 @@ def _write(
             stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means))}
         run.write_frame(t, smoke.to_frame(), stats, time.perf_counter() - began)
         report((t + 1 - frame_range[0]) / n_frames, kind)
-    if kind == "predict":
+    if kind is RunKind.PREDICT:
         run.update(refinement=refine_future(run, generative, device, report, should_cancel))
     return Path(out_dir)
 
@@ -224,7 +222,7 @@ def _rollout(
     scene: Scene,
     start: SmokeState,
     params: InteractionParams,
-    visual: Mapping[str, Any],
+    visual: VisualSettings,
     device: str,
     profile: HeightProfile | None,
 ) -> Rollout:
@@ -238,18 +236,18 @@ def _rollout(
     return Rollout(
         Simulator(config, box, source, force=applied.force, air=applied.air, device=device),
         source_template(start, source.center),
-        velocity_radius=visual["velocity_radius"] * config.h,
-        per_physical=visual["per_physical"],
-        seed=visual["seed"],
+        velocity_radius=visual.velocity_radius * config.h,
+        per_physical=visual.per_physical,
+        seed=visual.seed,
         ball=applied.ball,
         profile=profile,
     )
 
 
-def _visual_settings(parent: Run) -> dict[str, Any]:
+def _visual_settings(parent: Run) -> VisualSettings:
     """How visual Gaussians move and are born in the parent (a reconstruction records them from
     its quality preset, a prediction passes them on): a continuation must move them alike."""
-    visual = parent.manifest.get("settings", {}).get("visual")
-    if not isinstance(visual, Mapping) or set(visual) != {"velocity_radius", "per_physical", "seed"}:
+    visual = parent.settings.visual
+    if visual is None:
         raise JobInputError(f"run: {parent.path} records no settings.visual (written by an older version?); reconstruct again")
-    return dict(visual)
+    return visual

@@ -22,7 +22,7 @@ import torch
 
 from fluidcore.jobs import JobInputError, Progress, ShouldCancel
 from fluidcore.reconstruct.source_hint import SourceHint
-from fluidcore.runs import REFINED_RUN, Run
+from fluidcore.runs import REFINED_RUN, ReconstructSettings, Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
@@ -134,24 +134,25 @@ def refine_future(
     if skipped is not None:
         return skipped
     origin = run.parent
-    while origin is not None and origin.kind != "reconstruct":
+    while origin is not None and not isinstance(origin.settings, ReconstructSettings):
         origin = origin.parent
     if origin is None:
         return "skipped: no reconstruction among the run's parents to take the quality and physics from"
-    quality = Quality.from_json(origin.manifest["settings"]["quality"])
+    origin_settings = origin.settings
+    quality = Quality.from_json(origin_settings.quality)
     cameras = run.cameras()
     rough = {}
-    for name in run.manifest["input_views"]:
+    for name in run.input_views:
         camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
         rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), device)).float() / 255.0
     refined, status = refine_frames(rough, settings, device, batch_progress(progress, should_cancel, f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
     rec = prepare(
-        cameras, videos, frame_range=tuple(run.manifest["frame_range"]), fps=run.fps, quality=quality,
+        cameras, videos, frame_range=run.frame_range, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=SourceHint(center=tuple(scene.source["center"]), radius=scene.source["radius"]),
-        physics=origin.manifest["settings"].get("physics", {}).get("mode", "scalarflow"),  # runs from before --physics: the preset
+        source=SourceHint(center=scene.source.center, radius=scene.source.radius),
+        physics=origin_settings.physics_mode,
         device=device,
     )
     rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets

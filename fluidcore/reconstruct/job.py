@@ -15,8 +15,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, batch_progress, no_progress
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
@@ -25,13 +23,6 @@ if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.reconstruct.loop import Reconstruction
     from fluidcore.runs import FrameState, Run
-
-
-def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
-    from fluidcore.cameras import frusta_box, scene_box
-
-    box = scene_box(cameras_path)
-    return box if box is not None else frusta_box(cameras)
 
 
 def _frame_range(infos: Mapping[str, object], frames: tuple[int, int] | None) -> tuple[int, int]:
@@ -104,7 +95,7 @@ def run_reconstruct(
     report = progress or no_progress
     report(0.0, "prepare")
     rec = prepare(
-        cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=_box(cameras_path, cameras),
+        cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=camera_io.capture_box(cameras_path, cameras),
         source=source, physics=physics, device=device,
     )
     del decoded

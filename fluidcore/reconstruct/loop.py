@@ -46,7 +46,7 @@ from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import Run, Scene
+from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene
 from fluidcore.smoke import SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
@@ -85,23 +85,19 @@ class Reconstruction:
             box_lo=self.box.lo,
             box_hi=self.box.hi,
             up=tuple(map(float, self.up)),
-            physics=_jsonable(self.config.__dict__),
-            source=_jsonable(self.source.__dict__),
+            physics=self.config,
+            source=self.source,
         )
 
-    def settings(self) -> dict:
-        return {
-            "quality": self.quality.to_json(),
-            "visual": self.quality.visual_settings(),
-            "physics": self.physics,
-            "symmetry": self.symmetry,
-            "source_hint": self.source_hint,
-            "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
-        }
-
-
-def _jsonable(d: Mapping) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+    def settings(self) -> ReconstructSettings:
+        return ReconstructSettings(
+            quality=self.quality.to_json(),
+            visual=self.quality.visual_settings(),
+            physics=self.physics,
+            symmetry=self.symmetry,
+            source_hint=self.source_hint,
+            views=tuple({"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views),
+        )
 
 
 def prepare(
@@ -225,7 +221,7 @@ class Reconstructor:
         rec = self.rec
         run = Run.create(
             out_dir,
-            kind="reconstruct",
+            kind=RunKind.RECONSTRUCT,
             cameras=rec.cameras,
             input_views=rec.input_views,
             frame_range=rec.frame_range,
