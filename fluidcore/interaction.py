@@ -17,12 +17,9 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
-
-if TYPE_CHECKING:
-    from fluidcore.runs import Scene
 
 Vec3 = tuple[float, float, float]
 
@@ -138,6 +135,28 @@ class BallParams(BaseModel):
             raise InteractionError(f"ball.radius {self.radius} is larger than the scene box {list(lo)}..{list(hi)}")
 
 
+class _Physics(Protocol):  # fluidcore.physics.PBFConfig
+    dt: float
+
+    @property
+    def speed_limit(self) -> float: ...
+
+
+class _Source(Protocol):  # fluidcore.physics.Source
+    center: Vec3
+
+
+class RunScene(Protocol):
+    """What `InteractionParams.check_scene` reads of a run's scene: `fluidcore.runs.Scene`
+    (named by what it holds, since fluidcore.runs imports this module)."""
+
+    box_lo: Vec3
+    box_hi: Vec3
+    up: Vec3
+    physics: _Physics
+    source: _Source
+
+
 class InteractionParams(BaseModel):
     """Wind, ball, or both."""
 
@@ -152,7 +171,7 @@ class InteractionParams(BaseModel):
         if self.wind is None and self.ball is None:
             raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
 
-    def check_scene(self, scene: Scene, frames: int) -> None:
+    def check_scene(self, scene: RunScene, frames: int) -> None:
         """Reject parameters that are valid in general but meaningless in this run's scene
         (`fluidcore.runs.Scene`, torch-free, so the API can refuse a job before queueing it; the
         prediction job asks the same before it writes anything).
