@@ -206,7 +206,7 @@ class Protocol:
         return list(range(start, stop, self.every))
 
     def _size(self, camera: Any) -> tuple[int, int]:
-        from fluidcore.reconstruct.presets import render_size
+        from fluidcore.cameras import render_size
 
         return render_size(camera.width, camera.height, self.long_side) if self.long_side else (camera.width, camera.height)
 

@@ -126,8 +126,9 @@ def refine_future(
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
     from fluidcore.jobs import batch_progress
     from fluidcore.reconstruct.job import fit
-    from fluidcore.reconstruct.loop import prepare
-    from fluidcore.reconstruct.presets import Quality, render_size
+    from fluidcore.reconstruct.loop import prepare, read_inputs
+    from fluidcore.cameras import render_size
+    from fluidcore.reconstruct.presets import Quality
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
@@ -148,14 +149,13 @@ def refine_future(
     refined, status = refine_frames(rough, settings, device, batch_progress(progress, should_cancel, f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
-    rec = prepare(
-        cameras, videos, frame_range=run.frame_range, fps=run.fps, quality=quality,
+    inputs = read_inputs(cameras, videos, frame_range=run.frame_range, quality=quality, device=device)
+    rec = prepare(  # the refined input views alone are the targets
+        cameras, inputs, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
         source=SourceHint(center=scene.source.center, radius=scene.source.radius),
-        physics=origin_settings.physics_mode,
-        device=device,
+        physics=origin_settings.physics_mode, pseudo_views=False, device=device,
     )
-    rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets
     first = run.frames()[0]
     fit(rec, run.path / REFINED_RUN, device=device, progress=progress, should_cancel=should_cancel,
         status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")
