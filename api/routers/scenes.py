@@ -14,6 +14,7 @@ from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, S
 from api.errors import error_responses
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from service.job_types import JobType
 from service.models import Job, JobState, Scene, new_id
 from service.storage import Storage, run_prefix, scene_prefix
 
@@ -107,7 +108,7 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
 
     job = session.scalars(
         select(Job)
-        .where(Job.scene_id == scene.id, Job.type == "reconstruct", Job.state == JobState.SUCCEEDED)
+        .where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT, Job.state == JobState.SUCCEEDED)
         .order_by(Job.finished_at.desc())
         .limit(1)
     ).first()
