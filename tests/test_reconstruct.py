@@ -160,3 +160,29 @@ def test_bad_inputs_name_the_field(scene):
         read_inputs(scene.cameras, {INPUT: scene.videos[INPUT][:2]}, frame_range=(0, FRAMES), quality=get("preview"))
     with pytest.raises(ValueError, match="quality"):
         get("ultra")
+
+
+def test_prepare_fits_the_views_it_is_given_and_the_reconstruction_is_frozen(scene):
+    """Views made before `prepare` (the generated ones) take the place of the symmetry
+    pseudo-views; a refinement fits its inputs alone; nobody rewrites the views afterwards."""
+    from dataclasses import FrozenInstanceError
+
+    from fluidcore.reconstruct.views import generated_targets
+
+    spec = scene.spec
+    quality = get("preview").with_overrides(long_side=64, particles_per_frame=spec.particles_per_step)
+    inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT][:2]}, frame_range=(0, 2), quality=quality)
+    box = spec.box()
+    common = dict(fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics="scalarflow")
+    plain = prepare(scene.cameras, inputs, **common)
+    source = inputs.targets[0]
+    other = scene.cameras["view_00"].scaled(source.camera.width, source.camera.height)
+    drawn = generated_targets(source, [other], {"view_00": source.frames.clone()}, quality.symmetry_weight)
+    generated = prepare(scene.cameras, inputs, extra_views=drawn, **common)
+    alone = prepare(scene.cameras, inputs, pseudo_views=False, **common)
+    assert [v.kind for v in plain.views] == ["input"] + ["symmetry"] * quality.symmetry_views
+    assert [v.kind for v in generated.views] == ["input", "generated"] and generated.views[1].weight == quality.symmetry_weight
+    assert [v.kind for v in alone.views] == ["input"]
+    assert plain.symmetry == generated.symmetry == alone.symmetry  # the prior's record stays in the manifest
+    with pytest.raises(FrozenInstanceError):
+        plain.views = ()
