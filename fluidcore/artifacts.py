@@ -91,7 +91,7 @@ def orbit_cameras(run, n: int) -> list:  # noqa: ANN001
 
     scene = run.scene
     cameras = run.cameras()
-    like = cameras[run.manifest["input_views"][0]] if run.manifest.get("input_views") else next(iter(cameras.values()))
+    like = cameras[run.input_views[0]] if run.input_views else next(iter(cameras.values()))
     center = 0.5 * (np.asarray(scene.box_lo) + np.asarray(scene.box_hi))
     up = np.asarray(scene.up)
     offset = like.center() - center
@@ -115,7 +115,7 @@ def render_artifacts(
     prediction refined by Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/`
     sub-run, the future reconstructed on the refined frames."""
     from fluidcore.names import safe_join
-    from fluidcore.runs import MANIFEST, REFINED_RUN, Run
+    from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)
@@ -125,16 +125,16 @@ def render_artifacts(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = []
-    what_if = run.kind == "interact"
+    what_if = run.kind is RunKind.INTERACT
     for name, camera in (cameras or run.cameras()).items():
         written.append(write_mp4(safe_join(out, f"{name}.mp4"), render_frames(run, camera, interventions=what_if), fps=run.fps))
     written.append(write_mp4(out / "orbit.mp4", render_orbit(run), fps=run.fps))
-    if (run.path / REFINED_RUN / MANIFEST).is_file():
-        refined = Run.open(run.path / REFINED_RUN)
+    refined = run.refined()
+    if refined is not None:
         for name, camera in (cameras or refined.cameras()).items():
             written.append(write_mp4(safe_join(out, f"refined_{name}.mp4"), render_frames(refined, camera), fps=refined.fps))
     if what_if:
-        camera = run.cameras()[run.manifest["input_views"][0]]
+        camera = run.cameras()[run.input_views[0]]
         written.append(write_mp4(out / "side_by_side.mp4", render_side_by_side(run, camera), fps=run.fps))
     return written
 
@@ -160,7 +160,7 @@ def factual_frames(run, camera, device: str = "cpu") -> np.ndarray:  # noqa: ANN
     if set(frames) <= set(parent.frames()):
         return render_frames(parent, camera, frames, device)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-factual-") as tmp:
-        branch = int(run.manifest["settings"]["branch_frame"])
+        branch = run.settings.branch_frame
         factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch,
                                       context=JobContext(device=device)))
         return render_frames(factual, camera, frames, device)

@@ -19,6 +19,7 @@ from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
+from service.job_types import JobType
 from service.models import Job, JobState, Scene, new_id
 from service.storage import Storage, run_prefix, scene_prefix
 
@@ -149,16 +150,17 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     """From the latest succeeded reconstruction of the scene (its run knows the source), else
     from the uploaded cameras file alone."""
     from fluidcore import scene_info
+    from fluidcore.runs import MANIFEST, RunRecord
 
     job = session.scalars(
         select(Job)
-        .where(Job.scene_id == scene.id, Job.type == "reconstruct", Job.state == JobState.SUCCEEDED)
+        .where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT, Job.state == JobState.SUCCEEDED)
         .order_by(Job.finished_at.desc())
         .limit(1)
     ).first()
     if job is not None:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(job.id)}/manifest.json"))
-        return SceneGeometry.model_validate(scene_info.from_run_manifest(manifest))
+        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job.id)}/{MANIFEST}"), f"job {job.id}'s run")
+        return SceneGeometry.model_validate(scene_info.from_run(record))
     return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
 
 

@@ -170,10 +170,3 @@ def get(name: str) -> Quality:
     except KeyError:
         raise PresetError(f"quality must be one of {', '.join(PRESETS)}, got {name!r}") from None
 
-
-def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
-    """(W, H) for rendering an input of width x height at `long_side * fraction`, never upscaled,
-    aspect kept, at least 8 px per side."""
-    target = min(max(width, height), long_side) * fraction
-    factor = target / max(width, height)
-    return max(8, round(width * factor)), max(8, round(height * factor))
