@@ -2,18 +2,22 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, HTTPException, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep, ValidatorsDep
 from api.errors import error_responses
+from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
-from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
 from service.job_types import JobType
 from service.models import Job, JobState, Scene, new_id
@@ -22,12 +26,28 @@ from service.storage import Storage, run_prefix, scene_prefix
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut, responses=error_responses(400, 413))
+async def one_cameras_part(request: Request) -> None:
+    """422 for a second `cameras` part, which the form binding would otherwise drop silently.
+    The form is already parsed (and cached) when dependencies run, so this reads no body."""
+    count = len((await request.form()).getlist("cameras"))
+    if count > 1:
+        raise HTTPException(422, f"cameras: give one cameras file, got {count} cameras parts")
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SceneOut,
+    responses=error_responses(400, 413),
+    dependencies=[Depends(one_cameras_part)],
+)
 def create_scene(
     owner: OwnerDep,
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
+    validators: ValidatorsDep,
+    response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
     cameras: Annotated[
         UploadFile | None, File(description="transforms.json, info.json or a zipped COLMAP model; or give fov instead")
@@ -38,11 +58,15 @@ def create_scene(
     distance: Annotated[float, Form(description="with fov: camera distance from the scene centre, world units")] = 1.0,
     up: Annotated[str, Form(description="with fov: where world up points in the image: up, down, left, right")] = "up",
     name: Annotated[str, Form(max_length=256)] = "",
+    idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> SceneOut:
     """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it.
 
     Without a cameras file, `fov` (and `distance`, `up`) declare the one video's camera and scene
-    box as `fluidnexus cameras single` does."""
+    box as `fluidnexus cameras single` does. A repeated upload with the same `Idempotency-Key`
+    returns the first scene (a client that timed out can retry without making a second one);
+    the same key with different files or fields is 422. The scene is stored whole or not at all."""
+    idempotency_key = idempotency_key or None  # an empty header is no key
     if (cameras is None) == (fov is None):
         raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
     with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
@@ -57,23 +81,44 @@ def create_scene(
             if filename in sizes or filename == cameras_name:
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
             sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
-        if cameras_name is None:
-            cameras_name = single_camera_file(folder, sizes, fov, distance, up)
-        validated = validate_scene(folder, cameras_name, sizes, settings)
-        geometry = capture_geometry(folder / cameras_name)
+        request_hash = None
+        if idempotency_key is not None:
+            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name])
+            if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
+                response.headers["Idempotent-Replayed"] = "true"
+                return scene_out(existing, scene_geometry(session, storage, existing))
+        single = None if fov is None else (fov, distance, up)
+        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
         try:
             scene = _scene_row(scene_id, owner, name, validated, keys)
+            scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
             session.add(scene)
             session.commit()
-        except BaseException:
+        except BaseException as exc:
             session.rollback()
             for key in keys.values():
                 storage.delete(key)
+            if isinstance(exc, IntegrityError) and idempotency_key is not None and request_hash is not None:
+                # a concurrent upload with the same key won the race: answer with its scene
+                existing = replay(session, Scene, owner, idempotency_key, request_hash)
+                if existing is not None:
+                    response.headers["Idempotent-Replayed"] = "true"
+                    return scene_out(existing, scene_geometry(session, storage, existing))
             raise
-    return scene_out(scene, geometry)
+    return scene_out(scene, SceneGeometry.model_validate(geometry))
+
+
+def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
+    """SHA-256 over the spooled parts (names and bytes, in order) and the form fields: what
+    tells a retried upload from a different one under the same Idempotency-Key."""
+    digest = hashlib.sha256(json.dumps([cameras_name, videos, fields]).encode())
+    for filename in ([cameras_name] if cameras_name else []) + videos:
+        with safe_join(folder, filename).open("rb") as handle:
+            digest.update(hashlib.file_digest(handle, "sha256").digest())
+    return digest.hexdigest()
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -127,13 +172,6 @@ def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
         path = safe_join(tmp, Path(scene.cameras_key).name)
         storage.get_file(scene.cameras_key, path)
         return scene_info.from_cameras_file(path)
-
-
-def capture_geometry(cameras_path: Path) -> SceneGeometry:
-    """Box and cameras of an uploaded camera file (no source before a reconstruction)."""
-    from fluidcore import scene_info
-
-    return SceneGeometry.model_validate(scene_info.from_cameras_file(cameras_path))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
