@@ -13,7 +13,8 @@ Layouts:
 
     PhiFlowScene     ../shared/devdata (transforms.json, videos/view_KK.mp4, gt/meta.json, gt/density_ and
                      velocity_XXXX.npz at the saved frames; variants are sibling folders whose meta.json names
-                     this scene in `counterfactual_of`)
+                     this scene in `counterfactual_of`, described by the parent folder's protocol.json where
+                     there is one (input view, windows, what-ifs), else by each variant's meta.json)
     SynthScene       `fluidnexus synth` (transforms.json, videos/, truth/frame_XXXXXX.npz particles)
     ScalarFlowScene  ../shared/realdata/scalarflow (videos/input_view_02.mp4, gt/nvs_view_0K.mp4 for
                      t < 120, gt/future_view_0K.mp4 frame i = t 60 + i, windows.json)
@@ -45,8 +46,7 @@ class Variant:
     scene: GroundTruth
     branch_frame: int  # the factual reconstruction is continued from this frame
     first_frame: int  # the first frame the intervention acts on (scoring starts here)
-    wind: dict[str, Any] | None = None  # WindParams fields relative to the first new frame, base at `wind_base`
-    wind_base: float = 0.0  # height (world, along up) at which `wind["strength"]` is the acceleration
+    wind: dict[str, Any] | None = None  # WindParams fields relative to the first new frame, with a world base_height
     ball: dict[str, Any] | None = None  # BallParams fields relative to the first new frame
     late_start: int = 0
 
@@ -93,6 +93,16 @@ class GroundTruth:
     def variants(self) -> list[Variant]:
         return []
 
+    @property
+    def protocol(self) -> dict[str, Any] | None:
+        """The scene's machine-readable protocol (input view, windows, what-ifs): the parent
+        folder's protocol.json when it names this folder as its factual scene."""
+        path = self.root.parent / "protocol.json"
+        if not path.is_file():
+            return None
+        protocol = json.loads(path.read_text())
+        return protocol if protocol.get("scenes", {}).get("factual") == self.root.name else None
+
 
 class PhiFlowScene(GroundTruth):
     """The independent-solver layout (../shared/devdata/README.md)."""
@@ -135,6 +145,9 @@ class PhiFlowScene(GroundTruth):
         return float(self.meta["source"]["center_world"][1])
 
     def variants(self) -> list[Variant]:
+        protocol = self.protocol
+        if protocol is not None:
+            return _protocol_variants(protocol, self)
         out = []
         for folder in sorted(p for p in self.root.parent.iterdir() if p.is_dir() and p != self.root):
             meta_path = folder / "gt" / "meta.json"
@@ -155,11 +168,12 @@ def _phiflow_variant(folder: Path, meta: dict[str, Any], factual: PhiFlowScene) 
     scene = open_scene(folder)
     late = _anchor_late_starts(folder.parent / "anchors.json").get(folder.name)
     wind, obstacle = meta["forces"].get("wind"), meta.get("obstacle")
-    if wind is not None:
+    if wind is not None:  # an exponential wind whose strength is given at the true source's height
         branch = int(wind["start_frame"]) - 1
         params = {"direction": tuple(wind["direction_world"]), "strength": float(wind["strength"]),
-                  "growth": float(wind.get("growth", 0.0)), "start_frame": 0}
-        return Variant(folder.name, scene, branch, branch + 1, wind=params, wind_base=float(wind.get("source_height_world", 0.0)),
+                  "growth": float(wind.get("growth", 0.0)), "base_height": float(wind.get("source_height_world", 0.0)),
+                  "start_frame": 0}
+        return Variant(folder.name, scene, branch, branch + 1, wind=params,
                        late_start=late if late is not None else branch + 1 + (factual.n_frames - branch - 1) // 3)
     if obstacle is not None and obstacle.get("shape") == "sphere":
         first = int(obstacle.get("present_from_frame", 0))
@@ -169,6 +183,28 @@ def _phiflow_variant(folder: Path, meta: dict[str, Any], factual: PhiFlowScene) 
         return Variant(folder.name, scene, branch, first, ball=params,
                        late_start=late if late is not None else branch + (factual.n_frames - branch) // 3)
     return None
+
+
+def _protocol_variants(protocol: dict[str, Any], factual: GroundTruth) -> list[Variant]:
+    """The what-ifs of a protocol.json: a wind ramping linearly from zero at world height y0 to
+    `acc_top` at y_top (WindParams profile linear, based at y_top, growth 1 / (y_top - y0)) and
+    a ball; each branched the frame before it starts, scored late on the protocol's window."""
+    out = []
+    scenes, wind, ball = protocol["scenes"], protocol.get("wind"), protocol.get("ball")
+    if wind is not None and "wind" in scenes:
+        start, y0, y_top = int(wind["start_frame"]), float(wind["y0_world"]), float(wind["y_top_world"])
+        params = {"direction": tuple(wind["direction"]), "strength": float(wind["acc_top"]), "profile": "linear",
+                  "growth": 1.0 / (y_top - y0), "base_height": y_top, "start_frame": 0}
+        scene = open_scene(factual.root.parent / scenes["wind"])
+        out.append(Variant(scene.root.name, scene, start - 1, start, wind=params, late_start=int(wind["late"][0])))
+    if ball is not None and "ball" in scenes:
+        first = int(ball.get("start_frame", 0))
+        branch = max(first - 1, 0)
+        params = {"center": tuple(ball["center"]), "radius": float(ball["radius"]),
+                  "velocity": tuple(ball.get("velocity", (0.0, 0.0, 0.0))), "start_frame": max(first - branch - 1, 0)}
+        scene = open_scene(factual.root.parent / scenes["ball"])
+        out.append(Variant(scene.root.name, scene, branch, first, ball=params, late_start=int(ball["late"][0])))
+    return out
 
 
 def _anchor_late_starts(path: Path) -> dict[str, int]:

@@ -131,3 +131,15 @@ def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
         InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="run scene: malformed"):
         InteractionParams().check_scene({"box": {}}, frames=10)
+
+
+def test_a_wind_base_height_replaces_the_source_height_in_the_scene_check() -> None:
+    """The peak is measured from the wind's own base height when it names one: the same wind is
+    fine measured from the source (z <= 0 in a decaying wind) and absurd from a base far above."""
+    decaying = {"direction": (1, 0, 0), "strength": 100.0, "growth": -math.log(10.0)}
+    InteractionParams(wind=WindParams(**decaying)).check_scene(scene(), FRAMES)
+    assert WindParams(**decaying).reference_height(0.25) == 0.25
+    high = WindParams(**decaying, base_height=2.0)
+    assert high.reference_height(0.25) == 2.0
+    with pytest.raises(InteractionError, match="wind.strength"):
+        InteractionParams(wind=high).check_scene(scene(), FRAMES)
