@@ -87,8 +87,13 @@ class GroundTruth:
     def top_height(self, t: int) -> float | None:
         return None
 
-    def source_height(self) -> float | None:
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        """The true source: (centre (3,) world, radius world units), where the layout records it."""
         return None
+
+    def source_height(self) -> float | None:
+        truth = self.source_truth()
+        return None if truth is None else float(truth[0][1])
 
     def variants(self) -> list[Variant]:
         return []
@@ -141,8 +146,9 @@ class PhiFlowScene(GroundTruth):
         smoke = density > DENSITY_THRESHOLD
         return float(np.quantile(centres[smoke][:, 1], TOP_QUANTILE)) if smoke.any() else None
 
-    def source_height(self) -> float | None:
-        return float(self.meta["source"]["center_world"][1])
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        source = self.meta["source"]
+        return np.asarray(source["center_world"], dtype=np.float64), float(source["radius"])
 
     def variants(self) -> list[Variant]:
         protocol = self.protocol
@@ -234,8 +240,9 @@ class SynthScene(GroundTruth):
         truth = self.velocity(t)
         return None if truth is None or len(truth[0]) == 0 else float(np.quantile(truth[0][:, 1], TOP_QUANTILE))
 
-    def source_height(self) -> float | None:
-        return float(json.loads((self.root / "synth.json").read_text())["source"]["center"][1])
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        source = json.loads((self.root / "synth.json").read_text())["source"]
+        return np.asarray(source["center"], dtype=np.float64), float(source["radius"])
 
 
 class ScalarFlowScene(GroundTruth):
@@ -251,6 +258,10 @@ class ScalarFlowScene(GroundTruth):
     def views(self) -> list[str]:
         return [name for name in self.cameras if (self.root / "gt" / f"nvs_{name}.mp4").is_file()]
 
+    def truth_path(self, view: str) -> Path:
+        """The held-out view's clip of the observed window (its frame t = scene frame t)."""
+        return self.root / "gt" / f"nvs_{view}.mp4"
+
     def truth(self, view: str, frames: list[int], size: tuple[int, int] | None = None) -> np.ndarray:
         future = self.windows["future"]
         first_predicted = future["prediction_t"][0]
@@ -259,7 +270,7 @@ class ScalarFlowScene(GroundTruth):
         late = [t - offset for t in frames if t >= first_predicted]
         parts = []
         if early:
-            parts.append(read_frames_at(self.root / "gt" / f"nvs_{view}.mp4", early, size))
+            parts.append(read_frames_at(self.truth_path(view), early, size))
         if late:
             parts.append(read_frames_at(self.root / "gt" / f"future_{view}.mp4", late, size))
         return np.concatenate(parts)
