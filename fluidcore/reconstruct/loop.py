@@ -150,7 +150,7 @@ def prepare(
         background = init.estimate_background(data)
         if background.image is not None:
             backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
-        masks[name] = np.stack([init.smoke_mask(f, background) for f in data[: init.SOURCE_FRAMES]])
+        masks[name] = np.stack([init.smoke_mask(f, background) for f in data[: init.source_frames(fps, len(data))]])
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
