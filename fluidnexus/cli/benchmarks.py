@@ -7,7 +7,9 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "generalise", "metrics", "physics", "render", "generative", "load", "upload_attacks")
+BENCHMARKS: tuple[str, ...] = (
+    "reconstruct", "predict", "generalise", "source", "metrics", "physics", "render", "generative", "load", "upload_attacks",
+)
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
