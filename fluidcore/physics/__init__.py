@@ -17,6 +17,8 @@ from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError,
 # preset or a scene) can import this package and `fluidcore.physics.config`.
 _LAZY = {
     "AirField": "forces",
+    "AirGrid": "air",
+    "AirState": "air",
     "ForceField": "forces",
     "wind_air": "forces",
     "wind_force": "forces",
@@ -35,7 +37,7 @@ _LAZY = {
 __getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
-    "PRESETS", "AirField", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
     "sim_step", "wind_air", "wind_force",
 ]
