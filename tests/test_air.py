@@ -4,13 +4,18 @@ without it is today's simulator."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from fluidcore.interaction import WindParams
 from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Simulator, Source, Sphere, wind_force
 from fluidcore.physics.air import AirGrid, AirState
+from fluidcore.predict.job import run_predict
+from fluidcore.runs import Run
+from predict_scenes import plume_run
 
 CFG = PRESETS["scalarflow"]
 BOX = Box((0.0, 0.0, 0.0), (0.3, 0.4, 0.3))
@@ -249,3 +254,18 @@ def test_the_air_runs_on_cuda_as_on_cpu() -> None:
             grid.step(air, smoke.to(device), CFG, step * CFG.dt, (Sphere((0.15, 0.25, 0.15), 0.04),))
     for cpu, cuda in zip(airs["cpu"].faces, airs["cuda"].faces):
         torch.testing.assert_close(cuda.cpu(), cpu, atol=1e-4, rtol=1e-3)
+
+
+def test_a_prediction_simulates_the_air_its_reconstruction_asks_for_and_passes_it_on(tmp_path: Path) -> None:
+    """Quality.air_cells (0 by default) switches the air grid on in prediction, recorded so that a
+    continuation keeps it; the default parent predicts with still air as before."""
+    still = plume_run(tmp_path / "still", frames=2, warmup=20)
+    airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16})
+    plain = Run.open(run_predict(still, tmp_path / "p0", frames=4))
+    with_air = Run.open(run_predict(airy, tmp_path / "p1", frames=4))
+    chained = Run.open(run_predict(with_air.path, tmp_path / "p2", frames=2))
+    assert plain.settings.air_cells == 0
+    assert with_air.settings.air_cells == 16 and chained.settings.air_cells == 16
+    last = plain.frames()[-1]
+    a, b = plain.read_frame(last), with_air.read_frame(last)
+    assert a.positions.shape == b.positions.shape and not np.array_equal(a.positions[a.alive], b.positions[b.alive])
