@@ -8,6 +8,10 @@ residual reported everywhere (StepStats, the benchmark) is max(0, rho/rho0 - 1).
 Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
 `density_residual`, `incompressibility_loss`) and a fused C++/OpenMP CPU kernel
 (`fluidcore/kernels/pbf.cpp`) that `Simulator` uses on CPU when no gradient is needed.
+
+The air around the smoke is still unless the simulator is given one: a prescribed field
+(`AirField`, e.g. `wind_air`) or an `AirGrid` (`air`), incompressible air that the smoke's
+buoyancy and the wind drive and that the particles drag towards.
 """
 
 from fluidcore.lazy import lazy_exports
