@@ -12,7 +12,7 @@ import torch
 
 from fluidcore.interaction import WindParams
 from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Simulator, Source, Sphere, wind_force
-from fluidcore.physics.air import AirGrid, AirState
+from fluidcore.physics.air import AirGrid, AirState, cell_velocity, curl
 from fluidcore.predict.job import run_predict
 from fluidcore.runs import Run
 from predict_scenes import plume_run
@@ -78,10 +78,7 @@ def test_a_buoyant_blob_rolls_up_into_a_vortex_ring_within_20_frames() -> None:
 
 def enstrophy(grid: AirGrid, air: AirState) -> float:
     """Sum over cells of |curl u|^2 (central differences of the cell-centred velocity)."""
-    centre = torch.stack([0.5 * (f.narrow(a, 0, f.shape[a] - 1) + f.narrow(a, 1, f.shape[a] - 1)) for a, f in enumerate(air.faces)])
-    d = [torch.gradient(centre[c], spacing=grid.spacing) for c in range(3)]
-    curl = torch.stack([d[2][1] - d[1][2], d[0][2] - d[2][0], d[1][0] - d[0][1]])
-    return float((curl * curl).sum())
+    return float(curl(cell_velocity(air.faces), grid.spacing).pow(2).sum())
 
 
 def test_vorticity_confinement_puts_back_swirl() -> None:
