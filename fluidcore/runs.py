@@ -162,6 +162,7 @@ class ContinuationSettings(BaseModel):
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
     ball: BallParams | None = None
+    air_cells: int = 0  # the air grid the rollout simulates (fluidcore.physics.air.AirGrid); 0 = still air
 
 
 Settings = ReconstructSettings | ContinuationSettings
