@@ -151,7 +151,7 @@ def test_the_smoke_mask_has_one_home() -> None:
 
     from fluidcore.reconstruct import flow, identify, init, loop, views
 
-    for function in (loop.read_inputs, identify.scene_physics, views.mirror_agreement, flow.input_flow):
+    for function in (loop.prepare, identify.scene_physics, views.mirror_agreement, flow.input_flow):
         text = inspect.getsource(function)
         assert "smoke_mask(" in text or "is_smoke(" in text, function.__name__
         assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__

@@ -100,12 +100,18 @@ SOURCE = np.array([0.08, 0.045, -0.06])  # resting 0.5 cm above the floor, 10 cm
 SOURCE_RADIUS = 0.04
 
 
-def test_a_camera_looking_down_finds_the_depth_from_the_floor() -> None:
+def test_a_camera_looking_down_keeps_the_source_off_the_floor() -> None:
+    """A source nearer the camera than the box's axis: the axis guess along the descending ray would
+    sink below the floor, so the source rests on the floor instead. One farther away than the axis
+    keeps the axis guess (the floor only bounds the depth)."""
     camera = _camera((0.0, 0.9, 1.4), (0.0, 0.1, 0.0))  # about 30 degrees down
-    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    near = SOURCE * np.array([1.0, 1.0, -1.0])  # 6 cm in front of the axis
+    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, near, SOURCE_RADIUS)}, BOX)
     assert estimate.depth_cue == "floor"
-    assert np.linalg.norm(estimate.center - SOURCE) < 0.015
+    assert np.linalg.norm(estimate.center - near) < 0.015
     assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
+    behind = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    assert behind.depth_cue == "box axis"
 
 
 def test_a_level_camera_leaves_the_depth_to_a_range_that_holds_the_truth() -> None:

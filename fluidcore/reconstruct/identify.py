@@ -264,7 +264,7 @@ def identify(
     prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
              "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
              "source": {"center": list(source.center), "radius": source.radius}}
-    return Identified(best[0], float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
+    return Identified(max(best[0], floor), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
                       len(search.scores), list(fitted.center), fitted.radius, prior)
 
 

@@ -248,11 +248,11 @@ def estimate_source(
 ) -> SourceEstimate:
     """Source centre and radius from the smoke masks of the first frames of each input view.
 
-    Two or more views triangulate the centre. One view leaves depth open: when the camera looks
-    down onto the box's floor steeply enough, the source's base is taken to sit on that floor
-    (`ray_point_on_floor`); otherwise the centre is put on the input ray where it passes closest
-    to the box's vertical axis (the box is where the smoke is), and `depth_range` says how far
-    along the ray it could be. A known `center` (the user's) is kept, and only the radius is
+    Two or more views triangulate the centre. One view leaves depth open: the centre is put on
+    the input ray where it passes closest to the box's vertical axis (the box is where the smoke
+    is), unless the source would then sink below the box's floor, which a camera looking down
+    onto the floor steeply enough can tell (`ray_point_on_floor`): then it rests on the floor.
+    `depth_range` says how far along the ray the centre could be. A known `center` (the user's) is kept, and only the radius is
     measured, at its depth. Masks may be at any resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
@@ -276,9 +276,10 @@ def estimate_source(
         center, cue = closest_point_to_rays(origins, directions), "triangulated"
     else:
         camera, found, up2d = views[0]
-        center, cue = ray_point_on_floor(camera, found, up2d, up_v, float(lo @ up_v)), "floor"
-        if center is None or not np.all((center >= lo) & (center <= hi)):
-            center, cue = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v), "box axis"
+        center, cue = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v), "box axis"
+        on_floor = ray_point_on_floor(camera, found, up2d, up_v, float(lo @ up_v))
+        if on_floor is not None and (center - on_floor) @ directions[0] > 0.0:  # the guess would sink below the floor
+            center, cue = on_floor, "floor"
     center = np.clip(center, lo, hi)
     radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _ in views]
     return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels, depth_cue=cue, depth_range=depth_range)
