@@ -169,6 +169,15 @@ def get(name: str) -> Quality:
         raise PresetError(f"quality must be one of {', '.join(PRESETS)}, got {name!r}") from None
 
 
+def reconstruction_quality(run) -> Quality | None:  # noqa: ANN001 - fluidcore.runs.Run
+    """The quality of the reconstruction `run` is or descends from (its nearest reconstruct
+    ancestor); None when there is none (e.g. a synthetic ground-truth run)."""
+    origin = run
+    while origin is not None and origin.kind != "reconstruct":
+        origin = origin.parent
+    return None if origin is None else Quality.from_json(origin.manifest["settings"]["quality"])
+
+
 def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
     """(W, H) for rendering an input of width x height at `long_side * fraction`, never upscaled,
     aspect kept, at least 8 px per side."""
