@@ -92,6 +92,7 @@ class SceneOut(BaseModel):
     n_frames: int
     fps: float
     geometry: SceneGeometry | None = Field(default=None, description="GET /v1/scenes/{id} only (not in listings)")
+    reconstruct_job_id: str | None = Field(default=None, description="POST with `reconstruct` only: the queued reconstruction")
 
 
 class JobTimings(BaseModel):

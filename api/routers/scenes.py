@@ -8,14 +8,18 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, HTTPException, UploadFile, status
+from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.errors import error_responses
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from fluidcore.reconstruct.source_hint import SourceHintError
+from service.job_types import JobType, ReconstructParams
 from service.models import Job, JobState, Scene, new_id
+from service.queue import QueueUnavailable
 from service.storage import Storage, run_prefix, scene_prefix
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
@@ -27,6 +31,7 @@ def create_scene(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
+    queue: QueueDep,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
     cameras: Annotated[
         UploadFile | None, File(description="transforms.json, info.json or a zipped COLMAP model; or give fov instead")
@@ -37,13 +42,21 @@ def create_scene(
     distance: Annotated[float, Form(description="with fov: camera distance from the scene centre, world units")] = 1.0,
     up: Annotated[str, Form(description="with fov: where world up points in the image: up, down, left, right")] = "up",
     name: Annotated[str, Form(max_length=256)] = "",
+    reconstruct: Annotated[
+        str | None,
+        Form(max_length=4096, description="queue a reconstruction of the scene: its params as JSON, as in POST /v1/jobs"),
+    ] = None,
 ) -> SceneOut:
     """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it.
 
     Without a cameras file, `fov` (and `distance`, `up`) declare the one video's camera and scene
-    box as `fluidnexus cameras single` does."""
+    box as `fluidnexus cameras single` does. With `reconstruct`, its params are checked against
+    the upload (frames within the videos, source inside the box) before anything is stored, and
+    the scene and its queued reconstruction are stored together: a refused reconstruction (422)
+    or an unreachable queue (503) leaves no scene behind, so a retry never piles up copies."""
     if (cameras is None) == (fov is None):
         raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
+    params = None if reconstruct is None else parse_reconstruct(reconstruct)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)
         cameras_name = None
@@ -60,19 +73,64 @@ def create_scene(
             cameras_name = single_camera_file(folder, sizes, fov, distance, up)
         validated = validate_scene(folder, cameras_name, sizes, settings)
         geometry = capture_geometry(folder / cameras_name)
+        if params is not None:
+            box = geometry.box.model_dump() if geometry.box is not None else None
+            check_reconstruct_params(params, validated.n_frames, box, "reconstruct")
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
+        job = None
         try:
             scene = _scene_row(scene_id, owner, name, validated, keys)
             session.add(scene)
+            if params is not None:
+                session.flush()  # the scene row first: the job refers to it
+                job = Job(owner=owner, type=JobType.RECONSTRUCT, scene_id=scene_id, params=params.model_dump(mode="json"))
+                session.add(job)
             session.commit()
         except BaseException:
             session.rollback()
             for key in keys.values():
                 storage.delete(key)
             raise
-    return scene_out(scene, geometry)
+        if job is not None:
+            try:
+                job.task_id = queue.enqueue(job.id, job.type)
+                session.commit()
+            except QueueUnavailable as exc:  # nothing was queued: take the upload back
+                session.delete(job)
+                session.delete(scene)
+                session.commit()
+                for key in keys.values():
+                    storage.delete(key)
+                raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    return scene_out(scene, geometry, job)
+
+
+def parse_reconstruct(text: str) -> ReconstructParams:
+    """The `reconstruct` form field: a reconstruction's params as JSON; 422 naming the field."""
+    try:
+        return ReconstructParams.model_validate(json.loads(text))
+    except json.JSONDecodeError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"reconstruct: not JSON ({exc.msg})") from None
+    except ValidationError as exc:
+        where = "; ".join(f"reconstruct.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, where) from None
+
+
+def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict[str, Any] | None, field: str) -> None:
+    """A reconstruction against its scene: frames within the videos, the source hint inside the
+    scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
+    One check for POST /v1/jobs and for an upload that asks for a reconstruction."""
+    if params.frames is not None and params.frames[1] > n_frames:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.frames: end {params.frames[1]} is past the scene's {n_frames} frames"
+        )
+    if params.source is not None and box is not None:
+        try:
+            params.source.check_in_box(box["min"], box["max"])
+        except SourceHintError as exc:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.{exc}") from None
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -182,7 +240,7 @@ def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, 
     )
 
 
-def scene_out(scene: Scene, geometry: SceneGeometry | None = None) -> SceneOut:
+def scene_out(scene: Scene, geometry: SceneGeometry | None = None, job: Job | None = None) -> SceneOut:
     return SceneOut(
         id=scene.id,
         name=scene.name,
@@ -192,4 +250,5 @@ def scene_out(scene: Scene, geometry: SceneGeometry | None = None) -> SceneOut:
         n_frames=scene.n_frames,
         fps=scene.fps,
         geometry=geometry,
+        reconstruct_job_id=None if job is None else job.id,
     )
