@@ -7,7 +7,7 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "generalise", "metrics", "physics", "render", "generative", "load")
+BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "generalise", "metrics", "physics", "render", "generative", "load", "whatif_render")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
