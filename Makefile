@@ -18,7 +18,8 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -c constraints.txt -e '.[test]'
+	# setuptools' "Editable installation ... be careful with folders" notice says nothing to act on
+	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install -q -c constraints.txt -e '.[test]'
 	touch $(STAMP)
 
 # Fused CPU kernels (C++/OpenMP, loaded through ctypes); rebuilt when a source changes.
