@@ -63,6 +63,7 @@ def get_particles(
         scene=RunScene(
             box_lo=scene["box"]["lo"], box_hi=scene["box"]["hi"], up=scene.get("up", [0.0, 1.0, 0.0]),
             source=scene.get("source") or {},
+            dt=(scene.get("physics") or {}).get("dt"),
         ),
     )
 
