@@ -171,11 +171,12 @@ def get(name: str) -> Quality:
 
 def reconstruction_quality(run) -> Quality | None:  # noqa: ANN001 - fluidcore.runs.Run
     """The quality of the reconstruction `run` is or descends from (its nearest reconstruct
-    ancestor); None when there is none (e.g. a synthetic ground-truth run)."""
+    ancestor); None when there is none or it records none (a run made by hand or by a test)."""
     origin = run
     while origin is not None and origin.kind != "reconstruct":
         origin = origin.parent
-    return None if origin is None else Quality.from_json(origin.manifest["settings"]["quality"])
+    recorded = None if origin is None else origin.manifest.get("settings", {}).get("quality")
+    return None if recorded is None else Quality.from_json(recorded)
 
 
 def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
