@@ -136,7 +136,6 @@ def render_artifacts(
     reconstructed on the refined frames. Videos are `long_side` pixels on their long side
     (never upscaled; None: each camera's own size). `progress(fraction, "render")` after every
     rendered frame."""
-    from fluidcore.overlay import side_by_side
     from fluidcore.runs import MANIFEST, REFINED_RUN, Run
     from fluidcore.video import write_mp4
 
@@ -150,7 +149,8 @@ def render_artifacts(
     refined = Run.open(run.path / REFINED_RUN) if (run.path / REFINED_RUN / MANIFEST).is_file() else None
     refined_cameras = dict(cameras or refined.cameras()) if refined is not None else {}
     n = len(run.frames())
-    total = n * (len(own) + 1 + int(what_if)) + (len(refined.frames()) * len(refined_cameras) if refined else 0)
+    side = int(what_if) * (1 + int(cameras is not None))  # the factual side, and the what-if's unless already rendered
+    total = n * (len(own) + 1 + side) + (len(refined.frames()) * len(refined_cameras) if refined else 0)
     done = 0
 
     def on_frame() -> None:
@@ -172,8 +172,7 @@ def render_artifacts(
     if what_if:
         name = run.manifest["input_views"][0]
         camera = size(run.cameras()[name])
-        mine = videos[name] if cameras is None else render_frames(run, camera, interventions=True)
-        both = side_by_side(factual_frames(run, camera, on_frame=on_frame), mine)
+        both = render_side_by_side(run, camera, what_if=videos.get(name) if cameras is None else None, on_frame=on_frame)
         written.append(write_mp4(out / "side_by_side.mp4", both, fps=run.fps))
     return written
 
@@ -186,12 +185,17 @@ def published_cameras(run) -> dict[str, object]:  # noqa: ANN001 - Run
     return cameras
 
 
-def render_side_by_side(run, camera, device: str = "cpu") -> np.ndarray:  # noqa: ANN001 - Run, Camera
+def render_side_by_side(
+    run, camera, device: str = "cpu", what_if: np.ndarray | None = None, on_frame: FrameDone | None = None,  # noqa: ANN001
+) -> np.ndarray:
     """factual | what-if over the what-if run's frames, from `camera`: both start from the same
-    branch frame of the parent, the what-if with its ball and wind drawn."""
+    branch frame of the parent, the what-if with its ball and wind drawn (`what_if`: those
+    frames when already rendered, uint8 (T, H, W, 3))."""
     from fluidcore.overlay import side_by_side
 
-    return side_by_side(factual_frames(run, camera, device), render_frames(run, camera, device=device, interventions=True))
+    if what_if is None:
+        what_if = render_frames(run, camera, device=device, interventions=True, on_frame=on_frame)
+    return side_by_side(factual_frames(run, camera, device, on_frame), what_if)
 
 
 def factual_frames(run, camera, device: str = "cpu", on_frame: FrameDone | None = None) -> np.ndarray:  # noqa: ANN001 - Run, Camera

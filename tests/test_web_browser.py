@@ -230,6 +230,9 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     play_first_video(page)
     players_in_sync(page)
     sync_api.expect(page.locator("#plots figure")).to_have_count(4)
+    # forecast PSNR (tens of dB) is drawn with the input view's PSNR, not on the loss axis
+    sync_api.expect(page.locator("#plots figure[aria-label='Loss per frame']")).not_to_contain_text("forecast")
+    sync_api.expect(page.locator("#plots figure[aria-label='PSNR of the input view']")).to_contain_text("forecast")
     sync_api.expect(page.locator("#downloads a", has_text="manifest.json")).to_have_count(1)
     sync_api.expect(page.locator("#downloads a", has_text="orbit.mp4")).to_have_count(1)
     sync_api.expect(page.locator("#downloads a", has_text=".mp4")).to_have_count(len(scene["videos"]) + 1)
