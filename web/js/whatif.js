@@ -177,7 +177,7 @@ function showLimits(box) {
     $("ball-radius").value = fmt(0.15 * Math.min(...box.hi.map((h, i) => h - box.lo[i])));
     const strength = defaultWindStrength(box, vec("wind-dx", "wind-dy", "wind-dz"), run.dt);
     if (strength !== null) $("wind-strength").value = fmt(strength);
-    $("wi-from").placeholder = `${run.frames[run.frames.length - 1]} (the last)`;
+    $("wi-from").placeholder = `last: ${run.frames[run.frames.length - 1]}`;
     $("ball-cx").dataset.placedFor = run.jobId;
   }
 }
