@@ -76,8 +76,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
 
 
 async def _reap_forever(app: FastAPI) -> None:
-    """Every quarter lease, send again the running jobs whose heartbeat stopped (service.queue.reap_stale),
-    so a job whose worker died is picked up within about 1.25 leases, whatever the broker does."""
+    """Every quarter lease, send again the running jobs whose heartbeat stopped and the queued jobs
+    whose message was lost (service.queue.reap_stale), so a job whose worker died is picked up
+    within about 1.25 leases, whatever the broker does."""
     lease = app.state.settings.job_lease_seconds
     while True:
         await asyncio.sleep(lease / 4)
@@ -87,4 +88,4 @@ async def _reap_forever(app: FastAPI) -> None:
             log.warning("reaper: could not check for stale jobs", exc_info=True)
             continue
         if reaped:
-            log.warning("reaper: sent again %d job(s) whose worker stopped: %s", len(reaped), ", ".join(reaped))
+            log.warning("reaper: sent again %d job(s) whose worker stopped or whose message was lost: %s", len(reaped), ", ".join(reaped))

@@ -6,6 +6,10 @@ sentence (checks the API makes itself, e.g. "params.frames: end 90 is past the s
 frames") or pydantic's list of field errors. Clients and schema-driven fuzzers can rely on it
 because `error_responses` puts exactly that shape into the schema.
 
+A fluidcore `InputError` that reaches a route unhandled (a stored camera file the geometry reader
+refuses, ...) is a 422 with its message; any other exception is a bug: a 500 whose detail is only
+"internal error (id ...)", its traceback in the API's log under that id (`fluidcore.errors`).
+
 Request JSON is parsed strictly (`StrictJSONRoute`): NaN / Infinity literals and nesting deep
 enough to exhaust the parser are a 422 before any model sees them, because Python's `json`
 accepts the first and raises RecursionError on the second.
@@ -14,6 +18,7 @@ accepts the first and raises RecursionError on the second.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from collections.abc import Callable, Coroutine
 from typing import Any
@@ -27,8 +32,11 @@ from pydantic import BaseModel, ConfigDict, Field
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.routing import Match
 
+from fluidcore.errors import InputError, internal_error
 from service.storage import StorageError
 from api.uploads import UploadRejected
+
+log = logging.getLogger(__name__)
 
 
 class FieldError(BaseModel):
@@ -131,6 +139,16 @@ async def upload_rejected(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=exc.status_code)
 
 
+async def input_rejected(request: Request, exc: Exception) -> JSONResponse:
+    """What the user can fix, found by fluidcore below a route: the message names the field."""
+    return JSONResponse({"detail": str(exc)}, status_code=422)
+
+
+async def internal_failure(request: Request, exc: Exception) -> JSONResponse:
+    """A bug: the client gets an id to quote, never the exception's text (a path, SQL, a stack)."""
+    return JSONResponse({"detail": internal_error(log, exc, f"{request.method} {request.url.path}")}, status_code=500)
+
+
 async def storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
     """Object storage down or full: the request may succeed later, nothing was half-written."""
     return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503)
@@ -146,6 +164,8 @@ HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, An
     UploadRejected: upload_rejected,
     StorageError: storage_unavailable,
     PoolTimeout: database_busy,
+    InputError: input_rejected,
+    Exception: internal_failure,
 }
 
 

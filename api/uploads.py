@@ -9,19 +9,17 @@ removes what it had written, so a bad request never leaves or loses anything.
 from __future__ import annotations
 
 import mimetypes
-import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, BinaryIO
 
+from fluidcore.names import UnsafeName, check_name, check_relative
 from service.settings import Settings
 from service.storage import Storage
 
 if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
     from fluidcore.cameras import Camera
     from fluidcore.video import VideoInfo
-
-_SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,199}$")
 
 
 class UploadRejected(ValueError):
@@ -55,11 +53,12 @@ class ValidatedScene:
 
 
 def safe_filename(name: str | None, field: str) -> str:
-    """The base name of an uploaded file, refused unless it is a plain, portable file name."""
-    base = PurePath((name or "").replace("\\", "/")).name
-    if not _SAFE_NAME.match(base):
-        raise UploadRejected(f"{field}: file name {name!r} must be letters, digits, '.', '_' or '-'")
-    return base
+    """The name of an uploaded part, refused unless it follows the naming rule (fluidcore.names)
+    exactly as sent: a directory part, a drive or a traversal is refused, never stripped."""
+    try:
+        return check_name(name, f"{field}: file name")
+    except UnsafeName as exc:
+        raise UploadRejected(str(exc)) from None
 
 
 def spool(source: BinaryIO, target: Path, limit: int, field: str) -> int:
@@ -121,6 +120,7 @@ def validate_scene(
         cameras = load(folder / cameras_file)
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
+    _check_file_paths(cameras)
     _check_cameras(cameras, settings)
     if not video_sizes:
         raise UploadRejected("video: at least one video part is required")
@@ -157,11 +157,28 @@ def validate_scene(
     )
 
 
+def _check_file_paths(cameras: dict[str, Camera]) -> None:
+    """A cameras file on the server may only name the parts uploaded with it: every `file_path`
+    must follow the naming rule as a relative path (the CLI's own files may point elsewhere)."""
+    for camera in cameras.values():
+        if camera.file_path is not None:
+            try:
+                check_relative(camera.file_path, f"cameras: camera {camera.name!r}: file_path")
+            except UnsafeName as exc:
+                raise UploadRejected(str(exc)) from None
+
+
 def _check_cameras(cameras: dict[str, Camera], settings: Settings) -> None:
     """Count, size and plausible intrinsics/extrinsics of every camera, with or without a video:
     the worker renders every camera, so a camera's pixels cost memory even with no footage."""
+    from fluidcore.artifacts import check_camera_names
     from fluidcore.cameras import CameraError, check_ranges
+    from fluidcore.jobs import JobInputError
 
+    try:
+        check_camera_names(list(cameras))
+    except JobInputError as exc:
+        raise UploadRejected(f"cameras: {exc}") from None
     if len(cameras) > settings.max_cameras:
         raise UploadRejected(f"cameras: {len(cameras)} cameras, more than the limit of {settings.max_cameras}")
     total = 0

@@ -86,7 +86,7 @@ def command(
 
     from fluidcore.jobs import parse_frames
 
-    with user_errors(ValueError):
+    with user_errors():
         if threads is not None:
             torch.set_num_threads(threads)
         chosen = _tasks(tasks)
@@ -195,11 +195,12 @@ class Protocol:
 
     def _predict(self, parent: Path, out: Path, frames: int, **interventions: Any) -> Any:
         from fluidcore import predict
+        from fluidcore.interaction import InteractionParams
         from fluidcore.runs import Run
 
         _log(f"continuing {parent.name} by {frames} frames {sorted(k for k, v in interventions.items() if v) or ''}")
         if any(interventions.values()):
-            return Run.open(predict.run_interact(parent, out, frames=frames, **interventions))
+            return Run.open(predict.run_interact(parent, out, InteractionParams(**interventions), frames=frames))
         return Run.open(predict.run_predict(parent, out, frames=frames))
 
     def _frames(self, start: int, stop: int) -> list[int]:

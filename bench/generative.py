@@ -174,7 +174,7 @@ def command(
 
     from fluidnexus.cli.errors import UserError, echo_json, user_errors
 
-    with user_errors(ValueError):
+    with user_errors():
         if size not in ("tiny", "full"):
             raise UserError(f"--size must be tiny or full, got {size!r}")
         if dtype is not None and dtype not in DTYPES:

@@ -1,6 +1,6 @@
 """Load on a live `fluidnexus serve` over loopback: pollers, listers and uploads at once (issue 16).
 
-    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--json]
+    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--computing] [--json]
 
 Starts `fluidnexus serve --no-worker` on 127.0.0.1 with a fresh data folder (`--backend
 postgres`: a fresh database on the local PostgreSQL and a key prefix of its own on the local
@@ -8,7 +8,8 @@ Redis, both removed afterwards), creates a key, a scene and one job, then for `-
   - `--clients` closed-loop clients, half polling the job (GET /v1/jobs/{id}), half listing
     (GET /v1/jobs/{id}/artifacts and GET /v1/jobs, alternately);
   - `--uploads` clients uploading a two-camera scene (POST /v1/scenes) again and again;
-  - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own.
+  - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own;
+  - with `--computing`, serve's embedded worker reconstructs the job meanwhile (issue 20).
 Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
 answers by class (2xx/4xx/5xx), timeouts and connection errors. Everything is bounded: the
 clients stop at the deadline, the server is stopped after, and nothing but 127.0.0.1 is
@@ -46,6 +47,7 @@ HOST = "127.0.0.1"  # loopback only: this benchmark never targets another addres
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 REDIS_URL = "redis://127.0.0.1:6379/0"
 HEALTH_PERIOD_S = 0.25
+NO_WORKER = "503_no_worker"  # /readyz of a server run --no-worker: every check ok but the worker's
 STARTUP_TIMEOUT_S = 60.0
 
 
@@ -56,6 +58,7 @@ class Server:
     job_id: str
     scene: dict[str, tuple[str, bytes, str]]  # multipart parts: field -> (filename, content, type)
     backend: str
+    worker: bool = False  # without one, /readyz answers 503 "no worker" by design (NO_WORKER)
 
 
 @dataclass
@@ -66,7 +69,7 @@ class RouteStats:
 
     def record(self, outcome: str, seconds: float, failure: str | None = None) -> None:
         self.classes[outcome] += 1
-        if outcome in ("2xx", "4xx", "5xx"):
+        if outcome in ("2xx", "4xx", "5xx", NO_WORKER):
             self.latencies.append(seconds)
         if failure is not None and len(self.examples) < 3:
             self.examples.append(failure)
@@ -83,7 +86,7 @@ class RouteStats:
             "p50_s": quantile(0.50),
             "p99_s": quantile(0.99),
             "max_s": ordered[-1] if ordered else None,
-            **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error")},
+            **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error", NO_WORKER)},
             "failures": self.examples,
         }
 
@@ -106,6 +109,18 @@ def tiny_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     parts = {"cameras": ("transforms.json", json.dumps({"frames": frames}).encode(), "application/json")}
     for name in ("left", "right"):
         parts[name] = (f"{name}.mp4", (folder / f"{name}.mp4").read_bytes(), "video/mp4")
+    return parts
+
+
+def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
+    """A synthetic plume (fluidcore.synth) that reconstructs: the job `--computing` keeps the worker
+    busy with (30 frames of 2 views at 48x64 outlast a 60 s load on 2 cores)."""
+    from fluidcore import synth
+
+    transforms = synth.write(synth.generate(synth.SynthSpec(frames=30, width=48, height=64, views=2)), folder / "plume")
+    parts = {"cameras": ("transforms.json", transforms.read_bytes(), "application/json")}
+    for path in sorted((transforms.parent / "videos").glob("*.mp4")):
+        parts[path.stem] = (path.name, path.read_bytes(), "video/mp4")
     return parts
 
 
@@ -155,8 +170,9 @@ def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
 
 
 @contextmanager
-def live_server(backend: str, log: Path | None = None) -> Iterator[Server]:
-    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job."""
+def live_server(backend: str, log: Path | None = None, worker: bool = False) -> Iterator[Server]:
+    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job
+    (`worker`: with its embedded worker, which computes the job while the load runs)."""
     import httpx
 
     fluidnexus = Path(sys.executable).with_name("fluidnexus")
@@ -167,18 +183,23 @@ def live_server(backend: str, log: Path | None = None) -> Iterator[Server]:
         port = free_port()
         base_url = f"http://{HOST}:{port}"
         out = (log or Path(tmp) / "server.log").open("w")
-        process = subprocess.Popen([fluidnexus, "serve", "--host", HOST, "--port", str(port), "--no-worker"],
-                                   env=env, stdout=out, stderr=subprocess.STDOUT)
+        serve = [fluidnexus, "serve", "--host", HOST, "--port", str(port), *([] if worker else ["--no-worker"])]
+        process = subprocess.Popen(serve, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             _wait_healthy(base_url, process)
             scene = tiny_scene(Path(tmp))
             headers = {"Authorization": f"Bearer {key}"}
             with httpx.Client(base_url=base_url, headers=headers, timeout=30) as client:
-                created = client.post("/v1/scenes", files=multipart(scene))
+                created = client.post("/v1/scenes", files=multipart(plume_scene(Path(tmp)) if worker else scene))
                 created.raise_for_status()
                 job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": created.json()["id"]})
                 job.raise_for_status()
-            yield Server(base_url, key, job.json()["id"], scene, backend)
+                deadline = time.monotonic() + STARTUP_TIMEOUT_S
+                while worker and client.get(f"/v1/jobs/{job.json()['id']}").json()["state"] == "queued":
+                    if time.monotonic() > deadline:  # the load must start with the job computing
+                        raise UserError(f"the embedded worker did not start the job within {STARTUP_TIMEOUT_S:g} s")
+                    time.sleep(0.2)
+            yield Server(base_url, key, job.json()["id"], scene, backend, worker)
         finally:
             process.send_signal(signal.SIGINT)
             try:
@@ -308,6 +329,8 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
                         response = probe.get(path)
                         outcome = f"{response.status_code // 100}xx"
                         failure = f"{response.status_code} {response.text[:200]}" if response.status_code >= 400 else None
+                        if path == "/readyz" and not server.worker and _only_the_worker_missing(response):
+                            outcome, failure = NO_WORKER, None
                     except httpx.TransportError as exc:
                         outcome, failure = "error", repr(exc)
                     stats[f"GET {path}"].record(outcome, time.perf_counter() - start, failure)
@@ -334,11 +357,22 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
     }
 
 
+def _only_the_worker_missing(response: Any) -> bool:
+    checks = response.json().get("checks", {}) if response.status_code == 503 else {}
+    return checks.get("worker", "ok") != "ok" and all(v == "ok" for k, v in checks.items() if k != "worker")
+
+
 def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
-    """The load phase against a `live_server`; returns the JSON result."""
+    """The load phase against a `live_server`; returns the JSON result, with the job's state at the end
+    (with `--computing`, "running" shows the worker computed through the whole load)."""
+    import httpx
+
     result = asyncio.run(_load(server, seconds, clients, uploads, timeout))
     result["load_average"] = os.getloadavg()
     result["cpus"] = os.cpu_count()
+    job = httpx.get(f"{server.base_url}/v1/jobs/{server.job_id}", headers={"Authorization": f"Bearer {server.key}"},
+                    timeout=30).json()
+    result["job_after"] = {"state": job["state"], "stage": job["stage"], "progress": job["progress"]}
     return result
 
 
@@ -350,17 +384,21 @@ def command(
     timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Per-request timeout, seconds."),
     server_log: Path | None = typer.Option(None, "--server-log", help="Keep the server's log here."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    computing: bool = typer.Option(
+        False, "--computing", help="Serve with the embedded worker, which computes the job during the load."
+    ),
 ) -> None:
     """Requests/s and p50/p99 per route under concurrent polling, listing and uploads."""
     with user_errors():
         if backend not in ("sqlite", "postgres"):
             raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
-        with live_server(backend, server_log) as server:
+        with live_server(backend, server_log, worker=computing) as server:
             result = run_load(server, seconds, clients, uploads, timeout)
     if json_out:
         echo_json(result)
         return
-    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s, timeout {timeout:g} s, "
+    computed = f", job {result['job_after']['state']} at {result['job_after']['progress']:.2f}" if computing else ""
+    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
           f"{result['cpus']} CPUs, load {result['load_average'][0]:.2f}")
     print(f"{'route':<30} {'req/s':>7} {'p50 s':>7} {'p99 s':>7} {'max s':>7} {'2xx':>6} {'4xx':>5} {'5xx':>5} {'t/o':>4} {'err':>4}")
     for route, r in result["routes"].items():

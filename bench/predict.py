@@ -68,7 +68,7 @@ def command(
     from fluidcore.reconstruct import get
     from fluidcore.reconstruct.job import run_reconstruct
 
-    with user_errors(ValueError):
+    with user_errors():
         cameras_path, cameras = load_scene(scene, threads)
         (name, given), = view_paths([input_view], "--input-view", scene).items()
         if name not in cameras:

@@ -52,7 +52,7 @@ def command(
     from fluidcore.reconstruct import get
     from fluidcore.reconstruct.job import run_reconstruct
 
-    with user_errors(ValueError):
+    with user_errors():
         cameras_path, cameras = load_scene(scene, threads)
         truths = view_paths(gt, "--gt", scene)
         if any(path is None for path in truths.values()):

@@ -17,9 +17,23 @@ from pathlib import Path
 
 import numpy as np
 
-from fluidcore.jobs import JobInputError, Progress, no_progress
+from fluidcore.jobs import JobContext, JobInputError, Progress, no_progress
 
 FrameDone = Callable[[], None]  # called after each rendered frame
+SCENE_VIDEOS = ("orbit", "side_by_side")  # render_artifacts' videos that belong to no camera
+REFINED_PREFIX = "refined_"
+
+
+def check_camera_names(names: Sequence[str]) -> None:
+    """Raise JobInputError when a camera's video would take the file name of another video of
+    `render_artifacts` (a camera named `orbit`, or `refined_x` beside `x`): two artifacts under
+    one name would make the job's publication fail. The API applies it to uploads, before any work."""
+    for name in names:
+        if name in SCENE_VIDEOS or (name.startswith(REFINED_PREFIX) and name[len(REFINED_PREFIX):] in names):
+            raise JobInputError(
+                f"camera {name!r}: its video would have the name of another video of the job "
+                f"({', '.join(SCENE_VIDEOS)}, {REFINED_PREFIX}<camera>); rename the camera"
+            )
 
 
 def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
@@ -136,12 +150,14 @@ def render_artifacts(
     reconstructed on the refined frames. Videos are `long_side` pixels on their long side
     (never upscaled; None: each camera's own size). `progress(fraction, "render")` after every
     rendered frame."""
+    from fluidcore.names import safe_join
     from fluidcore.runs import MANIFEST, REFINED_RUN, Run
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)
     if not run.frames():
         raise JobInputError(f"run: {run_dir} has no finished frames to render")
+    check_camera_names(list(cameras or run.cameras()))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     what_if = run.kind == "interact"
@@ -164,11 +180,11 @@ def render_artifacts(
     written, videos = [], {}
     for name, camera in own.items():
         videos[name] = render_frames(run, size(camera), interventions=what_if, on_frame=on_frame)
-        written.append(write_mp4(out / f"{name}.mp4", videos[name], fps=run.fps))
+        written.append(write_mp4(safe_join(out, f"{name}.mp4"), videos[name], fps=run.fps))
     orbit = render_orbit(run, interventions=what_if, on_frame=on_frame, size=size)
     written.append(write_mp4(out / "orbit.mp4", orbit, fps=run.fps))
     for name, camera in refined_cameras.items():
-        written.append(write_mp4(out / f"refined_{name}.mp4", render_frames(refined, size(camera), on_frame=on_frame), fps=refined.fps))
+        written.append(write_mp4(safe_join(out, f"{REFINED_PREFIX}{name}.mp4"), render_frames(refined, size(camera), on_frame=on_frame), fps=refined.fps))
     if what_if:
         name = run.manifest["input_views"][0]
         camera = size(run.cameras()[name])
@@ -212,5 +228,6 @@ def factual_frames(run, camera, device: str = "cpu", on_frame: FrameDone | None 
         return render_frames(parent, camera, frames, device, on_frame=on_frame)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-factual-") as tmp:
         branch = int(run.manifest["settings"]["branch_frame"])
-        factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch, device=device))
+        factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch,
+                                      context=JobContext(device=device)))
         return render_frames(factual, camera, frames, device, on_frame=on_frame)

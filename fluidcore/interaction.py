@@ -21,6 +21,8 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from fluidcore.errors import InputError
+
 Vec3 = tuple[float, float, float]
 
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
@@ -29,7 +31,7 @@ MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far p
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
-class InteractionError(ValueError):
+class InteractionError(InputError):
     """Counterfactual parameters that cannot be applied; the message names the field."""
 
 
@@ -178,22 +180,45 @@ class InteractionParams(BaseModel):
             self.ball.check_in_box(lo, hi)
 
 
-def parse_interaction(wind: str | Mapping[str, Any] | None, ball: str | Mapping[str, Any] | None) -> InteractionParams:
-    """Build validated parameters from JSON text or dicts, with one readable message on failure.
+class Intervention(InteractionParams):
+    """Wind, ball or both, and at least one: what a what-if applies (a prediction applies the empty
+    `InteractionParams`). The one home of that rule: the CLI, the prediction job and the API's
+    interact parameters (service.job_types) build this model, and its JSON Schema states the rule
+    (`anyOf`), so /openapi.json refuses what the API refuses."""
+
+    model_config = ConfigDict(json_schema_extra={"anyOf": [
+        {"required": [name], "properties": {name: {"not": {"type": "null"}}}} for name in ("wind", "ball")
+    ]})
+
+    @model_validator(mode="after")
+    def _wind_or_ball(self) -> Intervention:
+        if self.wind is None and self.ball is None:
+            raise ValueError(NEEDS_WIND_OR_BALL)
+        return self
+
+
+NEEDS_WIND_OR_BALL = "interact needs a wind, a ball or both (predict asks for neither)"
+
+Given = str | Mapping[str, Any] | BaseModel | None
+
+
+def parse_interaction(wind: Given, ball: Given, model: type[InteractionParams] = InteractionParams) -> InteractionParams:
+    """Build validated parameters (`model`: `Intervention` for a what-if) from JSON text, dicts or
+    the models themselves, with one readable message on failure.
 
     Pydantic's own message spans several lines with documentation links; the CLI and the API
     show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
     """
     fields = {"wind": _as_dict(wind, "wind"), "ball": _as_dict(ball, "ball")}
     try:
-        return InteractionParams(**fields)
+        return model(**fields)
     except ValidationError as exc:
         raise InteractionError(_describe(exc)) from None
 
 
-def _as_dict(value: str | Mapping[str, Any] | None, field: str) -> dict[str, Any] | None:
-    if value is None:
-        return None
+def _as_dict(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
+    if value is None or isinstance(value, BaseModel):
+        return value
     if isinstance(value, str):
         try:
             value = json.loads(value)
@@ -210,7 +235,7 @@ def _describe(exc: ValidationError) -> str:
         location = ""
         for key in error["loc"]:
             location += f"[{key}]" if isinstance(key, int) else (f".{key}" if location else str(key))
-        parts.append(f"{location}: {error['msg']}")
+        parts.append(f"{location}: {error['msg']}" if location else str(error["msg"]).removeprefix("Value error, "))
     return "; ".join(parts)
 
 

@@ -1,9 +1,10 @@
 """What every fluidcore job shares with its caller (the CLI, the worker, the benchmarks).
 
 A job (`fluidcore.reconstruct.job.run_reconstruct`, `fluidcore.predict.job.run_predict`, ...)
-writes a run folder frame by frame. It reports progress as (fraction, stage), asks
-`should_cancel()` between frames and raises `Cancelled` after its last checkpoint, so starting
-it again resumes; inputs it cannot run on raise `JobInputError`, whose message names the field.
+writes a run folder frame by frame under a `JobContext`: it computes on the context's device,
+reports progress to it as (fraction, stage), asks it `should_cancel()` between frames and raises
+`Cancelled` after its last checkpoint, so starting it again resumes; inputs it cannot run on
+raise `JobInputError`, a `fluidcore.errors.InputError` whose message names the field.
 
 Torch-free, so the worker and the API can name these without loading the science.
 """
@@ -11,6 +12,9 @@ Torch-free, so the worker and the API can name these without loading the science
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
+
+from fluidcore.errors import InputError
 
 Progress = Callable[[float, str], None]
 ShouldCancel = Callable[[], bool]
@@ -21,7 +25,7 @@ class Cancelled(Exception):
     """Raised when should_cancel() said so; the run folder holds every frame finished before."""
 
 
-class JobInputError(ValueError):
+class JobInputError(InputError):
     """Inputs a job cannot run on; the message names the field."""
 
 
@@ -29,16 +33,30 @@ def no_progress(fraction: float, stage: str) -> None:
     """The progress callback of a caller that does not listen."""
 
 
-def batch_progress(report: Progress, should_cancel: ShouldCancel | None, job: str) -> BatchProgress:
-    """For a stage that works in batches (the generative models): each finished batch is
-    reported as the stage's fraction done, and cancelling takes effect after it."""
+def never_cancel() -> bool:
+    """The cancellation check of a caller that never cancels."""
+    return False
 
-    def on_batch(stage: str, done: int, total: int) -> None:
-        report(done / max(total, 1), stage)
-        if should_cancel is not None and should_cancel():
-            raise Cancelled(f"{job} cancelled during {stage}; starting it again resumes where it stopped")
 
-    return on_batch
+@dataclass(frozen=True)
+class JobContext:
+    """Where a job computes and who watches it: the one thing every job entry takes besides its
+    inputs, so the CLI, the worker and the benchmarks hand the same three over the same way."""
+
+    device: str = "cpu"  # torch device of every tensor the job makes
+    progress: Progress = no_progress
+    should_cancel: ShouldCancel = never_cancel
+
+    def batch_progress(self, job: str) -> BatchProgress:
+        """For a stage that works in batches (the generative models): each finished batch is
+        reported as the stage's fraction done, and cancelling takes effect after it."""
+
+        def on_batch(stage: str, done: int, total: int) -> None:
+            self.progress(done / max(total, 1), stage)
+            if self.should_cancel():
+                raise Cancelled(f"{job} cancelled during {stage}; starting it again resumes where it stopped")
+
+        return on_batch
 
 
 def parse_frames(text: str | None) -> tuple[int, int] | None:

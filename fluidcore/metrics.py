@@ -37,6 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from fluidcore.errors import InputError
 from fluidcore.weights import find
 
 PSNR_CAP_DB = 100.0
@@ -48,7 +49,7 @@ LPIPS_BACKBONE = "lpips/alexnet.pth"
 LPIPS_BATCH = 8
 
 
-class MetricError(ValueError):
+class MetricError(InputError):
     """Inputs a metric cannot score (shape, range, NaN), or unreadable metric weights."""
 
 

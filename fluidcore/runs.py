@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 
 FORMAT = "fluidnexus-run"
@@ -69,7 +70,7 @@ REFINED_RUN = "refined"  # sub-run of a prediction: the reconstruction on its vi
 GAUSSIAN_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
 
 
-class RunError(ValueError):
+class RunError(InputError):
     """A run folder that is missing, damaged, or holds a different run than expected."""
 
 

@@ -25,13 +25,14 @@ import numpy as np
 import torch
 
 from fluidcore.cameras import Camera, look_at, write_transforms
+from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
 from fluidcore.render import Gaussians, render
 
 SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.identify)
 
 
-class SynthError(ValueError):
+class SynthError(InputError):
     """An invalid synthetic-scene spec; the message names the field."""
 
 

@@ -27,6 +27,7 @@ import av
 import numpy as np
 from av.video.reformatter import Interpolation
 
+from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 
 CRF = 18  # visually lossless for smoke; the shared benchmark files use the same
@@ -35,7 +36,7 @@ GREY_FRACTION = 0.999  # share of pixels that must be grey (a few noisy pixels d
 _COLORSPACES = {1: "itu709", 5: "itu601", 6: "itu601", 7: "smpte240m", 9: "bt2020"}  # AVColorSpace -> swscale
 
 
-class VideoError(ValueError):
+class VideoError(InputError):
     """A file is not a readable video, or a video request/write is invalid; the message says why."""
 
 

@@ -12,6 +12,8 @@ from __future__ import annotations
 import os
 from pathlib import Path, PurePath
 
+from fluidcore.errors import InputError
+
 ENV_VAR = "FLUIDNEXUS_MODELS"
 DEFAULT_DIR = "models"
 
@@ -25,10 +27,10 @@ def find(name: str, root: str | Path | None = None) -> Path | None:
     """`root / name` (root defaults to `weights_dir()`) if that file or folder exists, else None.
 
     `name` is a relative path inside the models folder; absolute names and `..` are refused
-    (ValueError) so a configured name can never point outside it.
+    (InputError) so a configured name can never point outside it.
     """
     relative = PurePath(name)
     if not name or relative.is_absolute() or ".." in relative.parts:
-        raise ValueError(f"weights name must be a relative path inside the models folder, got {name!r}")
+        raise InputError(f"weights name must be a relative path inside the models folder, got {name!r}")
     path = Path(root if root is not None else weights_dir()) / relative
     return path if path.exists() else None

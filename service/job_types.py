@@ -14,7 +14,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from fluidcore.interaction import BallParams, WindParams
+from fluidcore.interaction import Intervention
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
 from fluidcore.reconstruct.source_hint import SourceHint
 
@@ -51,22 +51,14 @@ class PredictParams(BaseModel):
     frames: int = Field(default=30, ge=1)
 
 
-class InteractParams(BaseModel):
-    """A counterfactual continuation of the parent run: wind, a ball, or both, for `frames` new
-    frames after the parent's frame `from_frame` (default: its last; 0 re-simulates the whole clip
-    with the intervention; docs/whatif.md)."""
+class InteractParams(Intervention):
+    """A counterfactual continuation of the parent run: wind, a ball, or both (`Intervention`, whose
+    rule the request schema states), for `frames` new frames after the parent's frame `from_frame`
+    (default: its last; 0 re-simulates the whole clip with the intervention; docs/whatif.md)."""
 
     model_config = _STRICT
     frames: int = Field(default=30, ge=1)
-    wind: WindParams | None = None
-    ball: BallParams | None = None
     from_frame: int | None = Field(default=None, ge=0)
-
-    @model_validator(mode="after")
-    def _something(self) -> InteractParams:
-        if self.wind is None and self.ball is None:
-            raise ValueError("interact needs wind, ball or both")
-        return self
 
 
 class ResimulateParams(BaseModel):

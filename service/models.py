@@ -123,6 +123,20 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+    # When the reaper last sent this queued job again because its broker message looked lost
+    # (service.queue.reap_stale); it waits a lease before sending it once more.
+    resent_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
+
+
+class WorkerBeat(Base):
+    """One live Celery worker (service.worker_beats): /readyz needs a recent heartbeat, and the
+    reaper reads `idle_since` to tell a lost broker message from a busy worker."""
+
+    __tablename__ = "worker_beats"
+
+    name: Mapped[str] = mapped_column(String(256), primary_key=True)  # host:pid of the Celery main process
+    heartbeat_at: Mapped[datetime] = mapped_column(UTCDateTime())
+    idle_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)  # None while it runs a job
 
 
 class Artifact(Base):

@@ -6,7 +6,7 @@ from __future__ import annotations
 from datetime import timedelta
 from typing import Protocol
 
-from sqlalchemy import select, update
+from sqlalchemy import or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from service.celery_app import make_celery, task_name
@@ -58,7 +58,8 @@ def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: 
     lost the broker or the database for longer than the lease (its fencing token stops it when it
     comes back). The next claim resumes from the checkpoints, or fails the job once it has used
     up its attempts. Each job is taken by one conditional UPDATE, so concurrent reapers (one per
-    API process) send it once. Returns the job ids."""
+    API process) send it once. Then send again the queued jobs whose message was lost
+    (`_resend_lost`). Returns the job ids."""
     cutoff = utcnow() - timedelta(seconds=lease_seconds)
     with session_scope(sessions) as session:
         stale = session.execute(
@@ -70,12 +71,45 @@ def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: 
             taken = session.execute(
                 update(Job)
                 .where(Job.id == job_id, Job.state == JobState.RUNNING, Job.lease_token == token, Job.heartbeat_at < cutoff)
-                .values(state=JobState.QUEUED, stage=RESUME_STAGE, heartbeat_at=None)
+                .values(state=JobState.QUEUED, stage=RESUME_STAGE, heartbeat_at=None, resent_at=utcnow())
             ).rowcount
         if taken:
             queue.enqueue(job_id, JobType(job_type))
             reaped.append(job_id)
-    return reaped
+    return reaped + _resend_lost(sessions, queue, lease_seconds)
+
+
+def _resend_lost(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: float) -> list[str]:
+    """Send again the queued jobs (sent once, not waiting on a parent) that have waited a lease while
+    a live worker sat idle for that whole lease: an idle worker takes a message at once, so theirs
+    was lost (a broker restarted without persistence, a purged queue, a worker killed holding its
+    prefetched message). Sending twice is safe: the claim's fencing token lets one runner run the
+    job, and a message for a job already running or finished is dropped. Each job is sent at most
+    once a lease, taken by a conditional UPDATE on `resent_at` so concurrent reapers send it once."""
+    from service.chaining import SENDING  # service.chaining imports this module
+    from service.worker_beats import idle_for_a_lease
+
+    cutoff = utcnow() - timedelta(seconds=lease_seconds)
+    with session_scope(sessions) as session:
+        if not idle_for_a_lease(session, lease_seconds):
+            return []
+        lost = session.execute(
+            select(Job.id, Job.type, Job.resent_at).where(
+                Job.state == JobState.QUEUED, Job.task_id.is_not(None), Job.task_id != SENDING,
+                Job.created_at < cutoff, or_(Job.resent_at.is_(None), Job.resent_at < cutoff),
+            )
+        ).all()
+    resent = []
+    for job_id, job_type, resent_at in lost:
+        with session_scope(sessions) as session:
+            unchanged = Job.resent_at.is_(None) if resent_at is None else Job.resent_at == resent_at
+            taken = session.execute(
+                update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED, unchanged).values(resent_at=utcnow())
+            ).rowcount
+        if taken:
+            queue.enqueue(job_id, JobType(job_type))
+            resent.append(job_id)
+    return resent
 
 
 def requeue_orphans(sessions: sessionmaker[Session], queue: JobQueue) -> list[str]:

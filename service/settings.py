@@ -96,6 +96,11 @@ class Settings(BaseSettings):
         description="'module:attribute' of a dict replacing the fluidcore job runners; test doubles only",
     )
 
+    webhook_allow_private: bool = Field(
+        default=False,
+        description="let webhooks reach loopback, private, link-local and metadata addresses (service.webhooks)",
+    )
+
     migrate_on_start: bool = True
     web_dir: Path = Path(__file__).resolve().parents[1] / "web"
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from service.settings import Settings
 from fluidcore.files import atomic_output
+from fluidcore.names import safe_join
 
 CHUNK = 1024 * 1024
 
@@ -49,7 +50,7 @@ def scene_prefix(scene_id: str) -> str:
 
 def job_prefix(job_id: str) -> str:
     """A job: `run/` is its run folder (checkpoints, states, manifest), `videos/` its rendered
-    MP4s, `exports/` its last frame in every export format."""
+    MP4s, `exports/` its last frame in every export format and every frame as VDB."""
     return f"jobs/{job_id}"
 
 
@@ -63,8 +64,8 @@ def log_key(job_id: str) -> str:
 
 
 def check_key(key: str) -> str:
-    """Reject absolute keys, '..' and empty parts: a key is a plain relative path."""
-    if not key or "\\" in key or any(part in ("", ".", "..") for part in key.split("/")):
+    """Reject absolute keys, '..', empty parts, backslashes and NUL: a key is a plain relative path."""
+    if not key or "\\" in key or "\0" in key or any(part in ("", ".", "..") for part in key.split("/")):
         raise InvalidKey(f"invalid storage key {key!r}")
     return key
 
@@ -134,7 +135,7 @@ class LocalStorage(Storage):
         self.root.mkdir(parents=True, exist_ok=True)
 
     def _path(self, key: str) -> Path:
-        return self.root / check_key(key)
+        return safe_join(self.root, check_key(key))
 
     def put_file(self, key: str, path: Path, content_type: str = "application/octet-stream") -> None:
         target = self._path(key)

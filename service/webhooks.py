@@ -7,6 +7,13 @@ The signature follows the Standard Webhooks convention (also Replicate's): heade
 owner's webhook secret, `whsec_` + base64, derived from the server's signing key and the owner, so
 it survives restarts and each owner sees only their own (GET /v1/webhook-secret). A receiver
 recomputes the HMAC and rejects old timestamps.
+
+Targets are the owner's URLs, so they are checked against internal addresses (loopback, private,
+link-local, multicast, reserved, cloud metadata such as 169.254.169.254 and fd00:ec2::254):
+when the job is created (`check_target`, a 422) and again for the address each connection
+actually reaches (a name may resolve elsewhere by then: DNS rebinding). Redirects are never
+followed. `FLUIDNEXUS_WEBHOOK_ALLOW_PRIVATE` lifts the address rule (tests, a receiver on the
+same machine or network).
 """
 
 from __future__ import annotations
@@ -14,18 +21,103 @@ from __future__ import annotations
 import base64
 import hashlib
 import hmac
+import http.client
+import ipaddress
 import json
 import logging
+import socket
 import threading
 import time
 import urllib.request
 from collections.abc import Sequence
 from typing import Any
+from urllib.parse import urlsplit
 
 log = logging.getLogger(__name__)
 
 RETRY_DELAYS_S = (0.0, 2.0, 10.0, 30.0)  # first try at once, then back off; ~42 s in all
 TIMEOUT_S = 10.0
+
+
+class RefusedTarget(ValueError):
+    """A webhook URL whose host is, or resolves to, an internal address; the message says which."""
+
+
+def refused_address(address: str) -> str | None:
+    """Why `address` (an IP literal) is not a public unicast address, or None when it is one."""
+    ip = ipaddress.ip_address(address.split("%", 1)[0])  # an IPv6 zone index is not part of the address
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    for kind in ("loopback", "link_local", "multicast", "private", "reserved", "unspecified"):
+        if getattr(ip, f"is_{kind}"):
+            return f"{ip} is a {kind.replace('_', '-')} address"
+    if not ip.is_global:  # shared (100.64/10, where some clouds put their metadata), documentation, ...
+        return f"{ip} is not a public address"
+    return None
+
+
+def check_target(url: str, allow_private: bool) -> None:
+    """Raise RefusedTarget unless every address the URL's host resolves to is public."""
+    if not allow_private:
+        _resolve_public(urlsplit(url).hostname or "", 0)
+
+
+def _resolve_public(host: str, port: int) -> list[str]:
+    """The host's addresses, all checked: one internal address refuses the host (a resolver may
+    hand them out in any order)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise RefusedTarget(f"host {host!r} does not resolve ({exc})") from None
+    addresses = [str(info[4][0]) for info in infos]
+    for address in addresses:
+        reason = refused_address(address)
+        if reason is not None:
+            raise RefusedTarget(f"host {host!r}: {reason}; set FLUIDNEXUS_WEBHOOK_ALLOW_PRIVATE to allow it")
+    return addresses
+
+
+def _public_connection(address: tuple[str, int], timeout: float | None = None,
+                       source_address: tuple[str, int] | None = None) -> socket.socket:
+    """`socket.create_connection` to an address checked now, at connect time."""
+    host, port = address
+    return socket.create_connection((_resolve_public(host, port)[0], port), timeout, source_address)
+
+
+class _PublicHTTPConnection(http.client.HTTPConnection):
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._create_connection = _public_connection  # http.client's seam for opening the socket
+
+
+class _PublicHTTPSConnection(http.client.HTTPSConnection):
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._create_connection = _public_connection  # TLS still checks the certificate against the name
+
+
+class _PublicHTTPHandler(urllib.request.HTTPHandler):
+    def http_open(self, req: urllib.request.Request) -> http.client.HTTPResponse:
+        return self.do_open(_PublicHTTPConnection, req)
+
+
+class _PublicHTTPSHandler(urllib.request.HTTPSHandler):
+    def https_open(self, req: urllib.request.Request) -> http.client.HTTPResponse:
+        return self.do_open(_PublicHTTPSConnection, req, context=self._context)
+
+
+class _NoRedirects(urllib.request.HTTPRedirectHandler):
+    """A 3xx is an answer like any other non-2xx (an HTTPError): never followed, wherever it points."""
+
+    def redirect_request(self, *args: Any, **kwargs: Any) -> None:
+        return None
+
+
+def _opener(allow_private: bool) -> urllib.request.OpenerDirector:
+    handlers: list[urllib.request.BaseHandler] = [_NoRedirects()]
+    if not allow_private:
+        handlers += [_PublicHTTPHandler(), _PublicHTTPSHandler()]
+    return urllib.request.build_opener(*handlers)
 
 
 def owner_secret(server_key: bytes, owner: str) -> str:
@@ -52,9 +144,11 @@ def payload(job: Any) -> dict[str, Any]:
 
 
 def deliver(url: str, secret: str, message_id: str, body: dict[str, Any],
-            delays: Sequence[float] = RETRY_DELAYS_S) -> bool:
-    """POST `body` until a 2xx answer or the retries run out; True when delivered."""
+            delays: Sequence[float] = RETRY_DELAYS_S, allow_private: bool = False) -> bool:
+    """POST `body` until a 2xx answer or the retries run out; True when delivered. A target that
+    resolves to an internal address is refused at each attempt, like a receiver that is down."""
     data = json.dumps(body, sort_keys=True).encode()
+    opener = _opener(allow_private)
     for attempt, delay in enumerate(delays, start=1):
         time.sleep(delay)
         timestamp = int(time.time())
@@ -63,19 +157,20 @@ def deliver(url: str, secret: str, message_id: str, body: dict[str, Any],
             "webhook-signature": sign(secret, message_id, timestamp, data),
         })
         try:
-            with urllib.request.urlopen(request, timeout=TIMEOUT_S) as response:  # noqa: S310 - the owner's URL
+            with opener.open(request, timeout=TIMEOUT_S) as response:
                 if 200 <= response.status < 300:
                     return True
                 status = str(response.status)
-        except OSError as exc:  # HTTPError (non-2xx), refused, timed out, DNS
+        except (OSError, RefusedTarget) as exc:  # HTTPError (non-2xx, 3xx included), refused, timed out, DNS
             status = str(getattr(exc, "code", exc))
         log.warning("webhook %s to %s: attempt %d of %d failed (%s)", message_id, url, attempt, len(delays), status)
     return False
 
 
-def deliver_in_background(url: str, secret: str, message_id: str, body: dict[str, Any]) -> threading.Thread:
+def deliver_in_background(url: str, secret: str, message_id: str, body: dict[str, Any],
+                          allow_private: bool = False) -> threading.Thread:
     """`deliver` on a thread, so the worker takes its next job while a slow receiver is retried."""
-    thread = threading.Thread(target=deliver, args=(url, secret, message_id, body), name=f"webhook-{message_id}",
-                              daemon=True)
+    thread = threading.Thread(target=deliver, args=(url, secret, message_id, body),
+                              kwargs={"allow_private": allow_private}, name=f"webhook-{message_id}", daemon=True)
     thread.start()
     return thread

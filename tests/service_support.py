@@ -206,7 +206,7 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     import os
     import time
 
-    from worker.runners import JobCancelled
+    from fluidcore.jobs import Cancelled
 
     params = inputs.params
     if n_frames is None:
@@ -226,7 +226,7 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
         if state.exists():
             continue
         if inputs.should_cancel():
-            raise JobCancelled(f"cancelled before frame {t}")
+            raise Cancelled(f"cancelled before frame {t}")
         time.sleep(float(os.environ.get("FAKE_FRAME_SECONDS", "0")))
         np.savez(state, positions=np.full((3, 3), t, dtype=np.float32))
         manifest = {"kind": inputs.job_type, "frames": [{"t": i} for i in range(t + 1)], "parent": parent}

@@ -18,6 +18,7 @@ from api.auth import create_key
 from service.database import session_scope
 from service.models import Artifact, Job, JobState, Scene
 from service.settings import Settings
+from service.worker_beats import WorkerBeacon
 from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -122,9 +123,15 @@ print(sorted(m for m in sys.modules if m == "torch" or m.startswith("torch.")))
 def test_health_ready_and_web_page(sqlite_service: Service) -> None:
     client = sqlite_service.client
     assert client.get("/healthz").json() == {"status": "ok", "checks": {}}
+    no_worker = client.get("/readyz")  # issue 20 item 3: jobs sent now would only wait
+    assert no_worker.status_code == 503 and no_worker.json()["checks"]["worker"].startswith("error: no worker")
+    beacon = WorkerBeacon(sqlite_service.sessions, "host:1", period_s=60)
+    beacon.beat()
     ready = client.get("/readyz")
     assert ready.status_code == 200
-    assert ready.json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok"}
+    assert ready.json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok", "worker": "ok"}
+    beacon.stop()  # a worker that shut down is not counted
+    assert client.get("/readyz").status_code == 503
     page = client.get("/")
     assert page.status_code == 200 and "/docs" in page.text
     assert client.get("/openapi.json").json()["info"]["title"] == "FluidNexus"
@@ -340,7 +347,7 @@ def test_continuations_need_a_succeeded_parent(service: Service, scene_id: str) 
     further = service.client.post("/v1/jobs", json=chained, headers=alice)  # runs continue runs of any kind
     assert further.status_code == 202 and further.json()["parent_job_id"] == created.json()["id"]
 
-    for bad, field in (({"frames": 10}, "wind, ball or both"),
+    for bad, field in (({"frames": 10}, "a wind, a ball or both"),
                        ({"frames": 10, "wind": {"direction": [0, 0, 0], "strength": 1}}, "direction"),
                        ({"frames": 100000, "ball": {"center": [0, 0.5, 0], "radius": 0.1}}, "frames"),
                        ({"frames": 10, "ball": {"center": [3, 0.5, 0], "radius": 0.1}}, "ball")):  # outside the box
@@ -371,6 +378,26 @@ def test_broker_down_fails_the_job_with_503(tmp_path: Path, scene_dir: dict[str,
         assert response.status_code == 503 and "broker" in response.json()["detail"]
         jobs = service.client.get("/v1/jobs", headers=alice).json()["items"]
         assert [j["state"] for j in jobs] == ["failed"]
+
+
+def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
+    tmp_path: Path, scene_dir: dict[str, Path]
+) -> None:
+    """Issue 20 item 4: the retry a 503 invites (same Idempotency-Key, broker back) creates and queues
+    a job; it used to replay the failed one with `Idempotent-Replayed: true` forever."""
+    queue = RecordingQueue(fail=True)
+    for service in make_service(tmp_path, queue=queue):
+        alice = service.key("alice")
+        scene = upload(service, alice, scene_dir).json()["id"]
+        body = {"type": "reconstruct", "scene_id": scene, "params": {}}
+        key = {**alice, "Idempotency-Key": "k"}
+        assert service.client.post("/v1/jobs", json=body, headers=key).status_code == 503
+        queue.fail = False
+        retried = service.client.post("/v1/jobs", json=body, headers=key)
+        assert retried.status_code == 202 and "idempotent-replayed" not in retried.headers
+        assert retried.json()["state"] == "queued" and queue.sent == [(retried.json()["id"], "reconstruct")]
+        replayed = service.client.post("/v1/jobs", json=body, headers=key)  # now the key is bound to it
+        assert replayed.headers["idempotent-replayed"] == "true" and replayed.json()["id"] == retried.json()["id"]
 
 
 @pytest.mark.parametrize(

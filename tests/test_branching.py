@@ -11,7 +11,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from fluidcore.interaction import parse_interaction
+from fluidcore.interaction import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact, run_predict
 from fluidcore.runs import Run
 from fluidnexus.cli import app
@@ -33,7 +33,7 @@ def _mean_x(run: Run, t: int) -> float:
 
 def test_mid_clip_branch_starts_from_that_frame(parent: Path, tmp_path: Path) -> None:
     factual = Run.open(run_predict(parent, tmp_path / "factual", frames=5, from_frame=BRANCH))
-    windy = Run.open(run_interact(parent, tmp_path / "windy", frames=5, wind=WIND, from_frame=BRANCH))
+    windy = Run.open(run_interact(parent, tmp_path / "windy", InteractionParams(wind=WIND), frames=5, from_frame=BRANCH))
     assert windy.frames() == factual.frames() == list(range(BRANCH + 1, BRANCH + 6))
     assert windy.manifest["settings"]["branch_frame"] == BRANCH
     assert windy.parent.path.resolve() == parent.resolve()
@@ -46,7 +46,7 @@ def test_mid_clip_branch_starts_from_that_frame(parent: Path, tmp_path: Path) ->
 
 def test_branch_at_frame_zero_resimulates_the_clip_with_the_ball(parent: Path, tmp_path: Path) -> None:
     factual = Run.open(run_predict(parent, tmp_path / "factual0", frames=7, from_frame=0))
-    ball = Run.open(run_interact(parent, tmp_path / "ball0", frames=7, ball=BALL, from_frame=0))
+    ball = Run.open(run_interact(parent, tmp_path / "ball0", InteractionParams(ball=BALL), frames=7, from_frame=0))
     assert ball.frames() == list(range(1, 8)) and ball.manifest["settings"]["branch_frame"] == 0
     # buoyancy and look are identified on the whole observed window, not on the single frame 0
     assert ball.manifest["settings"]["identified_on_frame"] == Run.open(parent).frames()[-1]
@@ -58,7 +58,7 @@ def test_branch_at_frame_zero_resimulates_the_clip_with_the_ball(parent: Path, t
 
 def test_branch_frame_must_be_a_finished_frame(parent: Path, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="from_frame must be a finished frame"):
-        run_interact(parent, tmp_path / "late", frames=2, wind=WIND, from_frame=99)
+        run_interact(parent, tmp_path / "late", InteractionParams(wind=WIND), frames=2, from_frame=99)
     assert not (tmp_path / "late").exists()
     wind = json.dumps({"direction": [1, 0, 0], "strength": 0.3})
     result = CliRunner().invoke(app, ["interact", str(parent), "--frames", "2", "--wind", wind, "--from-frame", "99",

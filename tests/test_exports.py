@@ -1,5 +1,6 @@
-"""fluidcore.exports and `fluidnexus export --format`: the 3DGS PLY read back with plyfile, and
-density volumes (npz, NRRD) whose mass is the particles' mass."""
+"""fluidcore.exports and `fluidnexus export --format`: the 3DGS PLY read back with plyfile,
+density volumes (npz, NRRD) whose mass is the particles' mass, the default (last) frame, and
+numbered sequences with `--frames` (tests/test_vdb.py reads the OpenVDB files back)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import pytest
 from plyfile import PlyData
 from typer.testing import CliRunner
 
-from fluidcore.exports import EXPORTERS, SH_C0, ExportError, density_grid
+from fluidcore.exports import EXPORTERS, MAX_SEQUENCE_FRAMES, SH_C0, ExportError, density_grid
 from fluidcore.runs import Run
 from fluidnexus.cli import app
 
 runner = CliRunner()
+TOO_MANY = MAX_SEQUENCE_FRAMES + 1
 
 
 def _ok(args: list[str]) -> str:
@@ -86,28 +88,76 @@ def test_nrrd_holds_the_same_grid(run_dir, tmp_path):
         np.testing.assert_allclose(origin, data["origin"])
 
 
-def test_density_grid_is_mass_conserving_anywhere_in_a_voxel():
+def test_density_grid_is_mass_conserving_anywhere_in_a_voxel(monkeypatch):
     rng = np.random.default_rng(0)
     points = rng.uniform(0.0, 1.0, (200, 3))
     grid = density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.05)
     assert grid.total_mass() == pytest.approx(200 * 0.05**3, rel=1e-9)
+    monkeypatch.setattr("fluidcore.exports.PARTICLE_CHUNK", 7)  # splatted 7 particles at a time: the same grid
+    np.testing.assert_allclose(density_grid(points, 0.1, np.zeros(3), np.ones(3), 0.05).density, grid.density, rtol=1e-6)
     with pytest.raises(ExportError, match="spacing"):
         density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.2)
 
 
 def test_bad_format_and_frame_are_one_line_errors(run_dir, tmp_path):
-    result = runner.invoke(app, ["export", str(run_dir), "--frame", "1", "--format", "vdb", "--out", str(tmp_path / "x")])
+    result = runner.invoke(app, ["export", str(run_dir), "--frame", "1", "--format", "obj", "--out", str(tmp_path / "x")])
     assert result.exit_code == 2 and f"format must be one of {', '.join(EXPORTERS)}" in result.output
     result = runner.invoke(app, ["export", str(run_dir), "--frame", "9", "--format", "ply", "--out", str(tmp_path / "x.ply")])
     assert result.exit_code == 2 and "frame 9 is not a finished frame" in result.output
     assert not (tmp_path / "x.ply").exists()
 
 
-def test_export_artifacts_hold_the_last_frame_in_every_format(run_dir, tmp_path):
+def test_export_artifacts_hold_the_last_frame_in_every_format_and_every_frame_as_vdb(run_dir, tmp_path):
     from fluidcore.exports import export_artifacts
 
     files = export_artifacts(run_dir, tmp_path / "exports")
     assert sorted(p.name for p in files) == sorted(
-        ["frame_000001.npz", "frame_000001.ply", "frame_000001.density.npz", "frame_000001.nrrd"]
+        ["state_000001.npz", "splats_000001.ply", "density_000001.npz", "density_000001.nrrd",
+         "smoke_000000.vdb", "smoke_000001.vdb"]
     )
     assert all(p.stat().st_size > 0 for p in files)
+
+
+def test_export_writes_the_last_frame_unless_told(run_dir, tmp_path):
+    report = json.loads(_ok(["export", str(run_dir), "--format", "npz", "--out", str(tmp_path / "last.npz"), "--json"]))
+    assert report["frame"] == 1 == Run.open(run_dir).frames()[-1]
+    with np.load(tmp_path / "last.npz") as data:
+        np.testing.assert_array_equal(data["positions"], Run.open(run_dir).read_frame(1).export()["positions"])
+
+
+@pytest.mark.parametrize(("fmt", "names"), [
+    ("ply", ["splats_000000.ply", "splats_000001.ply"]),
+    ("nrrd", ["density_000000.nrrd", "density_000001.nrrd"]),
+    ("density", ["density_000000.npz", "density_000001.npz"]),
+])
+def test_frames_write_a_numbered_sequence(run_dir, tmp_path, fmt, names):
+    out = tmp_path / "seq"
+    report = json.loads(_ok(["export", str(run_dir), "--frames", "0:2", "--format", fmt, "--out", str(out), "--json"]))
+    assert report["files"] == names and sorted(p.name for p in out.iterdir()) == names
+    one = tmp_path / f"one{EXPORTERS[fmt].suffix}"
+    _ok(["export", str(run_dir), "--frame", "1", "--format", fmt, "--out", str(one)])
+    if fmt == "density":  # a zip archive: its members carry the time they were written
+        with np.load(out / names[1]) as seq, np.load(one) as single:
+            assert seq["density"].any() and np.array_equal(seq["density"], single["density"])
+    else:
+        assert (out / names[1]).read_bytes() == one.read_bytes()  # the sequence's frame 1 is frame 1
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--frames", "0:3"], "frames 0:3: frame 2 is not a finished frame"),
+    (["--frames", "1:1"], "frames must satisfy 0 <= START < END"),
+    (["--frames", "a:b"], "frames must look like START:END"),
+    (["--frames", f"0:{TOO_MANY}"], f"frames 0:{TOO_MANY} is {TOO_MANY} frames; a sequence holds at most {MAX_SEQUENCE_FRAMES}"),
+    (["--frames", "0:1", "--frame", "0"], "give --frame (one file) or --frames START:END (a sequence), not both"),
+])
+def test_bad_frame_ranges_are_refused_before_writing(run_dir, tmp_path, args, message):
+    result = runner.invoke(app, ["export", str(run_dir), "--format", "ply", "--out", str(tmp_path / "seq"), *args])
+    assert result.exit_code == 2 and f"error: {message}" in result.output, result.output
+    assert not (tmp_path / "seq").exists()
+
+
+def test_a_sequence_into_a_file_is_refused(run_dir, tmp_path):
+    (tmp_path / "taken").write_text("mine")
+    result = runner.invoke(app, ["export", str(run_dir), "--frames", "0:1", "--format", "ply", "--out", str(tmp_path / "taken")])
+    assert result.exit_code == 2 and "is a file; a sequence goes into a folder" in result.output
+    assert (tmp_path / "taken").read_text() == "mine"

@@ -80,7 +80,7 @@ def test_single_view_reconstruction_fits_generated_views_from_the_input_view_onl
     seen: list[tuple[float, str]] = []
     out = reconstruct_job.run_reconstruct(
         scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK,
-        generative=settings(tiny_models), progress=lambda fraction, stage: seen.append((fraction, stage)),
+        generative=settings(tiny_models), context=jobs.JobContext(progress=lambda fraction, stage: seen.append((fraction, stage))),
     )
     manifest = Run.open(out).manifest
     views = manifest["settings"]["views"]
@@ -120,7 +120,7 @@ def test_cancelling_during_generation_raises_the_jobs_cancel(scene: Path, tiny_m
     with pytest.raises(jobs.Cancelled, match="during novel views"):
         reconstruct_job.run_reconstruct(
             scene / "transforms.json", {INPUT: scene / "videos" / f"{INPUT}.mp4"}, tmp_path / "run", quality=QUICK,
-            generative=settings(tiny_models), should_cancel=lambda: True,
+            generative=settings(tiny_models), context=jobs.JobContext(should_cancel=lambda: True),
         )
 
 
@@ -131,7 +131,7 @@ def test_prediction_refines_its_future_and_reconstructs_on_it(scene: Path, tiny_
     )
     seen: list[str] = []
     out = predict_job.run_predict(parent, tmp_path / "pred", frames=3, generative=settings(tiny_models),
-                                  progress=lambda fraction, stage: seen.append(stage))
+                                  context=jobs.JobContext(progress=lambda fraction, stage: seen.append(stage)))
     run = Run.open(out)
     assert run.frames() == [2, 3, 4]
     assert run.manifest["refinement"].startswith("refined 1 videos with cogvideox (strength 0.75, 1 of 2 steps")
@@ -191,7 +191,7 @@ def test_a_resumed_reconstruction_reads_its_generated_views_back(
     done_frames = lambda: len(Run.open(stopped).frames()) if (stopped / "manifest.json").exists() else 0  # noqa: E731
     with pytest.raises(jobs.Cancelled):
         reconstruct_job.run_reconstruct(*args, stopped, quality=QUICK, generative=settings(tiny_models),
-                                        should_cancel=lambda: done_frames() >= 1)
+                                        context=jobs.JobContext(should_cancel=lambda: done_frames() >= 1))
     assert Run.open(stopped).frames() == [0]
     assert sorted(p.name for p in (stopped / stages.GENERATED_DIR).iterdir()) == sorted(["views.json", *(f"{n}.npz" for n in HELD_OUT)])
 

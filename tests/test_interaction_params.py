@@ -131,3 +131,28 @@ def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
         InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="run scene: malformed"):
         InteractionParams().check_scene({"box": {}}, frames=10)
+
+
+def test_a_what_if_needs_wind_or_ball_and_its_schema_says_so() -> None:
+    """Issue 20 item 9: one rule (`Intervention`), stated in the JSON Schema the API publishes, so a
+    schema-valid interact request is never refused for asking for neither."""
+    import jsonschema
+
+    from fluidcore.interaction import Intervention
+    from service.job_types import InteractParams
+
+    assert InteractionParams().wind is None  # a prediction asks for neither
+    with pytest.raises(InteractionError, match="needs a wind, a ball or both"):
+        parse_interaction(None, None, Intervention)
+    wind = {"direction": [1.0, 0.0, 0.0], "strength": 0.1}
+    schema = InteractParams.model_json_schema()
+    for params, valid in (({"frames": 3}, False), ({"frames": 3, "wind": None, "ball": None}, False),
+                          ({"frames": 3, "wind": wind}, True)):
+        errors = list(jsonschema.Draft202012Validator(schema).iter_errors(params))
+        assert (not errors) == valid, (params, errors)
+        try:
+            InteractParams.model_validate(params)
+            accepted = True
+        except ValueError:
+            accepted = False
+        assert accepted == valid, params  # the model and its schema agree

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from fluidcore.interaction import BallParams, InteractionError, WindParams, parse_interaction
+from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
 from fluidcore.predict.job import run_interact, run_predict
 from fluidcore.runs import Run
 from predict_scenes import horizontal_distance, live, plume_run
@@ -36,7 +36,7 @@ def test_wind_pushes_the_centre_of_mass_along_itself_monotonically_in_strength(p
     shifts = [float(last_positions(calm).mean(0) @ direction)]
     for strength in (0.05, 0.1, 0.2):
         wind = {"direction": direction.tolist(), "strength": strength}
-        run = Run.open(run_interact(parent, tmp_path / f"wind{strength}", frames=FRAMES, wind=WindParams(**wind)))
+        run = Run.open(run_interact(parent, tmp_path / f"wind{strength}", InteractionParams(wind=WindParams(**wind)), frames=FRAMES))
         positions = last_positions(run)
         shifts.append(float(positions.mean(0) @ direction))
         sideways = positions.mean(0) - float(positions.mean(0) @ direction) * direction
@@ -46,7 +46,7 @@ def test_wind_pushes_the_centre_of_mass_along_itself_monotonically_in_strength(p
 
 def test_wind_acts_only_inside_its_frame_window(parent: Path, calm: Run, tmp_path: Path) -> None:
     wind = {"direction": [1.0, 0.0, 0.0], "strength": 0.2, "start_frame": 4, "end_frame": 8}
-    run = Run.open(run_interact(parent, tmp_path / "gust", frames=10, wind=WindParams(**wind)))
+    run = Run.open(run_interact(parent, tmp_path / "gust", InteractionParams(wind=WindParams(**wind)), frames=10))
     frames = run.frames()
     for k in range(4):  # before the gust: exactly the calm prediction
         assert torch.equal(live(run.read_frame(frames[k])), live(calm.read_frame(frames[k])))
@@ -59,7 +59,7 @@ def test_wind_acts_only_inside_its_frame_window(parent: Path, calm: Run, tmp_pat
 
 
 def test_no_particle_is_ever_inside_the_ball_and_the_plume_goes_around_it(parent: Path, calm: Run, tmp_path: Path) -> None:
-    run = Run.open(run_interact(parent, tmp_path / "ball", frames=FRAMES, ball=BallParams(**BALL)))
+    run = Run.open(run_interact(parent, tmp_path / "ball", InteractionParams(ball=BallParams(**BALL)), frames=FRAMES))
     center = torch.tensor(BALL["center"])
     for t in run.frames():
         saved = run.read_frame(t)
@@ -76,7 +76,7 @@ def test_no_particle_is_ever_inside_the_ball_and_the_plume_goes_around_it(parent
 
 def test_a_moving_ball_arriving_later_changes_nothing_before_it_arrives(parent: Path, calm: Run, tmp_path: Path) -> None:
     ball = {**BALL, "center": [-0.15, 0.2, 0.0], "velocity": [0.3, 0.0, 0.0], "start_frame": 5}
-    run = Run.open(run_interact(parent, tmp_path / "thrown", frames=10, ball=BallParams(**ball)))
+    run = Run.open(run_interact(parent, tmp_path / "thrown", InteractionParams(ball=BallParams(**ball)), frames=10))
     frames = run.frames()
     for k in range(5):
         assert torch.equal(live(run.read_frame(frames[k])), live(calm.read_frame(frames[k])))
@@ -88,7 +88,8 @@ def test_a_moving_ball_arriving_later_changes_nothing_before_it_arrives(parent: 
 
 def test_wind_and_ball_at_once(parent: Path, calm: Run, tmp_path: Path) -> None:
     wind = {"direction": [1.0, 0.0, 0.0], "strength": 0.1}
-    run = Run.open(run_interact(parent, tmp_path / "both", frames=FRAMES, wind=WindParams(**wind), ball=BallParams(**BALL)))
+    both = InteractionParams(wind=WindParams(**wind), ball=BallParams(**BALL))
+    run = Run.open(run_interact(parent, tmp_path / "both", both, frames=FRAMES))
     positions = last_positions(run)
     assert float(positions[:, 0].mean()) > float(last_positions(calm)[:, 0].mean())
     assert torch.linalg.vector_norm(positions - torch.tensor(BALL["center"]), dim=1).min() >= BALL["radius"] * (1 - 1e-5)
@@ -111,7 +112,7 @@ def test_invalid_interactions_are_refused_before_anything_is_written(
 ) -> None:
     with pytest.raises(InteractionError, match=message):
         params = parse_interaction(wind, ball)  # the edge: the CLI and the API validate here
-        run_interact(parent, tmp_path / "out", frames=FRAMES, wind=params.wind, ball=params.ball)
+        run_interact(parent, tmp_path / "out", params, frames=FRAMES)
     assert not (tmp_path / "out").exists()
 
 
@@ -141,7 +142,8 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     inputs = {"view_00": tmp_path / "scene/videos/view_00.mp4"}
     parent = reconstruct_job.run_reconstruct(cameras, inputs, tmp_path / "rec", quality=quality)
     calm = Run.open(run_predict(parent, tmp_path / "calm", frames=8))
-    windy = Run.open(run_interact(parent, tmp_path / "windy", frames=8, wind=WindParams(direction=(0, 0, 1), strength=0.5)))
+    wind = InteractionParams(wind=WindParams(direction=(0, 0, 1), strength=0.5))
+    windy = Run.open(run_interact(parent, tmp_path / "windy", wind, frames=8))
     assert calm.frames() == windy.frames() == list(range(3, 11))
     shift = float(last_positions(windy)[:, 2].mean() - last_positions(calm)[:, 2].mean())
     free = 0.5 * (1 / 30) ** 2 * 8 * 9 / 2  # wind alone, no drag, 8 semi-implicit Euler steps: a dt^2 n(n+1)/2
@@ -154,7 +156,6 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
 def test_the_wind_blows_in_exactly_the_frames_its_window_names() -> None:
     """Frames become seconds in one place (predict.interventions) and the window is
     WindParams.active's, whatever float error the simulator's accumulated time carries."""
-    from fluidcore.interaction import InteractionParams
     from fluidcore.physics import PRESETS, Source
     from fluidcore.predict.interventions import interventions
 
@@ -171,7 +172,6 @@ def test_the_wind_blows_in_exactly_the_frames_its_window_names() -> None:
 def test_the_air_gains_the_winds_velocity_in_its_window_and_keeps_it() -> None:
     """The wind moves the air as well as the smoke: the air's velocity is the acceleration
     integrated over the seconds blown, zero before the window and frozen after it."""
-    from fluidcore.interaction import InteractionParams
     from fluidcore.physics import PRESETS, Source
     from fluidcore.predict.interventions import interventions
 

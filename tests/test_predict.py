@@ -16,8 +16,8 @@ from predict_scenes import SPEC, horizontal_distance, live, plume_run
 from typer.testing import CliRunner
 
 from fluidcore import artifacts
-from fluidcore.interaction import WindParams
-from fluidcore.jobs import Cancelled, JobInputError
+from fluidcore.interaction import InteractionParams, WindParams
+from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
 from fluidcore.runs import Run, RunError
@@ -117,9 +117,9 @@ def test_a_cancelled_prediction_resumes_to_the_same_result(parent: Path, tmp_pat
         return len(asked) > 3
 
     with pytest.raises(Cancelled, match="resumes from frame 6"):
-        job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, should_cancel=cancel_after_three)
+        job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, context=JobContext(should_cancel=cancel_after_three))
     assert Run.open(tmp_path / "resumed").frames() == [3, 4, 5]
-    job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, progress=lambda f, stage: reported.append(f))
+    job.run_predict(parent, tmp_path / "resumed", frames=FRAMES, context=JobContext(progress=lambda f, stage: reported.append(f)))
     assert reported == pytest.approx([(k + 1) / FRAMES for k in range(3, FRAMES)])
     whole = Run.open(job.run_predict(parent, tmp_path / "whole", frames=FRAMES))
     assert_same_states(Run.open(tmp_path / "resumed"), whole)
@@ -128,7 +128,7 @@ def test_a_cancelled_prediction_resumes_to_the_same_result(parent: Path, tmp_pat
 def test_another_run_in_the_same_folder_is_refused(parent: Path, tmp_path: Path) -> None:
     job.run_predict(parent, tmp_path / "out", frames=2)
     with pytest.raises(RunError, match="different run"):
-        job.run_interact(parent, tmp_path / "out", frames=2, wind=WindParams(direction=(1, 0, 0), strength=0.1))
+        job.run_interact(parent, tmp_path / "out", InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=0.1)), frames=2)
 
 
 @pytest.mark.parametrize("frames", [0, -3, 2.5, True])
@@ -336,7 +336,7 @@ def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: P
     shutil.copytree(parent, first / "reconstruct")
     job.run_predict(first / "reconstruct", first / "p1", frames=2)
     with pytest.raises(Cancelled):
-        job.run_predict(first / "p1", first / "p2", frames=3, should_cancel=iter([False, True]).__next__)
+        job.run_predict(first / "p1", first / "p2", frames=3, context=JobContext(should_cancel=iter([False, True]).__next__))
     moved = tmp_path / "elsewhere" / "chain"
     shutil.move(first, moved)
     job.run_predict(moved / "p1", moved / "p2", frames=3)  # resumes: same run, its parent found again

@@ -33,8 +33,7 @@ def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
             {"view_01": scene / "videos" / "view_01.mp4"},
             tmp_path / "run",
             quality=QUICK,
-            progress=lambda fraction, stage: seen.append((fraction, stage)),
-            should_cancel=lambda: next(answers),
+            context=jobs.JobContext(progress=lambda fraction, stage: seen.append((fraction, stage)), should_cancel=lambda: next(answers)),
         )
     assert Run.open(tmp_path / "run").frames() == [0]
     assert seen[0] == (0.0, "prepare") and seen[-1] == (pytest.approx(1 / 3), "reconstruct")

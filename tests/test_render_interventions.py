@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from fluidcore import artifacts
 from fluidcore import video
-from fluidcore.interaction import parse_interaction
+from fluidcore.interaction import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run
 from fluidnexus.cli import app
@@ -28,7 +28,7 @@ def parent(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def what_if(parent: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
     ball = parse_interaction(None, BALL).ball
-    return Run.open(run_interact(parent, tmp_path_factory.mktemp("wi") / "run", frames=3, ball=ball, from_frame=2))
+    return Run.open(run_interact(parent, tmp_path_factory.mktemp("wi") / "run", InteractionParams(ball=ball), frames=3, from_frame=2))
 
 
 def test_ball_is_drawn_in_a_render_where_it_projects(what_if: Run) -> None:
@@ -56,7 +56,7 @@ def test_cli_render_draws_interventions_of_interact_runs_by_default(what_if: Run
 @pytest.mark.parametrize("from_frame", [2, 5])  # inside the parent (its own frames are the factual) and at its end
 def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, tmp_path: Path, from_frame: int) -> None:
     ball = parse_interaction(None, BALL).ball
-    run = Run.open(run_interact(parent, tmp_path / "run", frames=3, ball=ball, from_frame=from_frame))
+    run = Run.open(run_interact(parent, tmp_path / "run", InteractionParams(ball=ball), frames=3, from_frame=from_frame))
     files = artifacts.render_artifacts(run.path, tmp_path / "videos")
     assert tmp_path / "videos" / "side_by_side.mp4" in files
     camera = run.cameras()[run.manifest["input_views"][0]]

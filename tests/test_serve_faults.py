@@ -5,6 +5,7 @@ Each test runs real processes on loopback and stops them itself."""
 from __future__ import annotations
 
 import io
+import json
 import os
 import signal
 import subprocess
@@ -48,9 +49,9 @@ def alive(pid: int) -> bool:
         return False
 
 
-def start_serve(data_dir: Path, *extra: str) -> tuple[subprocess.Popen[str], str]:
+def start_serve(data_dir: Path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen[str], str]:
     port = free_port()
-    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1"}
+    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", **(env or {})}
     process = subprocess.Popen(
         [FLUIDNEXUS, "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data_dir), *extra],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -112,3 +113,74 @@ def test_sigkill_of_serve_leaves_no_worker_behind(tmp_path: Path) -> None:
         for pid in [process.pid, *workers, *descendants(process.pid)]:
             if alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def direct_children(pid: int) -> set[int]:
+    return {child for child in descendants(pid) if _parent(child) == pid}
+
+
+def _parent(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except OSError:
+        return None
+
+
+def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -> None:
+    """Issue 20 item 3: SIGKILL of the embedded Celery main process while one job runs and one is
+    queued. serve starts a new worker, /readyz answers 503 until it beats, and both jobs succeed,
+    the running one resumed from its checkpoints (attempt 2). Test-double runners (one frame a
+    second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
+    from service_support import scene_files, upload_parts
+
+    tests = str(Path(__file__).resolve().parent)
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    process, base = start_serve(tmp_path / "data", env={
+        "FLUIDNEXUS_RUNNERS": "service_support:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
+        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
+    })
+    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    workers: set[int] = set()
+    try:
+        wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
+        files = scene_files(tmp_path / "scene")
+        scene = client.post("/v1/scenes", files=upload_parts(files), data={"name": "s"}).json()["id"]
+        jobs = [client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene, "params": {"frames": [0, 6]}}).json()["id"]
+                for _ in range(2)]
+        wait_until(lambda: client.get(f"/v1/jobs/{jobs[0]}").json()["progress"] > 0.3, 60, "the first job's checkpoints")
+        workers = descendants(process.pid)
+        (celery,) = direct_children(process.pid)
+        os.kill(celery, signal.SIGKILL)
+        killed = time.monotonic()
+        wait_until(lambda: client.get("/readyz").status_code == 503, 20, "/readyz to answer 503")
+        not_ready = time.monotonic() - killed
+        wait_until(lambda: client.get(f"/v1/jobs/{jobs[0]}").json()["attempts"] == 2, 60, "the first job to resume")
+        resumed = time.monotonic() - killed
+        wait_until(lambda: all(client.get(f"/v1/jobs/{j}").json()["state"] == "succeeded" for j in jobs), 90,
+                   "both jobs to succeed")
+        done = time.monotonic() - killed
+        assert client.get("/readyz").status_code == 200
+        new_celery = direct_children(process.pid)
+        assert new_celery and celery not in new_celery
+        timings = {"readyz_503_after_s": round(not_ready, 1), "running_job_resumed_after_s": round(resumed, 1),
+                   "both_jobs_succeeded_after_s": round(done, 1)}
+        print(timings)
+        if os.environ.get("RELIABILITY_JSON"):
+            Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
+    finally:
+        client.close()
+        process.terminate()
+        try:
+            process.wait(40)
+        finally:
+            for pid in [process.pid, *workers, *descendants(process.pid)]:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def wait_until(predicate, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+        time.sleep(0.2)

@@ -107,7 +107,7 @@ def test_upload_reconstruct_interact_download(server: Server, tmp_path: Path) ->
     from fluidcore import synth
     from fluidcore.video import probe
 
-    assert server.client.get("/readyz").json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok"}
+    assert server.client.get("/readyz").json()["checks"] == {"database": "ok", "broker": "ok", "storage": "ok", "worker": "ok"}
     assert "/docs" in server.client.get("/").text
     workers = server.worker_pids()
     assert workers, "no embedded worker process"

@@ -1,6 +1,7 @@
 """What-ifs through the service: `from_frame` in the interact job's parameters (checked against
 the parent run's finished frames before queueing), and the interact runner's artifacts (the
-side-by-side video and the last frame in every export format) published with their kinds."""
+side-by-side video, the last frame in every export format and the run's frames as a VDB sequence)
+published with their kinds."""
 
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ def test_interact_runner_branches_and_returns_side_by_side_and_exports(tmp_path:
     assert published["side_by_side.mp4"] == ("videos", "side_by_side")
     assert published["orbit.mp4"] == ("videos", "orbit")
     exports = {name for name, (folder, kind) in published.items() if (folder, kind) == ("exports", "export")}
-    assert len(exports) == len(EXPORTERS) and "frame_000003.ply" in exports
+    assert len(exports) == len(EXPORTERS) + 1 and {"splats_000003.ply", "smoke_000002.vdb", "smoke_000003.vdb"} <= exports
 
 
 def test_interact_runner_moves_progress_through_the_render_stage(tmp_path: Path) -> None:

@@ -4,16 +4,20 @@ test-double runners that follow fluidcore's contract (per-frame states, resume, 
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
+from sqlalchemy.exc import IntegrityError
 
+from fluidcore.errors import InputError
 from service.database import make_engine, make_sessionmaker, migrate, session_scope
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.settings import Settings
-from service.storage import LocalStorage, Storage, StorageError, run_prefix
+from service.storage import LocalStorage, Storage, StorageError, log_key, run_prefix
 from worker.execution import RUN_SHARE, JobBusy, JobExecutor
 from worker.runners import RunInputs
 from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
@@ -260,20 +264,87 @@ def test_a_job_cancelled_while_queued_never_runs(world: World) -> None:
     assert world.storage.list(f"{run_prefix(job_id)}/") == []
 
 
-@pytest.mark.parametrize(
-    ("error", "message"),
-    [(ValueError("ball center [9, 9, 9] is outside the scene box"), "ball center [9, 9, 9] is outside the scene box"),
-     (RuntimeError("CUDA out of memory"), "RuntimeError: CUDA out of memory")],
-)
-def test_runner_errors_fail_the_job_with_the_message(world: World, error: Exception, message: str) -> None:
+def test_an_input_error_fails_the_job_with_its_message(world: World) -> None:
+    message = "ball center [9, 9, 9] is outside the scene box"
+
     def failing(inputs: RunInputs) -> list[Path]:
         inputs.progress(0.5, "fit")
-        raise error
+        raise InputError(message)
 
     job_id = world.job(scene_id=world.scene())
     assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
     job = world.get(job_id)
     assert job.state == JobState.FAILED and job.error == message and job.finished_at is not None
+
+
+def test_an_internal_errors_text_stays_out_of_the_job_log_its_owner_reads(world: World) -> None:
+    """Issue 20: a raw SQL IntegrityError reached the job's owner. The incident id is in the job's
+    log (GET /v1/jobs/{id}/logs); the SQL and the traceback only in the worker's own log."""
+    error = IntegrityError("INSERT INTO artifacts (job_id, name) VALUES (?, ?)", ("j1", "videos/x.mp4"), Exception("UNIQUE"))
+
+    def failing(inputs: RunInputs) -> list[Path]:
+        raise error
+
+    job_id = world.job(scene_id=world.scene())
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
+    incident = re.fullmatch(r"internal error \(id ([0-9a-f]{12})\): see the worker log", world.get(job_id).error or "")
+    assert incident is not None
+    job_log = world.storage.read_bytes(log_key(job_id)).decode()
+    assert incident[1] in job_log and "INSERT INTO" not in job_log and "Traceback" not in job_log
+
+
+@pytest.mark.parametrize(
+    "error",
+    [RuntimeError("CUDA out of memory"), ValueError("operands could not be broadcast together"),
+     IntegrityError("INSERT INTO artifacts ...", {}, Exception("UNIQUE constraint failed: artifacts.key"))],
+)
+def test_any_other_runner_error_is_an_internal_error_with_an_id_in_the_log(
+    world: World, error: Exception, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A bug (even a ValueError) is not bad input: the job's error names only an id, and the
+    worker's log holds the traceback under that id; no exception text reaches the job."""
+
+    def failing(inputs: RunInputs) -> list[Path]:
+        raise error
+
+    job_id = world.job(scene_id=world.scene())
+    assert world.executor(runners={**FAKE_RUNNERS, "reconstruct": failing}).run(job_id) == "failed"
+    assert_internal_error(world.get(job_id).error, str(error), caplog)
+
+
+def test_a_bug_deep_inside_a_fluidcore_job_is_an_internal_error_and_bad_input_is_not(
+    world: World, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """fluidcore's own runners: a numpy call that raises ValueError deep inside a what-if fails the
+    job as an internal error; a ball outside the parent's box fails it with its message."""
+    from predict_scenes import plume_run
+    from worker.runners import FLUIDCORE_RUNNERS
+    from worker.sync import FolderMirror
+
+    parent = world.job(state=JobState.SUCCEEDED)
+    FolderMirror(world.storage, plume_run(world.tmp_path / "plume", frames=3), run_prefix(parent)).push()
+    executor = world.executor(runners={**FAKE_RUNNERS, **FLUIDCORE_RUNNERS})
+    outside = world.job("interact", parent_job_id=parent, params={"frames": 2, "ball": {"center": [9, 9, 9], "radius": 0.05}})
+    assert executor.run(outside) == "failed"
+    assert world.get(outside).error.startswith("ball.center [9.0, 9.0, 9.0] is outside the scene box")
+
+    def broken_dot(*args: object, **kwargs: object) -> None:
+        raise ValueError("shapes (3,) and (2,) not aligned")
+
+    monkeypatch.setattr(np, "dot", broken_dot)  # fluidcore.predict.interventions: the wind's base height
+    wind = {"direction": [1, 0, 0], "strength": 0.1}
+    windy = world.job("interact", parent_job_id=parent, params={"frames": 2, "wind": wind})
+    assert executor.run(windy) == "failed"
+    assert_internal_error(world.get(windy).error, "not aligned", caplog)
+
+
+def assert_internal_error(error: str | None, text: str, caplog: pytest.LogCaptureFixture) -> None:
+    """The job's `error` is "internal error (id X): see the worker log" and nothing else; the log
+    has X with the exception and its traceback."""
+    match = re.fullmatch(r"internal error \(id ([0-9a-f]{12})\): see the worker log", error or "")
+    assert match is not None, error
+    [record] = [r for r in caplog.records if match[1] in r.getMessage() and r.exc_info is not None]
+    assert text in str(record.exc_info[1]) and "Traceback (most recent call last)" in caplog.text
 
 
 def test_transient_storage_fault_gives_the_job_back_for_a_retry(world: World) -> None:

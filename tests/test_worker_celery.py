@@ -81,7 +81,9 @@ class Deployment:
         with session_scope(self.sessions) as session:
             job = Job(owner="alice", type="reconstruct", scene_id="s1", params={"frames": [0, frames]})
             session.add(job)
-        self.queue.enqueue(job.id, job.type)
+        task_id = self.queue.enqueue(job.id, job.type)
+        with session_scope(self.sessions) as session:  # as the API records it (a job with none waits on a parent)
+            session.get(Job, job.id).task_id = task_id
         return job.id
 
     def job(self, job_id: str) -> Job:

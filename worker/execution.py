@@ -20,6 +20,9 @@ from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from fluidcore.errors import InputError, internal_error
+from fluidcore.jobs import Cancelled
+from fluidcore.names import safe_join
 from service import webhooks
 from service.chaining import release_children
 from service.database import session_scope
@@ -28,10 +31,13 @@ from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
-from worker.runners import JobCancelled, Runner, RunInputs
+from worker.runners import Runner, RunInputs
 from worker.sync import MANIFEST, FolderMirror
 
 log = logging.getLogger(__name__)
+# Internal errors are logged here, outside the loggers JobLog copies into the job's log: its owner
+# reads that log (GET /v1/jobs/{id}/logs), and the exception's text may hold SQL or paths.
+incidents = logging.getLogger("fluidnexus.incidents")
 
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
@@ -149,9 +155,9 @@ class JobExecutor:
             self._publish(claim, files, reporter)
         except LeaseLost:
             raise
-        except JobCancelled:
+        except Cancelled:
             return self.finish(job_id, JobState.CANCELLED, reporter, stage="cancelled")
-        except ValueError as exc:  # fluidcore's bad-input errors name the field: show them as they are
+        except InputError as exc:  # what the user can fix names the field: shown as it is
             return self.finish(job_id, JobState.FAILED, reporter, error=str(exc))
         except TRANSIENT_ERRORS:
             self._requeue(job_id, reporter)
@@ -159,9 +165,9 @@ class JobExecutor:
         except SoftTimeLimitExceeded:
             limit = self.settings.job_soft_time_limit
             return self.finish(job_id, JobState.FAILED, reporter, error=f"time limit of {limit} s exceeded")
-        except Exception as exc:
-            log.exception("job %s failed", job_id)
-            return self.finish(job_id, JobState.FAILED, reporter, error=f"{type(exc).__name__}: {exc}")
+        except Exception as exc:  # a bug: its text (a stack, SQL, a path) stays in the worker's log
+            error = f"{internal_error(incidents, exc, f'job {job_id}')}: see the worker log"
+            return self.finish(job_id, JobState.FAILED, reporter, error=error)
         finally:
             reporter.stop_heartbeat()
         return self.finish(job_id, JobState.SUCCEEDED, reporter, stage="done")
@@ -207,7 +213,7 @@ class JobExecutor:
         def progress(fraction: float, stage: str) -> None:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
             if reporter.cancelled:  # honoured at every report, so in stages without frames too
-                raise JobCancelled(f"cancelled during {stage}")
+                raise Cancelled(f"cancelled during {stage}")
             with session_scope(self.sessions) as session:  # a superseded runner must not push checkpoints
                 reporter.owned(session)
             mirror.push()
@@ -225,11 +231,11 @@ class JobExecutor:
             **self._fetch_inputs(claim, folder),
         )
         if reporter.cancel_requested():  # fetching the inputs can take a while
-            raise JobCancelled("cancelled while preparing")
+            raise Cancelled("cancelled while preparing")
         files = self.runners[claim.job_type](inputs)
         mirror.push()
         if reporter.cancel_requested():
-            raise JobCancelled("cancelled before publishing")
+            raise Cancelled("cancelled before publishing")
         return files
 
     def _fetch_inputs(self, claim: Claim, folder: JobFolder) -> dict[str, object]:
@@ -241,16 +247,16 @@ class JobExecutor:
             run = folder.run(job_id)
             FolderMirror(self.storage, run, run_prefix(job_id)).pull()
             if not (run / MANIFEST).is_file():
-                raise ValueError(f"job {job_id} has no run folder in storage")
+                raise InputError(f"job {job_id} has no run folder in storage")
         return {"parent_run": folder.run(claim.ancestors[0])}
 
     def _fetch_scene(self, scene_id: str, folder: Path) -> dict[str, object]:
         with session_scope(self.sessions) as session:
             scene = session.get(Scene, scene_id)
             if scene is None:
-                raise ValueError(f"scene {scene_id} no longer exists")
+                raise InputError(f"scene {scene_id} no longer exists")
             cameras_key, video_keys = scene.cameras_key, {c: v["key"] for c, v in scene.videos.items()}
-        local = {key: folder / PurePosixPath(key).name for key in [cameras_key, *video_keys.values()]}
+        local = {key: safe_join(folder, PurePosixPath(key).name) for key in [cameras_key, *video_keys.values()]}
         for key, path in local.items():
             self.storage.get_file(key, path)
         return {"cameras_path": local[cameras_key], "videos": {c: local[k] for c, k in video_keys.items()}}
@@ -312,7 +318,8 @@ class JobExecutor:
         if webhook is not None:
             url, owner, body = webhook
             secret = webhooks.owner_secret(signing_key(self.settings), owner)
-            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body)
+            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body,
+                                           allow_private=self.settings.webhook_allow_private)
         if self.queue is not None:
             with self.sessions() as session:
                 release_children(session, job_id, self.queue)
@@ -394,7 +401,8 @@ class JobLog(logging.Handler):
 
 
 class ProgressReporter:
-    """Writes progress, stage, per-stage seconds and the lease heartbeat to the job row.
+    """Writes progress (never lower than stored), stage, per-stage seconds and the lease heartbeat
+    to the job row.
 
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
@@ -426,7 +434,9 @@ class ProgressReporter:
         self._last_write = now
         with session_scope(self.sessions) as session:
             job = self.owned(session)
-            job.progress, job.stage, job.heartbeat_at = fraction, stage, utcnow()
+            # Never below what was stored: a resumed run prepares again from 0 before it reaches
+            # its checkpoints, and a client's progress bar must not jump back.
+            job.progress, job.stage, job.heartbeat_at = max(job.progress or 0.0, fraction), stage, utcnow()
             job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
             self.cancelled = job.cancel_requested
 

@@ -1,10 +1,11 @@
-"""Job runners: the only place the worker calls fluidcore (the "Jobs" contract in
-docs/architecture.md). fluidcore and torch are imported inside the runner bodies, so
-the Celery app, the API and the tests of the service logic load without them.
+"""Job runners: the only place the worker calls fluidcore's jobs (the "Jobs" contract in
+docs/architecture.md). The science and torch are imported inside the runner bodies, so the
+Celery app, the API and the tests of the service logic load without them; only the torch-free
+`fluidcore.jobs` (the progress, cancellation and context types) is imported here.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
 files to publish besides the run folder itself (MP4 per camera, orbit video, a what-if's
-side-by-side, and the last frame in every `fluidcore.exports` format). Each reads its
+side-by-side, the last frame in every `fluidcore.exports` format, every frame as VDB). Each reads its
 parameters through its type's model in `service.job_types`, so defaults live there only.
 """
 
@@ -16,14 +17,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from fluidcore.jobs import JobContext, Progress, ShouldCancel
 from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams
-
-Progress = Callable[[float, str], None]
-ShouldCancel = Callable[[], bool]
-
-
-class JobCancelled(Exception):
-    """The runner stopped because should_cancel() said so (fluidcore's Cancelled, translated)."""
 
 
 @dataclass(frozen=True)
@@ -40,20 +35,22 @@ class RunInputs:
     videos: Mapping[str, Path] | None = None  # reconstruct: camera name -> video
     parent_run: Path | None = None  # predict / interact / resimulate
 
+    @property
+    def context(self) -> JobContext:
+        """The device and callbacks as the fluidcore job entries take them."""
+        return JobContext(self.device, self.progress, self.should_cancel)
+
 
 Runner = Callable[[RunInputs], list[Path]]
-
-
-def _callbacks(inputs: RunInputs) -> dict[str, Any]:
-    return {"device": inputs.device, "progress": inputs.progress, "should_cancel": inputs.should_cancel}
 
 
 RENDER_SHARE = 0.25  # of a job's progress bar: a 62 s ScalarFlow reconstruction spent 15.7 s rendering (issue 24)
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    """The videos (a what-if adds its side-by-side), at the size the run's reconstruction was
-    fit at, and the last frame in every export format; progress moves per rendered frame."""
+    """The videos (a what-if adds its side-by-side) at the size the run's reconstruction was fit
+    at, the last frame in every export format and the run's frames as a VDB sequence
+    (fluidcore.exports.export_artifacts); progress moves per rendered frame."""
     from fluidcore.artifacts import fit_long_side, render_artifacts
     from fluidcore.exports import export_artifacts
 
@@ -65,19 +62,14 @@ def _render(inputs: RunInputs) -> list[Path]:
     return [*videos, *export_artifacts(inputs.run_dir, inputs.render_dir)]
 
 
-def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
-    """Run a fluidcore job, then render it; fluidcore's Cancelled becomes JobCancelled."""
+def _rendered(run: Callable[[RunInputs], None]) -> Runner:
+    """Run a fluidcore job, then render it; its Cancelled and InputError reach the executor as raised."""
 
     def runner(inputs: RunInputs) -> list[Path]:
-        from fluidcore.jobs import Cancelled
-
         def job_progress(fraction: float, stage: str) -> None:
             inputs.progress((1.0 - RENDER_SHARE) * fraction, stage)
 
-        try:
-            run(replace(inputs, progress=job_progress))
-        except Cancelled as exc:
-            raise JobCancelled(str(exc)) from exc
+        run(replace(inputs, progress=job_progress))
         return _render(inputs)
 
     runner.__name__ = run.__name__
@@ -85,7 +77,7 @@ def _translating_cancel(run: Callable[[RunInputs], None]) -> Runner:
     return runner
 
 
-@_translating_cancel
+@_rendered
 def reconstruct(inputs: RunInputs) -> None:
     from fluidcore.reconstruct.job import run_reconstruct
 
@@ -99,39 +91,39 @@ def reconstruct(inputs: RunInputs) -> None:
         physics=params.physics,
         frames=params.frames,
         source=params.source,
-        **_callbacks(inputs),
+        context=inputs.context,
     )
 
 
-@_translating_cancel
+@_rendered
 def predict(inputs: RunInputs) -> None:
     from fluidcore.predict.job import run_predict
 
     params = PredictParams.model_validate(inputs.params)
-    run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, **_callbacks(inputs))
+    run_predict(inputs.parent_run, inputs.run_dir, frames=params.frames, context=inputs.context)
 
 
-@_translating_cancel
+@_rendered
 def interact(inputs: RunInputs) -> None:
+    from fluidcore.interaction import InteractionParams
     from fluidcore.predict.job import run_interact
 
     params = InteractParams.model_validate(inputs.params)
     run_interact(
         inputs.parent_run,
         inputs.run_dir,
+        InteractionParams(wind=params.wind, ball=params.ball),
         frames=params.frames,
-        wind=params.wind,
-        ball=params.ball,
         from_frame=params.from_frame,
-        **_callbacks(inputs),
+        context=inputs.context,
     )
 
 
-@_translating_cancel
+@_rendered
 def resimulate(inputs: RunInputs) -> None:
     from fluidcore.predict.job import run_resimulate
 
-    run_resimulate(inputs.parent_run, inputs.run_dir, **_callbacks(inputs))
+    run_resimulate(inputs.parent_run, inputs.run_dir, context=inputs.context)
 
 
 FLUIDCORE_RUNNERS: dict[JobType, Runner] = {

@@ -12,6 +12,7 @@ import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from fluidcore.names import safe_join
 from service.storage import Storage
 
 MANIFEST = "manifest.json"
@@ -59,7 +60,7 @@ class FolderMirror:
         fetched = []
         for info in self.storage.list(f"{self.prefix}/"):
             name = info.key[len(self.prefix) + 1 :]
-            target = self.folder / name
+            target = safe_join(self.folder, name)
             self.storage.get_file(info.key, target)
             stat = target.stat()
             self._sent[name] = (stat.st_size, stat.st_mtime_ns)

@@ -15,8 +15,9 @@ from functools import lru_cache
 
 from celery import Task
 from celery.exceptions import SecurityWarning
-from celery.signals import worker_process_init
+from celery.signals import worker_process_init, worker_process_shutdown
 
+from fluidcore.errors import internal_error
 from service.celery_app import make_celery, task_name
 from service.database import make_engine, make_sessionmaker
 from service.job_types import JobType
@@ -24,6 +25,7 @@ from service.models import JobState
 from service.queue import CeleryQueue
 from service.settings import get_settings
 from service.storage import make_storage
+from service.worker_beats import WorkerBeacon, worker_name
 from worker.execution import TRANSIENT_ERRORS, JobBusy, JobExecutor
 from worker.runners import load_runners
 
@@ -39,8 +41,24 @@ if os.environ.get(EMBEDDED) == "1":
 
 @worker_process_init.connect
 def _init_child(**_: object) -> None:
-    """Each prefork child sets its own torch threads and opens its own database connections."""
+    """Each prefork child sets its own torch threads, opens its own database connections and
+    beats for its worker (service.worker_beats)."""
     executor()
+    beacon().start()
+
+
+@worker_process_shutdown.connect
+def _stop_child(**_: object) -> None:
+    try:
+        beacon().stop()
+    except Exception:  # the database may be gone; the row then goes stale within a lease
+        log.warning("could not remove this worker's heartbeat", exc_info=True)
+
+
+@lru_cache(maxsize=1)
+def beacon() -> WorkerBeacon:
+    """This worker's heartbeat, named after the Celery main process (the pool child's parent)."""
+    return WorkerBeacon(executor().sessions, worker_name(os.getppid()), settings.job_lease_seconds / 4)
 
 
 @lru_cache(maxsize=1)
@@ -69,13 +87,15 @@ def _configure_torch() -> str:
 
 def _run(task: Task, job_id: str) -> str | None:
     try:
-        return executor().run(job_id)
+        with beacon().working():
+            return executor().run(job_id)
     except JobBusy as busy:
         raise task.retry(countdown=busy.retry_in, max_retries=None) from None
     except TRANSIENT_ERRORS as exc:
         if task.request.retries >= settings.max_transient_retries:
+            error = internal_error(log, exc, f"job {job_id}")  # the fault's text may hold SQL or hosts
             return executor().finish(
-                job_id, JobState.FAILED, error=f"gave up after {task.request.retries} retries: {exc}"
+                job_id, JobState.FAILED, error=f"gave up after {task.request.retries} retries: {error}: see the worker log"
             )
         countdown = min(300, 10 * 2**task.request.retries)
         log.warning("job %s: transient fault, retry in %d s: %s", job_id, countdown, exc)

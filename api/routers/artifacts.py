@@ -59,7 +59,8 @@ def artifact_path(job_id: str, name: str) -> str:
 def list_artifacts(
     job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
 ) -> ArtifactList:
-    """MP4s per camera, the orbit video, particle-state files and the manifest, with download URLs."""
+    """MP4s per camera, the orbit video, the exports (one file per frame of the VDB sequence),
+    particle-state files and the manifest, with download URLs."""
     job = owned_job(session, job_id, owner)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id).order_by(Artifact.name)).all()
     key = signing_key(settings)

@@ -1,4 +1,5 @@
-"""`/healthz`: the process answers. `/readyz`: the database, the broker and storage answer too.
+"""`/healthz`: the process answers. `/readyz`: the database, the broker and storage answer too, and
+a worker has beaten within the lease (service.worker_beats).
 
 Both are async and skip the admission queue (api.middleware), so they answer while the request
 threads and the connection pool are busy. `/readyz` opens its own database connection (outside
@@ -9,21 +10,24 @@ longer than CHECK_TIMEOUT_S as failed (503) instead of waiting for it.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 from sqlalchemy import Engine, create_engine
+from sqlalchemy.orm import Session
 from sqlalchemy.pool import NullPool
 
 from api.schemas import Health
 from service.database import ping
+from service.worker_beats import live_workers
 
 router = APIRouter(tags=["health"])
 
 CHECK_TIMEOUT_S = 0.5  # the whole answer stays under 1 s on a loaded machine
-_checks = ThreadPoolExecutor(max_workers=3, thread_name_prefix="readyz")
+_checks = ThreadPoolExecutor(max_workers=4, thread_name_prefix="readyz")
 
 
 @router.get("/healthz", response_model=Health)
@@ -38,6 +42,7 @@ async def readyz(request: Request) -> JSONResponse:
         "database": lambda: _ping_unpooled(state.engine),
         "broker": state.queue.ping,
         "storage": state.storage.check,
+        "worker": lambda: _worker_beating(state.engine, state.settings.job_lease_seconds),
     }
     outcomes = await asyncio.gather(*(_run(check) for check in checks.values()))
     results = dict(zip(checks, outcomes))
@@ -59,9 +64,22 @@ async def _run(check: Callable[[], None]) -> str:
 
 def _ping_unpooled(engine: Engine) -> None:
     """`SELECT 1` on a fresh connection with the engine's URL, so a full pool cannot delay it."""
+    with _unpooled(engine) as probe:
+        ping(probe)
+
+
+def _worker_beating(engine: Engine, lease_seconds: float) -> None:
+    """Jobs sent now would only wait while no worker beats (service.worker_beats)."""
+    with _unpooled(engine) as probe, Session(probe) as session:
+        if live_workers(session, lease_seconds) == 0:
+            raise RuntimeError(f"no worker heartbeat within the last {lease_seconds} s")
+
+
+@contextmanager
+def _unpooled(engine: Engine) -> Iterator[Engine]:
     probe = create_engine(engine.url, poolclass=NullPool, connect_args=_connect_args(engine))
     try:
-        ping(probe)
+        yield probe
     finally:
         probe.dispose()
 

@@ -16,6 +16,7 @@ from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, Sett
 from api.errors import StrictJSONRoute, error_responses
 from api.routers.scenes import capture_geometry_of, check_reconstruct_params, owned_scene
 from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
+from service import webhooks
 from service.chaining import release_children, waiting_stage
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
@@ -40,7 +41,8 @@ def create_job(
     response: Response,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> JobOut:
-    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job.
+    """Queue a job. A repeated request with the same `Idempotency-Key` returns the first job
+    that was queued (a 503 binds nothing: the retry creates the job).
 
     A continuation may name a parent that is still queued or running: it waits (stage "waiting
     for job PARENT") and starts when the parent succeeds, or fails saying why the parent did not.
@@ -54,6 +56,8 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
+    if request.webhook is not None:
+        _check_webhook(str(request.webhook), settings)
     waits_for = _check_references(session, storage, owner, request, settings)
     job = Job(
         owner=owner,
@@ -84,7 +88,10 @@ def create_job(
     try:
         job.task_id = queue.enqueue(job.id, job.type)
     except QueueUnavailable as exc:
+        # The key is released: the retry the 503 invites must create a job and queue it, not
+        # replay this one that never reached a worker.
         job.state, job.error, job.finished_at = JobState.FAILED, str(exc), utcnow()
+        job.idempotency_key = None
         session.commit()
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
     session.commit()
@@ -181,6 +188,14 @@ def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | 
     return job
 
 
+def _check_webhook(url: str, settings: Settings) -> None:
+    """An internal target is a 422 now; the worker checks the address again when it connects."""
+    try:
+        webhooks.check_target(url, settings.webhook_allow_private)
+    except webhooks.RefusedTarget as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"webhook: {exc}") from None
+
+
 def _check_references(
     session: Session, storage: Storage, owner: str, request: JobRequest, settings: Settings
 ) -> str | None:
@@ -216,7 +231,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
     frame against its finished frames, read from its manifest: a ball outside the box, a wind
     that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
     later."""
-    from fluidcore.interaction import InteractionError, InteractionParams
+    from fluidcore.interaction import InteractionError
 
     try:
         manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
@@ -230,7 +245,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
             f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
         )
     try:
-        InteractionParams(wind=params.wind, ball=params.ball).check_scene(manifest.get("scene") or {}, params.frames)
+        params.check_scene(manifest.get("scene") or {}, params.frames)
     except InteractionError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params: {exc}") from None
 

@@ -16,6 +16,7 @@ from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, Sett
 from api.errors import error_responses
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from fluidcore.names import safe_join
 from fluidcore.reconstruct.source_hint import SourceHintError
 from service.job_types import JobType, ReconstructParams
 from service.models import Job, JobState, Scene, new_id
@@ -62,13 +63,13 @@ def create_scene(
         cameras_name = None
         if cameras is not None:
             cameras_name = safe_filename(cameras.filename, "cameras")
-            spool(cameras.file, folder / cameras_name, settings.max_cameras_bytes, "cameras")
+            spool(cameras.file, safe_join(folder, cameras_name), settings.max_cameras_bytes, "cameras")
         sizes: dict[str, int] = {}
         for part in video:
             filename = safe_filename(part.filename, "video")
             if filename in sizes or filename == cameras_name:
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
-            sizes[filename] = spool(part.file, folder / filename, settings.max_video_bytes, "video")
+            sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
         if cameras_name is None:
             cameras_name = single_camera_file(folder, sizes, fov, distance, up)
         validated = validate_scene(folder, cameras_name, sizes, settings)
@@ -180,7 +181,7 @@ def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
     from fluidcore import scene_info
 
     with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
-        path = Path(tmp) / Path(scene.cameras_key).name
+        path = safe_join(tmp, Path(scene.cameras_key).name)
         storage.get_file(scene.cameras_key, path)
         return scene_info.from_cameras_file(path)
 

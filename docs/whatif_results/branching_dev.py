@@ -35,7 +35,7 @@ for variant in sys.argv[3:]:
         params = parse_interaction(None, {"center": o["center_world"], "radius": o["radius"]}); late = (50, 150)
     n = 149 - branch
     t0 = time.time()
-    wi = Run.open(run_interact(REC, OUT / f"{variant}_whatif", frames=n, wind=params.wind, ball=params.ball, from_frame=branch))
+    wi = Run.open(run_interact(REC, OUT / f"{variant}_whatif", params, frames=n, from_frame=branch))
     t1 = time.time()
     fa = Run.open(run_predict(REC, OUT / f"{variant}_factual_{branch}", frames=n, from_frame=branch))
     t2 = time.time()

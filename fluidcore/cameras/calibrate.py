@@ -25,10 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from fluidcore.cameras.boxes import frusta_box
-from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
 from fluidcore.cameras.colmap import cameras_from_reconstruction
 from fluidcore.cameras.json_formats import write_transforms
 from fluidcore.cameras.single import box_json
+from fluidcore.names import safe_join
 
 BACKGROUND_FRAMES = 15  # frames per video in the median
 MAX_VIDEOS = 64  # exhaustive matching is quadratic in the number of views
@@ -56,11 +57,13 @@ def calibrate_rig(
         raise CameraError(f"videos: calibrating a rig needs 2 to {MAX_VIDEOS} videos, got {len(videos)}")
     if not (np.isfinite(distance) and distance > 0):
         raise CameraError(f"distance must be a positive number of world units, got {distance}")
+    for name in videos:
+        check_camera_name(name, "videos: view name")
     with tempfile.TemporaryDirectory(prefix="fluidnexus-colmap-", dir=work_dir) as tmp:
         images = Path(tmp) / "images"
         images.mkdir()
         for name, video in videos.items():
-            _write_png(images / f"{name}.png", background_image(video))
+            _write_png(safe_join(images, f"{name}.png"), background_image(video))
         model = _largest_model(Path(tmp), images, camera_model)
         cameras = cameras_from_reconstruction(model, "colmap")
     missing = sorted(set(videos) - set(cameras))

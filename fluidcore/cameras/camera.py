@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
+from fluidcore.errors import InputError
+
 if TYPE_CHECKING:  # pragma: no cover - typing only
     import torch
 
@@ -25,7 +27,7 @@ ORTHONORMAL_TOLERANCE = 1e-4  # max |R R^T - I|; poses stored as float32 are ~1e
 _NEAR_DEPTH = 1e-9  # |z| below this is clamped in project() so uv stays finite
 
 
-class CameraError(ValueError):
+class CameraError(InputError):
     """A camera (or a camera file) is invalid; the message names the offending field."""
 
 
@@ -55,6 +57,17 @@ def check_rigid(matrix: np.ndarray, field_name: str) -> np.ndarray:
     if np.linalg.det(rotation) < 0:
         raise CameraError(f"{field_name} rotation has determinant -1 (a reflection, not a rotation)")
     return m
+
+
+def check_camera_name(name: object, field_name: str) -> str:
+    """`name` if it follows the naming rule (fluidcore.names), else CameraError naming the field.
+    Every camera reader applies it: a camera's name becomes a file name and a storage key."""
+    from fluidcore.names import UnsafeName, check_name
+
+    try:
+        return check_name(name, field_name)
+    except UnsafeName as error:
+        raise CameraError(str(error)) from None
 
 
 def _as_float(value: object, field_name: str) -> float:

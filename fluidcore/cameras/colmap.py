@@ -9,13 +9,15 @@ Lens models: pinhole ones are taken as they are; the radial and OpenCV models ke
 coefficients as the camera's `distortion` (OpenCV order), and the reconstruction undistorts
 the frames with OpenCV (fluidcore.cameras.undistort). Fisheye and other models are rejected.
 
-Zips (what the API receives) are opened defensively: member names may not escape the folder,
+Zips (what the API receives) are opened defensively: member names may not escape the folder
+(fluidcore.names.safe_join) and the members read must have plain names (`check_relative`),
 and the unpacked size is capped, so an upload cannot write elsewhere or fill the disk.
 """
 
 from __future__ import annotations
 
 import ctypes
+import shutil
 import signal
 import sys
 import tempfile
@@ -25,7 +27,8 @@ from types import ModuleType
 
 import numpy as np
 
-from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
+from fluidcore.names import UnsafeName, UnsafePath, check_relative, safe_join
 
 # Where each supported model's extra parameters go in OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6).
 DISTORTION_SLOTS = {
@@ -116,12 +119,18 @@ def _safe_extract(path: Path, target: Path) -> None:
         if sum(m.file_size for m in members) > MAX_UNZIPPED_BYTES:
             raise CameraError(f"{path.name}: unpacks to more than {MAX_UNZIPPED_BYTES >> 20} MiB")
         for member in members:
-            name = PurePosixPath(member.filename)
-            if name.is_absolute() or ".." in name.parts:
-                raise CameraError(f"{path.name}: member {member.filename!r} escapes the archive folder")
-            if name.name.split(".")[0] in (*MODEL_FILES, "points3D", "rigs", "frames"):
+            try:  # a member that would land outside is refused even when it would not be extracted
+                destination = safe_join(target, member.filename)
+                wanted = PurePosixPath(member.filename).name.split(".")[0] in (*MODEL_FILES, "points3D", "rigs", "frames")
+                if wanted:
+                    check_relative(member.filename, "member")
+            except (UnsafeName, UnsafePath) as error:
+                raise CameraError(f"{path.name}: {error}") from None
+            if wanted:
                 try:
-                    archive.extract(member, target)
+                    destination.parent.mkdir(parents=True, exist_ok=True)
+                    with archive.open(member) as source, destination.open("wb") as out:
+                        shutil.copyfileobj(source, out)
                 except (zipfile.BadZipFile, OSError) as error:
                     raise CameraError(f"{path.name}: cannot unpack {member.filename}: {error}") from None
 
@@ -133,6 +142,7 @@ def cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera
             continue
         name = PurePosixPath(image.name).stem
         context = f"{source}: image {image.name!r}"
+        check_camera_name(name, f"{context}: camera name")
         if name in cameras:
             raise CameraError(f"{context}: duplicated camera name {name!r}")
         colmap_camera = reconstruction.cameras[image.camera_id]

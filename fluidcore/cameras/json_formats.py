@@ -17,7 +17,8 @@ Lens distortion: nerfstudio's OPENCV model (`k1`, `k2`, `k3`, `p1`, `p2`) become
 (fluidcore.cameras.undistort) and works with the pinhole camera. `k4` belongs to the fisheye
 model, which is rejected. `camera_model` must be PINHOLE, OPENCV or absent.
 
-A camera's name is the entry's `camera` field, else the stem of its `file_path` / `file_name`.
+A camera's name is the entry's `camera` field, else the stem of its `file_path` / `file_name`;
+it must follow the naming rule of fluidcore.names (it becomes a file name and a storage key).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fluidcore.cameras.camera import Camera, CameraError, check_rigid
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name, check_rigid
 from fluidcore.files import atomic_output
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z axes
@@ -92,6 +93,7 @@ def _entry_camera(path: Path, data: dict[str, Any], where: str, entry: dict[str,
         raise CameraError(f"{path.name}: {where}: missing field camera (and no file_path to name it by)")
     if not isinstance(name, str) or not name:
         raise CameraError(f"{path.name}: {where}: camera must be a non-empty string, got {name!r}")
+    check_camera_name(name, f"{path.name}: {where}.camera")
     context = f"{path.name}: {where} ({name})"
     try:
         fx, fy, cx, cy, width, height = _intrinsics(path, data, entry, video)
@@ -186,9 +188,13 @@ def _file_in_folder(folder: Path, relative: str) -> Path | None:
     """The file `relative` names if it lies inside `folder` (an absolute path, `..` or a link
     leading out does not count), else None. A camera file is user input: on a server it must not
     make the reader open, or reveal the existence of, any file but the ones uploaded with it."""
-    root = folder.resolve()
-    candidate = (root / relative).resolve()
-    return candidate if candidate.is_relative_to(root) and candidate.is_file() else None
+    from fluidcore.names import UnsafePath, safe_join
+
+    try:
+        candidate = safe_join(folder, relative)
+    except UnsafePath:
+        return None
+    return candidate if candidate.is_file() else None
 
 
 def _distortion(data: dict[str, Any], entry: dict[str, Any]) -> tuple[float, ...]:

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fluidcore.cameras.boxes import Box
-from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
 from fluidcore.cameras.json_formats import write_transforms
 
 # Image direction (du, dv) in which world up points, for each --up choice.
@@ -38,6 +38,7 @@ def single_camera(
         raise CameraError(f"distance must be a positive number of world units, got {distance}")
     if up not in IMAGE_UP:
         raise CameraError(f"up must be one of {', '.join(IMAGE_UP)}, got {up!r}")
+    check_camera_name(name, "camera name (the video's file stem)")
     focal = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
     du, dv = IMAGE_UP[up]
     roll = math.atan2(du, -dv)  # rotation about the optical axis taking the image's up to (du, dv)

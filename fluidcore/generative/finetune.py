@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.generative import lora, models
 from fluidcore.generative.novel_view import NovelViewModel, condition, relative_pose, to_square
@@ -47,7 +48,7 @@ LOSS_PLOT = "loss.png"
 Progress = Callable[[str], None]
 
 
-class FinetuneError(ValueError):
+class FinetuneError(InputError):
     """Data or settings fine-tuning cannot use; the message names the option."""
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from fluidcore.errors import InputError
+
 if TYPE_CHECKING:
     import torch
 
@@ -30,7 +32,7 @@ def add_new(module: torch.nn.Module, rank: int = 16, seed: int = 0) -> None:
     from peft import LoraConfig
 
     if rank < 1:
-        raise ValueError(f"rank must be >= 1, got {rank}")
+        raise InputError(f"rank must be >= 1, got {rank}")
     for parameter in module.parameters():
         parameter.requires_grad_(False)
     with torch.random.fork_rng(devices=[]):
@@ -44,12 +46,12 @@ def load(module: torch.nn.Module, folder: Path) -> None:
     from safetensors.torch import load_file
 
     if not is_adapter(folder):
-        raise FileNotFoundError(f"{folder}: not a LoRA adapter (needs {CONFIG_FILE} and {WEIGHTS_FILE})")
+        raise InputError(f"{folder}: not a LoRA adapter (needs {CONFIG_FILE} and {WEIGHTS_FILE})")
     module.add_adapter(LoraConfig.from_pretrained(str(folder)), adapter_name=ADAPTER_NAME)
     result = set_peft_model_state_dict(module, load_file(str(folder / WEIGHTS_FILE)), adapter_name=ADAPTER_NAME)
     unexpected = getattr(result, "unexpected_keys", [])
     if unexpected:
-        raise ValueError(f"{folder}: adapter does not fit this model ({len(unexpected)} unknown weights, e.g. {unexpected[0]})")
+        raise InputError(f"{folder}: adapter does not fit this model ({len(unexpected)} unknown weights, e.g. {unexpected[0]})")
     module.to(next(iter(module.parameters())).dtype)
 
 

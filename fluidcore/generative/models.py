@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fluidcore import weights
+from fluidcore.errors import InputError
 from fluidcore.generative import lora
 
 if TYPE_CHECKING:  # torch and the model libraries load only when a model does: listing is instant
@@ -59,7 +60,7 @@ STAGES: dict[str, tuple[str, ...]] = {
 }
 
 
-class MissingWeights(FileNotFoundError):
+class MissingWeights(InputError, FileNotFoundError):
     """The weights a stage needs are not in the models folder; the message says what is missing."""
 
 

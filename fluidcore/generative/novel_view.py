@@ -26,13 +26,14 @@ import torch
 import torch.nn.functional as F
 
 from fluidcore.cameras import Camera
+from fluidcore.errors import InputError
 
 BatchCallback = Callable[[int, int], None]  # (items done, items total); may raise to cancel
 POSE_DIMS = 4  # [polar change, sin azimuth change, cos azimuth change, radius change]
 REFERENCE_RADIUS = 1.5  # Zero123's nearest training camera distance; radii are given in these units
 
 
-class NovelViewError(ValueError):
+class NovelViewError(InputError):
     """Inputs novel-view generation cannot use; the message names the argument."""
 
 

@@ -24,12 +24,14 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 
+from fluidcore.errors import InputError
+
 BatchCallback = Callable[[int, int], None]  # (windows done, windows total); may raise to cancel
 STRENGTH_NOVEL_VIEWS = 0.5
 STRENGTH_FUTURES = 0.75
 
 
-class RefineError(ValueError):
+class RefineError(InputError):
     """Inputs refinement cannot use; the message names the argument."""
 
 

@@ -37,6 +37,7 @@ from fluidcore.generative import models
 from fluidcore.jobs import BatchProgress
 from fluidcore.generative.novel_view import SamplingOptions, generate_views
 from fluidcore.generative.refine import STRENGTH_FUTURES, STRENGTH_NOVEL_VIEWS, RefineOptions, refine_video, window_starts
+from fluidcore.names import safe_join
 from fluidcore.reconstruct.views import ViewTarget, rotate_about_axis
 
 if TYPE_CHECKING:
@@ -180,7 +181,7 @@ def save_generated_views(rec: Reconstruction, settings: GenerativeSettings, stat
     folder.mkdir(parents=True, exist_ok=True)
     for view in generated:
         frames = torch.round(view.frames.cpu() * 255.0).to(torch.uint8).numpy()
-        with atomic_output(folder / f"{view.camera.name}.npz", suffix=".npz") as tmp:
+        with atomic_output(safe_join(folder, f"{view.camera.name}.npz"), suffix=".npz") as tmp:
             np.savez_compressed(tmp, frames=frames)
     with atomic_output(index) as tmp:
         tmp.write_text(json.dumps({"key": key, "status": dict(status)}, indent=1))
@@ -208,7 +209,7 @@ def _read_saved(folder: Path, key: dict) -> tuple[dict[str, torch.Tensor], dict[
         return None
     frames = {}
     for name, _width, _height in key["targets"]:
-        with np.load(folder / f"{name}.npz") as data:
+        with np.load(safe_join(folder, f"{name}.npz")) as data:
             frames[name] = torch.from_numpy(data["frames"]).float() / 255.0
     return frames, saved["status"]
 

@@ -21,10 +21,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from fluidcore.errors import InputError
+
 Vec3 = tuple[float, float, float]
 
 
-class PhysicsInputError(ValueError):
+class PhysicsInputError(InputError):
     """Bad input to the simulator: the message names the offending field or argument."""
 
 

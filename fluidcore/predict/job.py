@@ -14,7 +14,8 @@ video (fluidcore.reconstruct.identify) is used as it is, without that prior. The
 records all three (settings `buoyancy_scale`, `appearance_profile`, `priors`).
 Each writes an ordinary run folder (fluidcore.runs) with the parent recorded relative to it, so
 rendering is `fluidcore.artifacts`, and a stopped job resumes from its last written frame with
-identical results. Progress, cancellation and input errors follow `fluidcore.jobs`.
+identical results. Device, progress, cancellation (its `JobContext`) and input errors follow
+`fluidcore.jobs`.
 """
 
 from __future__ import annotations
@@ -22,12 +23,12 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams
-from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, no_progress
+from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
+from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
@@ -42,85 +43,92 @@ if TYPE_CHECKING:
 NOT_REFINED = "skipped: only predictions are refined (Algorithm S2); what-if and re-simulation runs show the physics"
 
 
+@dataclass(frozen=True)
+class Continuation:
+    """What a continuation asks for besides its frames: the kind of run it writes, the
+    interventions it applies and, for a prediction, the generative settings of its refinement.
+    How the kinds differ is answered here, once."""
+
+    kind: str  # "predict" | "interact" | "resimulate"
+    params: InteractionParams = field(default_factory=InteractionParams)
+    generative: GenerativeSettings | None = None
+
+    @property
+    def keeps_priors(self) -> bool:
+        """Whether the parent's calibration and look carry over: a re-simulation measures what
+        the physics alone explains, so it takes neither."""
+        return self.kind != "resimulate"
+
+    @property
+    def refined(self) -> bool:
+        """Only predictions are refined (Algorithm S2); what-ifs and re-simulations show the physics."""
+        return self.kind == "predict"
+
+
 def run_predict(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
     frames: int,
     from_frame: int | None = None,
-    device: str = "cpu",
-    progress: Progress | None = None,
-    should_cancel: ShouldCancel | None = None,
     generative: GenerativeSettings | None = None,
+    context: JobContext = JobContext(),
 ) -> Path:
     """Simulate `frames` frames after the parent's frame `from_frame` (default: its last), no
     interventions; then, when the video model's weights exist (`generative`, default:
     `fluidcore.weights.weights_dir()`), refine and reconstruct them (`priors.refine_future`,
     Algorithm S2)."""
-    return _continue(
-        parent_run, out_dir, "predict", frames, from_frame, InteractionParams(), device, progress, should_cancel, generative
-    )
+    return _continue(parent_run, out_dir, Continuation("predict", generative=generative), frames, from_frame, context)
 
 
 def run_interact(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
+    params: InteractionParams,
     *,
     frames: int,
-    wind: WindParams | None = None,
-    ball: BallParams | None = None,
     from_frame: int | None = None,
-    device: str = "cpu",
-    progress: Progress | None = None,
-    should_cancel: ShouldCancel | None = None,
+    context: JobContext = JobContext(),
 ) -> Path:
     """Like `run_predict`, under a wind and/or with a ball (frames counted from the first new one).
 
-    `wind` and `ball` are the validated edge types; the run's scene checks them before anything
-    is written (`InteractionParams.check_scene`).
+    `params` (a wind, a ball or both) are the validated edge types; the run's scene checks them
+    before anything is written (`InteractionParams.check_scene`).
 
     `from_frame` branches the what-if off any finished frame of the parent (default: its last):
     frame 0 re-simulates the whole clip with the intervention from the start, a mid-clip frame
     asks "what if the wind had started here".
     """
-    params = InteractionParams(wind=wind, ball=ball)
-    if params.wind is None and params.ball is None:
-        raise InteractionError("interact needs a wind, a ball or both (predict asks for neither)")
-    return _continue(parent_run, out_dir, "interact", frames, from_frame, params, device, progress, should_cancel)
+    params = parse_interaction(params.wind, params.ball, Intervention)  # the one rule: a wind, a ball or both
+    return _continue(parent_run, out_dir, Continuation("interact", params), frames, from_frame, context)
 
 
 def run_resimulate(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
     *,
-    device: str = "cpu",
-    progress: Progress | None = None,
-    should_cancel: ShouldCancel | None = None,
+    context: JobContext = JobContext(),
 ) -> Path:
     """Simulate the parent's window again from its first frame: frame 0 is the reconstructed
     initial state itself, every later frame is physics only."""
     parent = _open_parent(parent_run)
     first, stop = parent.frames()[0], parent.frames()[-1] + 1
-    return _write(parent, out_dir, "resimulate", first, (first, stop), InteractionParams(), device, progress, should_cancel)
+    return _write(parent, out_dir, Continuation("resimulate"), first, (first, stop), context)
 
 
 def _continue(
     parent_run: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
-    kind: str,
+    request: Continuation,
     frames: int,
     from_frame: int | None,
-    params: InteractionParams,
-    device: str,
-    progress: Progress | None,
-    should_cancel: ShouldCancel | None,
-    generative: GenerativeSettings | None = None,
+    context: JobContext,
 ) -> Path:
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise JobInputError(f"frames must be a whole number >= 1, got {frames!r}")
     parent = _open_parent(parent_run)
     branch = branch_frame(parent, from_frame)
-    return _write(parent, out_dir, kind, branch, (branch + 1, branch + 1 + frames), params, device, progress, should_cancel, generative)
+    return _write(parent, out_dir, request, branch, (branch + 1, branch + 1 + frames), context)
 
 
 def branch_frame(parent: Run, from_frame: int | None) -> int:
@@ -144,22 +152,19 @@ def _open_parent(path: str | os.PathLike[str]) -> Run:
 def _write(
     parent: Run,
     out_dir: str | os.PathLike[str],
-    kind: str,
+    request: Continuation,
     start_frame: int,
     frame_range: tuple[int, int],
-    params: InteractionParams,
-    device: str,
-    progress: Progress | None,
-    should_cancel: ShouldCancel | None,
-    generative: GenerativeSettings | None = None,
+    context: JobContext,
 ) -> Path:
     """Write the frames of `frame_range` into a new (or resumed) run continuing `parent` from
     its frame `start_frame` (written unchanged first when it lies inside the range); a
     prediction is then refined (Algorithm S2), other kinds are not."""
     scene = continued_scene(parent.scene)
+    device, params = context.device, request.params
     start = SmokeState.from_frame(parent.read_frame(start_frame), device)
     buoyancy_scale, calibration, profile, observed = 1.0, {}, None, None
-    if kind != "resimulate" and parent.kind == "reconstruct":
+    if request.keeps_priors and parent.kind == "reconstruct":
         # Identified physics (fluidcore.reconstruct.identify) is used as it is, without the height-profile
         # prior: with it the future scored +0.33 dB on the dev scene but -0.17 dB on ScalarFlow
         # (docs/bench_generalise.md). Preset physics keeps the paper path: calibration and the prior,
@@ -172,14 +177,14 @@ def _write(
             look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
             profile = HeightProfile.observe(look, scene.up)
         scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
-    elif kind != "resimulate" and parent.manifest["settings"].get("appearance_profile"):
+    elif request.keeps_priors and parent.manifest["settings"].get("appearance_profile"):
         profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene.to_json(), n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
     run = Run.create(
         out_dir,
-        kind=kind,
+        kind=request.kind,
         cameras=parent.cameras(),
         input_views=parent.manifest["input_views"],
         frame_range=frame_range,
@@ -201,22 +206,21 @@ def _write(
         },
         parent=parent.path,
     )
-    run.update(refinement="pending: runs after the last simulated frame" if kind == "predict" else NOT_REFINED)
+    run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
     rollout = _rollout(scene, start, params, visual_settings, device, profile)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
-    report = progress or no_progress
     for t in range(run.next_frame(), frame_range[1]):
-        if should_cancel is not None and should_cancel():
-            raise Cancelled(f"{kind} cancelled; {out_dir} resumes from frame {t}")
+        if context.should_cancel():
+            raise Cancelled(f"{request.kind} cancelled; {out_dir} resumes from frame {t}")
         began = time.perf_counter()
         stats: dict[str, float] = {}
         if t > start_frame:
             smoke = rollout.advance(smoke, t - start_frame - 1, t)
             stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means))}
         run.write_frame(t, smoke.to_frame(), stats, time.perf_counter() - began)
-        report((t + 1 - frame_range[0]) / n_frames, kind)
-    if kind == "predict":
-        run.update(refinement=refine_future(run, generative, device, report, should_cancel))
+        context.progress((t + 1 - frame_range[0]) / n_frames, request.kind)
+    if request.refined:
+        run.update(refinement=refine_future(run, request.generative, context))
     return Path(out_dir)
 
 

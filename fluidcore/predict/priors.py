@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from fluidcore.jobs import JobInputError, Progress, ShouldCancel
+from fluidcore.jobs import JobContext, JobInputError
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import REFINED_RUN, Run
 from fluidcore.smoke import Appearance, SmokeState
@@ -111,9 +111,7 @@ def _band_means(value: torch.Tensor, band: torch.Tensor, bands: int) -> torch.Te
     return sums / counts[:, None]
 
 
-def refine_future(
-    run: Run, generative: GenerativeSettings | None, device: str, progress: Progress, should_cancel: ShouldCancel | None
-) -> str:
+def refine_future(run: Run, generative: GenerativeSettings | None, context: JobContext) -> str:
     """Refine the new frames of a finished prediction `run` and reconstruct on them into
     `run.path / REFINED_RUN`; returns the manifest's "refinement" line (what ran, or why not).
 
@@ -124,7 +122,6 @@ def refine_future(
     from fluidcore.artifacts import render_frames
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
-    from fluidcore.jobs import batch_progress
     from fluidcore.reconstruct.job import fit
     from fluidcore.reconstruct.loop import prepare
     from fluidcore.reconstruct.presets import Quality, render_size
@@ -143,8 +140,8 @@ def refine_future(
     rough = {}
     for name in run.manifest["input_views"]:
         camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
-        rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), device)).float() / 255.0
-    refined, status = refine_frames(rough, settings, device, batch_progress(progress, should_cancel, f"refinement of {run.path}"))
+        rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), context.device)).float() / 255.0
+    refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
     rec = prepare(
@@ -152,11 +149,11 @@ def refine_future(
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
         source=SourceHint(center=tuple(scene.source["center"]), radius=scene.source["radius"]),
         physics=origin.manifest["settings"].get("physics", {}).get("mode", "scalarflow"),  # runs from before --physics: the preset
-        device=device,
+        device=context.device,
     )
     rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets
     first = run.frames()[0]
-    fit(rec, run.path / REFINED_RUN, device=device, progress=progress, should_cancel=should_cancel,
+    fit(rec, run.path / REFINED_RUN, context=context,
         status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")
     return f"{status}; reconstructed on them from frame {first} in {REFINED_RUN}/"
 

@@ -44,6 +44,7 @@ import torch
 from scipy import ndimage
 
 from fluidcore.cameras import Camera
+from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
 from fluidcore.reconstruct.presets import PHYSICS_MODES
 
@@ -59,7 +60,7 @@ SOURCE_SIZES = (0.8, 1.0, 1.25)  # source radius factors (stage 2)
 REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
 
 
-class IdentificationError(ValueError):
+class IdentificationError(InputError):
     """The observed frames cannot identify the physics (e.g. no smoke at all)."""
 
 
@@ -279,7 +280,7 @@ KERNEL_RADIUS_SIM = 2.0  # h in the presets' simulation units (the release: 0.02
 PRESET_STABILIZATION_STEPS = 20  # the paper's N_stable, used when the physics is not identified
 
 
-class PhysicsChoiceError(ValueError):
+class PhysicsChoiceError(InputError):
     """An unknown --physics mode; the message names the choices."""
 
 

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from fluidcore.errors import InputError
+
 
 MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
 TEXTURED_FRACTION = 0.2  # a background image is kept when this much of the view is not flat
@@ -26,7 +28,7 @@ SOURCE_FRAMES = 5  # the first frames say where smoke enters
 SOURCE_BAND = 0.1  # the lowest 10% of a view's smoke pixels outline the source
 
 
-class EstimationError(ValueError):
+class EstimationError(InputError):
     """The videos do not show what an estimate needs (e.g. no smoke in the first frames)."""
 
 

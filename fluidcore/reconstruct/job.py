@@ -4,7 +4,7 @@
 cameras file never pulls in another view), checks each video fits its camera
 (`fluidcore.cameras.check_video_size`, the rule the API applies to uploads), reconstructs frame
 by frame into a run folder and resumes when that folder already holds the same run. Progress,
-cancellation and input errors follow `fluidcore.jobs`.
+cancellation (its `JobContext`) and input errors follow `fluidcore.jobs`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fluidcore.jobs import Cancelled, JobInputError, Progress, ShouldCancel, batch_progress, no_progress
+from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 
@@ -50,13 +50,11 @@ def run_reconstruct(
     *,
     quality: str | Quality = DEFAULT_QUALITY,
     frames: tuple[int, int] | None = None,
-    device: str = "cpu",
-    progress: Progress | None = None,
-    should_cancel: ShouldCancel | None = None,
     source: SourceHint | None = None,
     physics: str = DEFAULT_PHYSICS,
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
+    context: JobContext = JobContext(),
 ) -> Path:
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
@@ -101,18 +99,17 @@ def run_reconstruct(
         for name, path in videos.items()
     }
     cameras = {name: camera.pinhole() for name, camera in cameras.items()}
-    report = progress or no_progress
-    report(0.0, "prepare")
+    context.progress(0.0, "prepare")
     rec = prepare(
         cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=_box(cameras_path, cameras),
-        source=source, physics=physics, device=device,
+        source=source, physics=physics, device=context.device,
     )
     del decoded
     settings = generative or GenerativeSettings()
-    on_batch = batch_progress(report, should_cancel, f"reconstruction in {out_dir}")
-    status = with_generated_views(rec, settings, device, on_batch, stored=Path(out_dir) / GENERATED_DIR)
+    on_batch = context.batch_progress(f"reconstruction in {out_dir}")
+    status = with_generated_views(rec, settings, context.device, on_batch, stored=Path(out_dir) / GENERATED_DIR)
     return fit(
-        rec, out_dir, device=device, progress=report, should_cancel=should_cancel, progress_bar=progress_bar, status=status,
+        rec, out_dir, context=context, progress_bar=progress_bar, status=status,
         on_open=lambda run: save_generated_views(rec, settings, status, run.path / GENERATED_DIR),
     )
 
@@ -121,9 +118,7 @@ def fit(
     rec: Reconstruction,
     out_dir: str | os.PathLike[str],
     *,
-    device: str = "cpu",
-    progress: Progress | None = None,
-    should_cancel: ShouldCancel | None = None,
+    context: JobContext = JobContext(),
     progress_bar: bool = False,
     status: Mapping[str, str] | None = None,
     first_state: FrameState | None = None,
@@ -140,8 +135,7 @@ def fit(
     """
     from fluidcore.reconstruct.loop import Reconstructor
 
-    report = progress or no_progress
-    reconstructor = Reconstructor(rec, device=device)
+    reconstructor = Reconstructor(rec, device=context.device)
     run = reconstructor.open_run(out_dir)
     if status:
         run.update(**status)
@@ -156,14 +150,14 @@ def fit(
 
     def on_frame(t: int, losses: Mapping[str, float]) -> None:
         done = t + 1 - frame_range[0]
-        report(done / total, stage)
+        context.progress(done / total, stage)
         if bar is not None:
             bar.set_postfix(psnr=f"{losses['input_psnr']:.1f}", refresh=False)
             bar.update(1)
 
     def should_stop() -> bool:
         nonlocal cancelled
-        cancelled = bool(should_cancel and should_cancel())
+        cancelled = context.should_cancel()
         return cancelled
 
     run = reconstructor.run(out_dir, on_frame=on_frame, should_stop=should_stop)

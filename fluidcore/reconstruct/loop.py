@@ -36,6 +36,7 @@ import numpy as np
 import torch
 
 from fluidcore.cameras import Camera
+from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
@@ -52,7 +53,7 @@ from fluidcore.smoke import SmokeState
 FrameCallback = Callable[[int, dict[str, float]], None]
 
 
-class ReconstructionError(ValueError):
+class ReconstructionError(InputError):
     """Inputs a reconstruction cannot start from; the message names the field."""
 
 

@@ -19,8 +19,10 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
+from fluidcore.errors import InputError
 
-class PresetError(ValueError):
+
+class PresetError(InputError):
     """An unknown preset name or an invalid override."""
 
 

@@ -15,10 +15,12 @@ from collections.abc import Sequence
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from fluidcore.errors import InputError
+
 Vec3 = tuple[float, float, float]
 
 
-class SourceHintError(ValueError):
+class SourceHintError(InputError):
     """A source hint that cannot be used in this scene; the message names the field."""
 
 

@@ -13,11 +13,13 @@ from dataclasses import dataclass
 
 import torch
 
+from fluidcore.errors import InputError
+
 CHANNELS = (1, 3)  # grey smoke or RGB
 MIN_QUAT_NORM = 1e-8  # below this a quaternion has no direction to normalise to
 
 
-class RenderError(ValueError):
+class RenderError(InputError):
     """Input the renderer cannot draw; the message names the offending field."""
 
 

@@ -40,7 +40,7 @@ def info(
     from fluidcore.runs import MANIFEST
     from fluidnexus.cli.errors import echo_json
 
-    with user_errors(ValueError):
+    with user_errors():
         manifest = path / MANIFEST
         if manifest.is_file():
             echo_json(scene_info.from_run_manifest(json.loads(manifest.read_text())))
@@ -59,7 +59,7 @@ def single(
     """One camera at DISTANCE looking at the scene centre, and the scene box it frames."""
     from fluidcore.cameras.single import write_single_camera
 
-    with user_errors(ValueError):
+    with user_errors():
         _report(write_single_camera(out, video, fov, distance, up), as_json)
 
 
@@ -74,7 +74,7 @@ def colmap(
     from fluidcore.cameras.calibrate import write_rig
     from fluidnexus.cli.scenes import parse_videos
 
-    with user_errors(ValueError):
+    with user_errors():
         _report(write_rig(out, parse_videos(video), distance=distance, camera_model=camera_model), as_json)
 
 

@@ -1,26 +1,43 @@
 """How the command line reports: bad input as one clear line on stderr and exit code 2 (no
-traceback), results on stdout as text or, with --json, as one JSON object (logs go to stderr)."""
+traceback), a bug as its traceback and `error: internal error (id ...)` on stderr and exit code 1,
+results on stdout as text or, with --json, as one JSON object (logs go to stderr)."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 import typer
 
+from fluidcore.errors import InputError, internal_error
 
-class UserError(Exception):
-    """An input problem the user can fix; its message is shown as is."""
+log = logging.getLogger("fluidnexus.cli")
+# A command's own ways out (typer.Exit is a RuntimeError): never taken for bugs.
+COMMAND_EXITS = (typer.Exit, typer.Abort, typer.TyperException)
+
+
+class UserError(InputError):
+    """An option the command line itself refuses; its message is shown as is."""
 
 
 @contextmanager
 def user_errors(*kinds: type[BaseException]) -> Iterator[None]:
-    """Turn UserError (and the given exception types) into `error: message` and exit 2."""
+    """Turn an `InputError` (and the given exception types) into `error: message` and exit 2.
+
+    Anything else is a bug, whatever its type (a ValueError from deep inside numpy too): its
+    traceback goes to the log (stderr) under an id, and the command exits 1 naming that id."""
     try:
         yield
-    except (UserError, *kinds) as exc:
+    except (InputError, *kinds) as exc:
         typer.echo(f"error: {exc}", err=True)
         raise typer.Exit(code=2) from None
+    except COMMAND_EXITS:
+        raise
+    except Exception as exc:
+        reported = internal_error(log, exc, "a fluidnexus command")
+        typer.echo(f"error: {reported}: not a problem with the input; the traceback above shows where", err=True)
+        raise typer.Exit(code=1) from None
 
 
 def check_device(device: str) -> None:

@@ -53,7 +53,7 @@ def models(
 def _finetune(kind: str, data: Path, out: Path, steps: int, models_dir: Path | None, options: dict) -> None:
     from fluidcore.generative import finetune
 
-    with user_errors(ValueError, FileNotFoundError):
+    with user_errors():
         result = finetune.run(
             kind, data, out, steps=steps, models_root=models_dir, progress=lambda line: typer.echo(line, err=True), **options
         )

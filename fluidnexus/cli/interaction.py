@@ -41,24 +41,26 @@ def predict(
     """Simulate the smoke forward FRAMES frames after the last reconstructed frame (Algorithm S2);
     with video-model weights in the models folder, refine them and reconstruct on them."""
     from fluidcore.generative.stages import GenerativeSettings
+    from fluidcore.jobs import JobContext
     from fluidcore.predict.job import run_predict
 
-    with user_errors(ValueError):
+    with user_errors():
         check_device(device)
         path = run_predict(
-            run, out, frames=frames, from_frame=from_frame, device=device, progress=_ProgressBar(),
-            generative=GenerativeSettings(models_root=models),
+            run, out, frames=frames, from_frame=from_frame, generative=GenerativeSettings(models_root=models),
+            context=JobContext(device, _ProgressBar()),
         )
         emit(as_json, str(path), **run_fields(path))
 
 
 def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT, as_json: bool = JSON_OPT) -> None:
     """Re-run the simulator from the reconstructed first frame over the observed window."""
+    from fluidcore.jobs import JobContext
     from fluidcore.predict.job import run_resimulate
 
-    with user_errors(ValueError):
+    with user_errors():
         check_device(device)
-        path = run_resimulate(run, out, device=device, progress=_ProgressBar())
+        path = run_resimulate(run, out, context=JobContext(device, _ProgressBar()))
         emit(as_json, str(path), **run_fields(path))
 
 
@@ -82,17 +84,16 @@ def interact(
     as_json: bool = JSON_OPT,
 ) -> None:
     """Ask what if: a wind, a ball in the plume's way, or both, from any frame of RUN (default: after its last)."""
-    from fluidcore.interaction import parse_interaction
+    from fluidcore.interaction import Intervention, parse_interaction
+    from fluidcore.jobs import JobContext
 
-    with user_errors(ValueError):
-        params = parse_interaction(wind, ball)  # the edge: bad JSON or values fail here, before torch loads
+    with user_errors():
+        params = parse_interaction(wind, ball, Intervention)  # the edge: bad JSON or values fail here, before torch loads
         from fluidcore.predict.job import run_interact
 
         check_device(device)
-        path = run_interact(
-            run, out, frames=frames, wind=params.wind, ball=params.ball, from_frame=from_frame, device=device,
-            progress=_ProgressBar(),
-        )
+        context = JobContext(device, _ProgressBar())
+        path = run_interact(run, out, params, frames=frames, from_frame=from_frame, context=context)
         emit(as_json, str(path), **run_fields(path))
 
 

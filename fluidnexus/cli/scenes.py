@@ -11,6 +11,7 @@ from pathlib import Path
 
 import typer
 
+from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
 from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
@@ -40,6 +41,7 @@ def parse_videos(items: list[str]) -> dict[str, Path]:
         name, sep, path = item.partition("=")
         if not sep or not name or not path:
             raise UserError(f"--video must look like VIEW=path.mp4, got {item!r}")
+        check_name(name, "--video: VIEW")
         if name in videos:
             raise UserError(f"--video: view {name!r} given twice")
         if not Path(path).is_file():
@@ -59,7 +61,7 @@ def synth(
     """Simulate and render a small synthetic plume with known ground truth (try the pipeline without data)."""
     from fluidcore import synth as synth_module
 
-    with user_errors(ValueError):
+    with user_errors():
         spec = synth_module.SynthSpec(frames=frames, width=width, height=height, views=views, seed=seed)
         path = synth_module.write(synth_module.generate(spec), out)
     typer.echo(str(path))
@@ -85,17 +87,17 @@ def reconstruct(
     With one video and novel-view weights in the models folder, generated views of the other
     cameras join the fit (see `fluidnexus models`)."""
     from fluidcore.generative.stages import GenerativeSettings
-    from fluidcore.jobs import parse_frames
+    from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
     from fluidcore.reconstruct.source_hint import parse_source
 
-    with user_errors(ValueError):
+    with user_errors():
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=quality, physics=physics, frames=parse_frames(frames),
             source=None if source is None else parse_source(source),
-            device=device, progress_bar=True, generative=GenerativeSettings(models_root=models),
+            progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit(as_json, str(path), **run_fields(path))
 
@@ -120,7 +122,7 @@ def render(
     from fluidcore.runs import Run
     from fluidcore.video import write_mp4
 
-    with user_errors(ValueError):
+    with user_errors():
         if out is None and png_dir is None:
             raise UserError("give --out video.mp4 and/or --png-dir DIR")
         if camera is None:
@@ -166,14 +168,27 @@ def _write_pngs(folder: Path, video, frames: list[int]) -> None:  # noqa: ANN001
 
 def export(
     run: Path = RUN_ARG,
-    frame: int = typer.Option(..., "--frame", help="Frame number (as in the run's manifest)."),
-    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd (docs/exports.md)."),
-    out: Path = typer.Option(..., "--out", help="File to write."),
+    frame: int | None = typer.Option(None, "--frame", help="Frame number (as in the run's manifest); default: the last."),
+    frames: str | None = typer.Option(
+        None, "--frames", help="START:END (end excluded): a numbered sequence of these frames into the folder --out."
+    ),
+    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd | vdb (docs/exports.md)."),
+    out: Path = typer.Option(..., "--out", help="File to write; with --frames, the folder for the sequence."),
     as_json: bool = JSON_OPT,
 ) -> None:
-    """Write one frame: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd)."""
-    from fluidcore.exports import export_frame
+    """Write a frame or a sequence: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd, vdb)."""
+    from fluidcore.exports import export_frame, export_sequence, last_frame
+    from fluidcore.jobs import parse_frames
 
-    with user_errors(ValueError):
-        path = export_frame(run, frame, fmt, out)
-    emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
+    with user_errors():
+        if frame is not None and frames is not None:
+            raise UserError("give --frame (one file) or --frames START:END (a sequence), not both")
+        wanted = parse_frames(frames)
+        if wanted is None:
+            frame = last_frame(run) if frame is None else frame
+            path = export_frame(run, frame, fmt, out)
+            emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
+        else:
+            paths = export_sequence(run, wanted, fmt, out)
+            emit(as_json, "\n".join(map(str, paths)), run=str(run), frames=list(wanted), format=fmt, out=str(out),
+                 files=[p.name for p in paths])

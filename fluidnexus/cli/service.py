@@ -13,6 +13,8 @@ import os
 import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -25,6 +27,7 @@ from fluidnexus.cli.errors import user_errors
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker
 
+    from service.queue import CeleryQueue
     from service.settings import Settings
 
 DataDir = Annotated[
@@ -33,6 +36,8 @@ DataDir = Annotated[
 ]
 WORKER_STOP_TIMEOUT_S = 30
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
+RESTART_DELAYS_S = (1.0, 30.0)  # first restart after 1 s, doubling up to 30 s while it keeps dying at boot
+WORKER_NICE = 10  # the embedded worker yields the CPU to the API (pool children inherit it)
 # Longer than clients keep an idle connection (httpx and browsers: 5 s or more), so the server
 # never closes one just as a client reuses it (a "server disconnected" error under load).
 KEEP_ALIVE_S = 20
@@ -65,7 +70,7 @@ def serve(
             orphans = requeue_orphans(sessions, queue)
             if orphans:
                 typer.echo(f"resuming {len(orphans)} job(s) left running by the last server: {', '.join(orphans)}", err=True)
-    process = _start_worker(settings.resolved_data_dir()) if worker else None
+    supervisor = WorkerSupervisor(settings, queue) if worker else None
     # uvicorn re-raises SIGTERM after its graceful shutdown; the default action would end this
     # process before the `finally` below stops the worker.
     signal.signal(signal.SIGTERM, _exit_on_sigterm)
@@ -73,16 +78,81 @@ def serve(
         app = create_app(settings.model_copy(update={"migrate_on_start": False}), queue=queue)  # migrated above
         uvicorn.run(app, host=host, port=port, timeout_keep_alive=KEEP_ALIVE_S)
     finally:
-        if process is not None:
-            _stop_worker(process)
+        if supervisor is not None:
+            supervisor.stop()
 
 
 def _exit_on_sigterm(signum: int, frame: object) -> None:
     raise SystemExit(0)
 
 
+class WorkerSupervisor:
+    """Starts the embedded worker and starts it again, with back-off, whenever it dies (a SIGKILL,
+    an out-of-memory kill): otherwise its jobs would wait forever while the API looks healthy.
+
+    On a death it kills what is left of the worker's process group, removes the dead worker's
+    heartbeat (so /readyz answers 503 until the new one beats) and, with the embedded broker,
+    sends the jobs it left running again at once (`requeue_orphans`: only this worker takes
+    the embedded broker's jobs) instead of waiting out their lease; the queued jobs whose
+    prefetched message died with it are sent again by the API's reaper (service.queue)."""
+
+    def __init__(self, settings: Settings, queue: CeleryQueue) -> None:
+        from service.database import make_engine, make_sessionmaker
+
+        self.settings, self.queue = settings, queue
+        self.engine = make_engine(settings.resolved_database_url(), pool_size=1)
+        self.sessions = make_sessionmaker(self.engine)
+        self._stopping = threading.Event()
+        self.process = _start_worker(settings.resolved_data_dir())
+        self._thread = threading.Thread(target=self._watch, name="worker-supervisor", daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        delay = RESTART_DELAYS_S[0]
+        while True:
+            started = time.monotonic()
+            code = self.process.wait()
+            if self._stopping.is_set():
+                return
+            # A worker that ran a while before dying starts the back-off again; one dying at boot backs off.
+            if time.monotonic() - started > RESTART_DELAYS_S[-1]:
+                delay = RESTART_DELAYS_S[0]
+            typer.echo(f"embedded worker {self.process.pid} died (exit {code}); restarting in {delay:.0f} s", err=True)
+            self._clean_up_after(self.process.pid)
+            if self._stopping.wait(delay):
+                return
+            self.process = _start_worker(self.settings.resolved_data_dir())
+            delay = min(delay * 2, RESTART_DELAYS_S[-1])
+
+    def _clean_up_after(self, pid: int) -> None:
+        from service.queue import requeue_orphans
+        from service.worker_beats import forget, worker_name
+
+        try:
+            os.killpg(pid, signal.SIGKILL)  # its pool children, if any outlived it
+        except ProcessLookupError:
+            pass
+        try:
+            forget(self.sessions, worker_name(pid))
+            if self.settings.is_embedded_broker():
+                orphans = requeue_orphans(self.sessions, self.queue)
+                if orphans:
+                    typer.echo(f"resuming {len(orphans)} job(s) the worker left running: {', '.join(orphans)}", err=True)
+        except Exception as exc:  # database or broker down: the API's reaper sends them once the lease ends
+            typer.echo(f"could not hand the dead worker's jobs back now ({exc}); the reaper will", err=True)
+
+    def stop(self) -> None:
+        self._stopping.set()
+        _stop_worker(self.process)
+        self._thread.join(WORKER_STOP_TIMEOUT_S)
+        if self.process.poll() is None:  # restarted just as the server stopped
+            _stop_worker(self.process)
+        self.engine.dispose()
+
+
 def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
-    """One Celery worker on the `gpu` queue, concurrency 1 (one job at a time on this machine)."""
+    """One Celery worker on the `gpu` queue, concurrency 1 (one job at a time on this machine),
+    at a lower CPU priority than the API (`WORKER_NICE`)."""
     env = {**os.environ, "FLUIDNEXUS_DATA_DIR": str(data_dir), "FLUIDNEXUS_EMBEDDED_WORKER": "1"}  # worker.tasks.EMBEDDED
     command = [
         sys.executable, "-m", "celery", "-A", "worker.tasks", "worker", "--queues", "gpu", "--concurrency", "1",
@@ -99,7 +169,9 @@ def _die_with_parent(parent_pid: int) -> None:
     """Runs in the worker's process before it execs Celery: the kernel SIGKILLs it when the server
     dies, however it dies (`kill -9` included), and Celery's pool children die with it (they
     ask the same of their parent). Otherwise a killed server leaves its worker running a job
-    that the next server's worker would start again beside it."""
+    that the next server's worker would start again beside it. It also lowers the worker's CPU
+    priority: a job's torch threads must not starve the API's event loop on a small machine."""
+    os.nice(WORKER_NICE)
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")

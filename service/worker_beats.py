@@ -1,0 +1,93 @@
+"""Worker heartbeats in the database (`WorkerBeat` rows), so processes that cannot see the workers
+(the API, on another machine or beside an embedded worker) know whether any is alive and idle.
+
+- `/readyz` answers 503 while no worker has beaten within the lease: jobs sent now would wait.
+- The reaper (service.queue.reap_stale) sends a queued job again only once a worker has sat idle
+  for a whole lease beside it: a live idle worker would have taken the job, so its message was lost.
+
+One row per Celery main process (`host:pid`), written by a thread in each pool child every
+quarter lease; a stopped or restarted worker's row is removed (`forget`) or simply goes stale.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from datetime import datetime, timedelta
+
+from sqlalchemy import delete, func, select
+from sqlalchemy.orm import Session, sessionmaker
+
+from service.database import session_scope
+from service.models import WorkerBeat, utcnow
+
+log = logging.getLogger(__name__)
+
+
+def worker_name(pid: int) -> str:
+    """The row name of the Celery main process `pid` on this host (a pool child passes its parent's)."""
+    return f"{os.uname().nodename}:{pid}"
+
+
+class WorkerBeacon:
+    """Beats for one worker from a daemon thread; `working()` marks the time a job runs."""
+
+    def __init__(self, sessions: sessionmaker[Session], name: str, period_s: float) -> None:
+        self.sessions, self.name, self.period_s = sessions, name, period_s
+        self._idle_since: datetime | None = utcnow()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat_forever, name="worker-beat", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    @contextmanager
+    def working(self) -> Iterator[None]:
+        self._idle_since = None
+        try:
+            yield
+        finally:
+            self._idle_since = utcnow()
+
+    def beat(self) -> None:
+        with session_scope(self.sessions) as session:
+            row = session.get(WorkerBeat, self.name) or WorkerBeat(name=self.name)
+            row.heartbeat_at, row.idle_since = utcnow(), self._idle_since
+            session.add(row)
+
+    def stop(self) -> None:
+        """Stop beating and remove the row: a worker shutting down is not there any more."""
+        self._stop.set()
+        forget(self.sessions, self.name)
+
+    def _beat_forever(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.beat()
+            except Exception:  # database unreachable: keep trying; readers see the row go stale
+                log.warning("worker heartbeat failed", exc_info=True)
+            self._stop.wait(self.period_s)
+
+
+def forget(sessions: sessionmaker[Session], name: str) -> None:
+    """Remove a worker's row (it stopped, or its supervisor saw it die)."""
+    with session_scope(sessions) as session:
+        session.execute(delete(WorkerBeat).where(WorkerBeat.name == name))
+
+
+def live_workers(session: Session, lease_seconds: float) -> int:
+    """Workers that beat within the lease."""
+    cutoff = utcnow() - timedelta(seconds=lease_seconds)
+    return session.scalar(select(func.count()).select_from(WorkerBeat).where(WorkerBeat.heartbeat_at >= cutoff)) or 0
+
+
+def idle_for_a_lease(session: Session, lease_seconds: float) -> bool:
+    """True when some live worker has run nothing for at least the lease."""
+    cutoff = utcnow() - timedelta(seconds=lease_seconds)
+    query = select(func.count()).select_from(WorkerBeat).where(
+        WorkerBeat.heartbeat_at >= cutoff, WorkerBeat.idle_since <= cutoff
+    )
+    return bool(session.scalar(query))
