@@ -5,10 +5,12 @@ It does what the worker does for an interact job: `run_interact` on a reconstruc
 folder, then `fluidcore.artifacts.render_artifacts` at the size the worker asks for
 (`fit_long_side`), timing each (wall seconds, and CPU seconds of the process, which another
 user's load on a shared machine changes far less), `--repeats` times on fresh folders.
-`render_share` is the rendering's part of the two together (`render_cpu_share` in CPU time); issue 24 asks for at most a third at preview quality on
-the 2-core machine. The script runs unchanged on the commit before issue 24, whose
-`render_artifacts` took only the two folders (every camera at full size, a 120-frame orbit),
-which is how docs/bench_render.md has its "before" row. `--json` prints one JSON object.
+`render_share` is the rendering's part of the two together (`render_cpu_share` in CPU time);
+issue 24 asks for at most a third at preview quality on the 2-core machine. Where
+`render_artifacts` takes only the two folders (the code before issue 24: every camera at full
+size, a 120-frame orbit) it is called so; docs/bench_render.md's "before" row is this script at
+commit b60e0d9 (whose `run_interact` still took `wind=`) on fluidcore of commit 9f10de6.
+`--json` prints one JSON object.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ def measure(parent: Path, frames: int, wind: str, folder: Path) -> dict[str, Any
 
     params = parse_interaction(json.loads(wind), None)
     start, cpu_start = time.perf_counter(), time.process_time()
-    run_dir = run_interact(parent, folder / "run", frames=frames, wind=params.wind)
+    run_dir = run_interact(parent, folder / "run", params, frames=frames)
     simulated, cpu_simulated = time.perf_counter(), time.process_time()
     supported = inspect.signature(artifacts.render_artifacts).parameters
     extra = {"long_side": artifacts.fit_long_side(run_dir)} if "long_side" in supported else {}  # absent before issue 24
