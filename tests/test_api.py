@@ -406,6 +406,8 @@ def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
         ('{"frames": [0, 500]}', 422, "reconstruct.frames: end 500 is past the scene's"),
         ('{"quality": "ultra"}', 422, "reconstruct.quality"),
         ('{"frames": [0', 422, "reconstruct: not JSON"),
+        ("[" * 2000 + "]" * 2000, 422, "reconstruct: not JSON (JSON nested too deeply)"),
+        ('{"frames": [0, NaN]}', 422, "reconstruct: not JSON"),
         ('{"frames": [0, 2]}', 503, "broker"),  # accepted, but the queue is down: nothing is kept either
     ],
 )

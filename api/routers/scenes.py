@@ -13,7 +13,7 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.errors import error_responses
+from api.errors import error_responses, strict_json
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
 from fluidcore.names import safe_join
@@ -111,7 +111,7 @@ def create_scene(
 def parse_reconstruct(text: str) -> ReconstructParams:
     """The `reconstruct` form field: a reconstruction's params as JSON; 422 naming the field."""
     try:
-        return ReconstructParams.model_validate(json.loads(text))
+        return ReconstructParams.model_validate(strict_json(text.encode()))  # no NaN, no deep nesting
     except json.JSONDecodeError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"reconstruct: not JSON ({exc.msg})") from None
     except ValidationError as exc:
