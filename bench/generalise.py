@@ -137,8 +137,8 @@ class Protocol:
         out: dict[str, Any] = {
             "scene": str(self.gt.root), "layout": self.gt.kind, "input_view": self.input_view,
             "observed": list(self.window), "score_every": self.every, "score_long_side": self.long_side,
-            "quality": recon.manifest["settings"].get("quality"), "physics": recon.scene.physics,
-            "source": recon.scene.source, "reconstruction": str(recon.path), "tasks": {},
+            "quality": recon.settings.quality, "physics": recon.scene.to_json()["physics"],
+            "source": recon.scene.to_json()["source"], "reconstruction": str(recon.path), "tasks": {},
         }
         frames = self._frames(*self.window)
         held_out = [v for v in self.gt.views() if v != self.input_view]
@@ -207,7 +207,7 @@ class Protocol:
         return list(range(start, stop, self.every))
 
     def _size(self, camera: Any) -> tuple[int, int]:
-        from fluidcore.reconstruct.presets import render_size
+        from fluidcore.cameras import render_size
 
         return render_size(camera.width, camera.height, self.long_side) if self.long_side else (camera.width, camera.height)
 
@@ -309,7 +309,7 @@ class Protocol:
         wind = None
         if variant.wind is not None:  # the same acceleration field, expressed at our source's height
             up = recon.scene.up
-            base = sum(c * u for c, u in zip(recon.scene.source["center"], up, strict=True))
+            base = sum(c * u for c, u in zip(recon.scene.source.center, up, strict=True))
             strength = variant.wind["strength"] * math.exp(variant.wind["growth"] * (base - variant.wind_base))
             wind = {**variant.wind, "strength": strength}
         intervened = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"whatif_{variant.name}", n,
@@ -369,9 +369,9 @@ def _particle_velocity(run: Any, t: int, points: Any) -> Any:
     from fluidcore.physics import interpolate_velocity
 
     state = run.read_frame(t)
-    h = run.scene.physics["h"]
-    settings = run.manifest["settings"]
-    radius = (settings.get("visual") or settings["quality"])["velocity_radius"]
+    h = run.scene.physics.h
+    visual = run.settings.visual
+    radius = visual.velocity_radius if visual is not None else run.settings.quality["velocity_radius"]  # runs before settings.visual
     alive = state.alive
     with torch.no_grad():
         v = interpolate_velocity(torch.from_numpy(np.ascontiguousarray(points)), torch.from_numpy(state.positions[alive]),
@@ -388,11 +388,10 @@ def _branch(recon: Any, last: int, out: Path) -> Any:
     first = recon.frames()[0]
     if last not in recon.frames():
         raise UserError(f"branch frame {last} is outside the reconstruction ({first}..{recon.frames()[-1]})")
-    m = recon.manifest
     run = Run.create(
-        out, kind=recon.kind, cameras=recon.cameras(), input_views=m["input_views"], frame_range=(first, last + 1),
+        out, kind=recon.kind, cameras=recon.cameras(), input_views=recon.input_views, frame_range=(first, last + 1),
         fps=recon.fps, channels=recon.channels, background_color=recon.background_color, scene=recon.scene,
-        settings=m["settings"],
+        settings=recon.settings,
     )
     if recon.background_images() and not run.background_images():
         run.write_background(recon.background_images())

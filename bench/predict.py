@@ -67,6 +67,7 @@ def command(
     from fluidcore.predict.job import run_predict, run_resimulate
     from fluidcore.reconstruct import get
     from fluidcore.reconstruct.job import run_reconstruct
+    from fluidcore.runs import Run
 
     with user_errors():
         cameras_path, cameras = load_scene(scene, threads)
@@ -117,7 +118,7 @@ def command(
                 "future": list(horizon),
                 "reconstruction": str(reconstruction),
                 "runs": {"predict": str(predicted), "resimulate": str(resimulated)},
-                "refinement": json.loads((Path(predicted) / "manifest.json").read_text()).get("refinement"),
+                "refinement": Run.open(predicted).manifest.get("refinement"),
                 "seconds": seconds,
                 "seconds_per_predicted_frame": (seconds["predict"] + render_seconds) / n_future,
                 "seconds_per_predicted_frame_simulation": seconds["predict"] / n_future,

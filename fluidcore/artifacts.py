@@ -95,7 +95,7 @@ def orbit_cameras(run, n: int) -> list:  # noqa: ANN001
 
     scene = run.scene
     cameras = run.cameras()
-    like = cameras[run.manifest["input_views"][0]] if run.manifest.get("input_views") else next(iter(cameras.values()))
+    like = cameras[run.input_views[0]] if run.input_views else next(iter(cameras.values()))
     center = 0.5 * (np.asarray(scene.box_lo) + np.asarray(scene.box_hi))
     up = np.asarray(scene.up)
     offset = like.center() - center
@@ -133,7 +133,7 @@ def published_camera(camera, long_side: int | None):  # noqa: ANN001, ANN201 - C
     """`camera` scaled to `long_side` pixels on its long side (never up): a job's videos are
     rendered at the size its reconstruction was fit at (preview: 480 px), which holds all the
     detail the fit has; ScalarFlow's full 1160 px cost 5.8x the pixels for the same picture."""
-    from fluidcore.reconstruct.presets import render_size
+    from fluidcore.cameras import render_size
 
     return camera if long_side is None else camera.scaled(*render_size(camera.width, camera.height, long_side))
 
@@ -151,7 +151,7 @@ def render_artifacts(
     (never upscaled; None: each camera's own size). `progress(fraction, "render")` after every
     rendered frame."""
     from fluidcore.names import safe_join
-    from fluidcore.runs import MANIFEST, REFINED_RUN, Run
+    from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4
 
     run = Run.open(run_dir)
@@ -160,9 +160,9 @@ def render_artifacts(
     check_camera_names(list(cameras or run.cameras()))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    what_if = run.kind == "interact"
+    what_if = run.kind is RunKind.INTERACT
     own = dict(cameras or published_cameras(run))
-    refined = Run.open(run.path / REFINED_RUN) if (run.path / REFINED_RUN / MANIFEST).is_file() else None
+    refined = run.refined()
     refined_cameras = dict(cameras or refined.cameras()) if refined is not None else {}
     n = len(run.frames())
     side = int(what_if) * (1 + int(cameras is not None))  # the factual side, and the what-if's unless already rendered
@@ -186,7 +186,7 @@ def render_artifacts(
     for name, camera in refined_cameras.items():
         written.append(write_mp4(safe_join(out, f"{REFINED_PREFIX}{name}.mp4"), render_frames(refined, size(camera), on_frame=on_frame), fps=refined.fps))
     if what_if:
-        name = run.manifest["input_views"][0]
+        name = run.input_views[0]
         camera = size(run.cameras()[name])
         both = render_side_by_side(run, camera, what_if=videos.get(name) if cameras is None else None, on_frame=on_frame)
         written.append(write_mp4(out / "side_by_side.mp4", both, fps=run.fps))
@@ -196,8 +196,10 @@ def render_artifacts(
 def published_cameras(run) -> dict[str, object]:  # noqa: ANN001 - Run
     """The cameras whose videos a finished job publishes: all of the run's, a what-if's input views."""
     cameras = run.cameras()
-    if run.kind == "interact":
-        return {name: cameras[name] for name in run.manifest["input_views"]}
+    from fluidcore.runs import RunKind
+
+    if run.kind is RunKind.INTERACT:
+        return {name: cameras[name] for name in run.input_views}
     return cameras
 
 
@@ -227,7 +229,7 @@ def factual_frames(run, camera, device: str = "cpu", on_frame: FrameDone | None 
     if set(frames) <= set(parent.frames()):
         return render_frames(parent, camera, frames, device, on_frame=on_frame)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-factual-") as tmp:
-        branch = int(run.manifest["settings"]["branch_frame"])
+        branch = run.settings.branch_frame
         factual = Run.open(run_predict(parent.path, Path(tmp) / "factual", frames=frames[-1] - branch, from_frame=branch,
                                       context=JobContext(device=device)))
         return render_frames(factual, camera, frames, device, on_frame=on_frame)

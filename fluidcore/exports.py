@@ -95,7 +95,7 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
 
 def frame_density(run: Run, state: FrameState, spacing: float | None = None) -> DensityGrid:
     """The density grid of a run's frame, over its scene box, with the scene's kernel radius."""
-    h = float(run.scene.physics["h"])
+    h = run.scene.physics.h
     positions = state.positions[state.alive.astype(bool)]
     return density_grid(positions, h, np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi), spacing or DENSITY_SPACING * h)
 
@@ -136,7 +136,7 @@ def _write_density(run: Run, state: FrameState, path: Path) -> None:
     with path.open("wb") as file:
         np.savez(
             file, density=grid.density, origin=grid.origin, spacing=np.asarray(grid.spacing),
-            particle_mass=np.asarray(grid.particle_mass), rest_density=np.asarray(float(run.scene.physics["rho0"])),
+            particle_mass=np.asarray(grid.particle_mass), rest_density=np.asarray(run.scene.physics.rho0),
         )
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -137,6 +137,28 @@ class BallParams(BaseModel):
             raise InteractionError(f"ball.radius {self.radius} is larger than the scene box {list(lo)}..{list(hi)}")
 
 
+class _Physics(Protocol):  # fluidcore.physics.PBFConfig
+    dt: float
+
+    @property
+    def speed_limit(self) -> float: ...
+
+
+class _Source(Protocol):  # fluidcore.physics.Source
+    center: Vec3
+
+
+class RunScene(Protocol):
+    """What `InteractionParams.check_scene` reads of a run's scene: `fluidcore.runs.Scene`
+    (named by what it holds, since fluidcore.runs imports this module)."""
+
+    box_lo: Vec3
+    box_hi: Vec3
+    up: Vec3
+    physics: _Physics
+    source: _Source
+
+
 class InteractionParams(BaseModel):
     """Wind, ball, or both."""
 
@@ -145,26 +167,18 @@ class InteractionParams(BaseModel):
     wind: WindParams | None = None
     ball: BallParams | None = None
 
-    def check_scene(self, scene: Mapping[str, Any], frames: int) -> None:
-        """Reject parameters that are valid in general but meaningless in this run's scene (the
-        "scene" entry of a run manifest, fluidcore.runs, read as plain JSON so the API can refuse
-        a job before queueing it, without torch; the prediction job asks the same before it
-        writes anything).
+    def check_scene(self, scene: RunScene, frames: int) -> None:
+        """Reject parameters that are valid in general but meaningless in this run's scene
+        (`fluidcore.runs.Scene`, torch-free, so the API can refuse a job before queueing it; the
+        prediction job asks the same before it writes anything).
 
         A wind is absurd when, at its peak inside the box, it alone would take a particle at
         rest past the simulator's speed limit within one step (a * dt > speed_limit, one kernel
         radius per step): from there on the speed clamp, not the wind, decides the motion.
         """
-        try:
-            physics, source = scene["physics"], scene["source"]
-            lo, hi, up = tuple(scene["box"]["lo"]), tuple(scene["box"]["hi"]), tuple(scene["up"])
-            dt, h = float(physics["dt"]), float(physics["h"])
-            center = source["center"]
-        except (KeyError, TypeError) as exc:
-            raise InteractionError(f"run scene: malformed ({exc!r} missing)") from None
-        # PBFConfig.speed_limit: max_speed when set, else one kernel radius per step.
-        speed_limit = float(physics.get("max_speed") or h / dt)
-        base_height = sum(u * c for u, c in zip(up, center))
+        lo, hi, up = scene.box_lo, scene.box_hi, scene.up
+        dt, speed_limit = scene.physics.dt, scene.physics.speed_limit
+        base_height = sum(u * c for u, c in zip(up, scene.source.center))
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)

@@ -16,6 +16,7 @@ import numpy as np
 
 from fluidcore.cameras import Camera
 from fluidcore.interaction import BallParams, InteractionParams, WindParams
+from fluidcore.runs import ContinuationSettings, RunRecord
 
 BALL_COLOR = (235, 120, 30)  # RGB; an orange no smoke colour is close to
 BALL_OPACITY = 0.6
@@ -114,17 +115,16 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels: tuple[str, str] = 
     return both
 
 
-def run_interventions(run) -> tuple[InteractionParams, int]:  # noqa: ANN001 - fluidcore.runs.Run
+def run_interventions(run: RunRecord) -> tuple[InteractionParams, int]:
     """The interventions a run was simulated with (none for runs without) and the video frame
     number of its intervention frame 0 (the frame after the branch frame)."""
-    from fluidcore.interaction import parse_interaction
+    settings = run.settings
+    if not isinstance(settings, ContinuationSettings):  # a reconstruction: no interventions, from its start
+        return InteractionParams(), run.frame_range[0]
+    return InteractionParams(wind=settings.wind, ball=settings.ball), settings.branch_frame + 1
 
-    settings = run.manifest.get("settings", {})
-    params = parse_interaction(settings.get("wind"), settings.get("ball"))
-    return params, int(settings.get("branch_frame", run.frames()[0] - 1 if run.frames() else 0)) + 1
 
-
-def draw_run_interventions(run, camera: Camera, frame_numbers: Sequence[int], frames: np.ndarray) -> np.ndarray:  # noqa: ANN001
+def draw_run_interventions(run: RunRecord, camera: Camera, frame_numbers: Sequence[int], frames: np.ndarray) -> np.ndarray:
     """`draw_interventions` with what the run recorded: its wind and ball, its branch frame, its
     step length; the wind arrow starts above the box centre and is a quarter of the box long."""
     params, first_new = run_interventions(run)
@@ -136,6 +136,6 @@ def draw_run_interventions(run, camera: Camera, frame_numbers: Sequence[int], fr
     height = float(np.abs(hi - lo) @ np.abs(up))
     anchor = 0.5 * (lo + hi) + 0.3 * height * up
     return draw_interventions(
-        frames, camera, frame_numbers, params, first_new_frame=first_new, dt=float(scene.physics["dt"]),
+        frames, camera, frame_numbers, params, first_new_frame=first_new, dt=scene.physics.dt,
         anchor=anchor, arrow_length=0.25 * float(np.min(hi - lo)),
     )

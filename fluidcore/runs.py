@@ -4,7 +4,7 @@ A run is generic on purpose: cameras, a frame range, one particle state per fram
 optional parent run. Reconstruction, prediction, interaction and re-simulation all write the
 same format, so one renderer and one exporter serve them all.
 
-Layout (format version 1)::
+Layout (format version 2)::
 
     RUN/
       manifest.json            everything but the arrays (see below); rewritten atomically
@@ -14,8 +14,8 @@ Layout (format version 1)::
 
 `manifest.json` keys:
 
-    format, format_version   "fluidnexus-run", 1
-    kind                     "reconstruct" | "predict" | "interact" | "resimulate" | ...
+    format, format_version   "fluidnexus-run", 2 (1 is still read: `_migrate` fills it in on read)
+    kind                     a `RunKind`: "reconstruct" | "predict" | "interact" | "resimulate"
     parent                   the run this one continues, as a path relative to this run folder (so a
                              chain of runs moves as one: another work dir, another worker), or null;
                              an absolute path (written before this rule) is still read
@@ -26,7 +26,10 @@ Layout (format version 1)::
     channels                 1 (grey smoke) or 3
     background_color         list of C floats: what empty space looks like from any camera
     scene                    {"box": {"lo", "hi"}, "up", "physics": PBFConfig fields, "source": Source fields}
-    settings                 free-form dict of the settings that produced the run
+                             (`Scene`: read back as the typed PBFConfig and Source)
+    settings                 the settings that produced the run, one model per kind:
+                             `ReconstructSettings` or `ContinuationSettings` (every field written;
+                             version 1 left out what a feature added later, read as its default)
     frames                   [{"t", "file", "losses": {...}, "seconds"}] in order of completion
     complete                 true once every frame of frame_range is written
 
@@ -40,6 +43,10 @@ A state file (`numpy.savez`, uncompressed, float32 unless noted) holds:
     extra_NAME                             anything else a writer needs to resume exactly
                                            (e.g. a random generator's state)
 
+Every reader goes through `RunRecord` (a run folder: `Run`, a subclass; a manifest fetched from
+storage: `RunRecord.from_bytes`), and the file names above are named only here (`MANIFEST`,
+`state_file`), so the API reads a run in storage the way a job reads it on disk.
+
 Resuming: a writer opens an existing folder with `Run.create(...)`; if the folder holds a run
 with the same kind, cameras and settings, the completed frames are kept and `next_frame()` says
 where to go on. A folder holding a different run is refused rather than overwritten.
@@ -47,22 +54,28 @@ where to go on. A folder holding a different run is refused rather than overwrit
 
 from __future__ import annotations
 
+import enum
+import io
 import json
 import os
 import platform
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
+from fluidcore.interaction import BallParams, WindParams
+from fluidcore.physics.config import PBFConfig, PhysicsInputError, Source
 
 FORMAT = "fluidnexus-run"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 MANIFEST = "manifest.json"
 BACKGROUND = "background.npz"
 STATES_DIR = "states"
@@ -74,20 +87,92 @@ class RunError(InputError):
     """A run folder that is missing, damaged, or holds a different run than expected."""
 
 
+class RunKind(enum.StrEnum):
+    """What wrote a run. The service's job types (`service.job_types.JobType`) are these kinds:
+    each job writes the run of its own kind."""
+
+    RECONSTRUCT = "reconstruct"
+    PREDICT = "predict"
+    INTERACT = "interact"
+    RESIMULATE = "resimulate"
+
+
+_RECORD = ConfigDict(extra="forbid", frozen=True)
+
+
+class VisualSettings(BaseModel):
+    """How visual Gaussians move and are born (`Quality.visual_settings`): a continuation moves
+    them as the reconstruction did."""
+
+    model_config = _RECORD
+    velocity_radius: float
+    per_physical: int
+    seed: int
+
+
+class ViewRecord(BaseModel):
+    """One view a reconstruction fitted: its camera, kind (input, symmetry, generated) and weight."""
+
+    model_config = _RECORD
+    camera: str
+    kind: str
+    weight: float
+
+
+class ReconstructSettings(BaseModel):
+    """The settings of a reconstruction (kind "reconstruct")."""
+
+    model_config = _RECORD
+    quality: dict[str, Any]  # `fluidcore.reconstruct.presets.Quality.to_json()`
+    visual: VisualSettings | None = None  # None: written before it was recorded; such a run cannot be continued
+    physics: dict[str, Any] = {"mode": "scalarflow"}  # mode and how it was found; before --physics: the preset
+    symmetry: dict[str, Any] | None = None
+    source_hint: dict[str, Any] | None = None
+    views: tuple[ViewRecord, ...] = ()
+
+    @property
+    def physics_mode(self) -> str:
+        """"auto" (identified from the video) or the preset's name."""
+        return str(self.physics.get("mode", "scalarflow"))
+
+
+class ContinuationSettings(BaseModel):
+    """The settings of a run continuing its parent by physics (predict, interact, resimulate)."""
+
+    model_config = _RECORD
+    branch_frame: int  # the parent frame this run continues from
+    visual: VisualSettings
+    parent_source_rate: int
+    identified_on_frame: int | None = None
+    buoyancy_scale: float = 1.0
+    buoyancy_calibration_error: dict[str, Any] = {}
+    appearance_profile: dict[str, Any] | None = None  # `fluidcore.predict.priors.HeightProfile.to_json()`
+    priors: tuple[str, ...] = ()
+    wind: WindParams | None = None
+    ball: BallParams | None = None
+
+
+Settings = ReconstructSettings | ContinuationSettings
+
+
+def settings_model(kind: RunKind) -> type[Settings]:
+    return ReconstructSettings if kind is RunKind.RECONSTRUCT else ContinuationSettings
+
+
 @dataclass(frozen=True)
 class Scene:
     """Where the particles live and under which physics: enough to rebuild the Simulator.
 
-    `physics` holds the `fluidcore.physics.PBFConfig` fields (world units, with the
-    `length_scale` and kernel radius `h` chosen for this scene), `source` the
-    `fluidcore.physics.Source` fields, `box` the simulation box; `up` is the scene's up axis.
+    `physics` is the scene's `PBFConfig` (world units, with the `length_scale` and kernel radius
+    `h` chosen for this scene), `source` its `Source`, `box` the simulation box; `up` is the
+    scene's up axis.
     """
 
     box_lo: tuple[float, float, float]
     box_hi: tuple[float, float, float]
     up: tuple[float, float, float]
-    physics: dict[str, Any]
-    source: dict[str, Any]
+    physics: PBFConfig
+    source: Source
 
     def __post_init__(self) -> None:
         for name in ("box_lo", "box_hi", "up"):
@@ -103,33 +188,37 @@ class Scene:
                 {
                     "box": {"lo": list(self.box_lo), "hi": list(self.box_hi)},
                     "up": list(self.up),
-                    "physics": self.physics,
-                    "source": self.source,
+                    "physics": asdict(self.physics),
+                    "source": asdict(self.source),
                 }
             )
         )
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> Scene:
+        def tuples(d: Mapping[str, Any]) -> dict[str, Any]:
+            return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
         try:
             return cls(
                 box_lo=tuple(map(float, data["box"]["lo"])),
                 box_hi=tuple(map(float, data["box"]["hi"])),
                 up=tuple(map(float, data["up"])),
-                physics=dict(data["physics"]),
-                source=dict(data["source"]),
+                physics=PBFConfig(**tuples(data["physics"])),
+                source=Source(**tuples(data["source"])),
             )
-        except (KeyError, TypeError) as exc:
+        except (KeyError, TypeError, PhysicsInputError) as exc:
             raise RunError(f"scene: malformed ({exc})") from None
 
-    def simulator_parts(self) -> tuple[Any, Any, Any]:
+    def simulator_parts(self) -> tuple[PBFConfig, Any, Source]:
         """(PBFConfig, Box, Source) as recorded: what a continuation passes to `Simulator`."""
-        from fluidcore.physics import Box, PBFConfig, Source
+        from fluidcore.physics import Box
 
-        def tuples(d: dict[str, Any]) -> dict[str, Any]:
-            return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+        return self.physics, Box(self.box_lo, self.box_hi), self.source
 
-        return PBFConfig(**tuples(self.physics)), Box(self.box_lo, self.box_hi), Source(**tuples(self.source))
+    def with_buoyancy_scaled(self, factor: float) -> Scene:
+        """This scene with its buoyancy (`PBFConfig.alpha`) times `factor`."""
+        return replace(self, physics=replace(self.physics, alpha=self.physics.alpha * factor))
 
 
 @dataclass
@@ -179,10 +268,20 @@ class FrameState:
     @classmethod
     def load(cls, path: Path) -> FrameState:
         try:
-            with np.load(path) as data:
-                arrays = {k: data[k] for k in data.files}
-        except (OSError, ValueError) as exc:
+            data = Path(path).read_bytes()
+        except OSError as exc:
             raise RunError(f"state file {path}: unreadable ({exc})") from None
+        return cls.from_bytes(data, str(path))
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str) -> FrameState:
+        """A state file's content (read from disk, or fetched from storage by the API); `where`
+        names it in errors."""
+        try:
+            with np.load(io.BytesIO(data)) as loaded:
+                arrays = {k: loaded[k] for k in loaded.files}
+        except (OSError, ValueError) as exc:
+            raise RunError(f"state file {where}: unreadable ({exc})") from None
         try:
             return cls(
                 positions=arrays["positions"],
@@ -193,7 +292,7 @@ class FrameState:
                 extra={k[6:]: v for k, v in arrays.items() if k.startswith("extra_")},
             )
         except KeyError as exc:
-            raise RunError(f"state file {path}: missing array {exc}") from None
+            raise RunError(f"state file {where}: missing array {exc}") from None
 
     def export(self) -> dict[str, np.ndarray]:
         """The user-facing arrays: live particles only (`fluidnexus export`)."""
@@ -257,12 +356,121 @@ def versions() -> dict[str, str]:
     return found
 
 
-class Run:
+def state_file(t: int) -> str:
+    """Where frame t's state lies in a run folder (relative, POSIX): the one place that knows."""
+    return f"{STATES_DIR}/frame_{t:06d}.npz"
+
+
+def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
+    """A manifest of any readable version as the current version: checked, settings completed
+    with the defaults of their kind's model (version 1 left out what a feature added later)."""
+    if manifest.get("format") != FORMAT:
+        raise RunError(f"run: {where} is not a {FORMAT} manifest")
+    if manifest.get("format_version") not in READABLE_VERSIONS:
+        raise RunError(f"run: format_version {manifest.get('format_version')} is not supported")
+    try:
+        kind = RunKind(manifest.get("kind"))
+    except ValueError:
+        raise RunError(f"run: {where} has kind {manifest.get('kind')!r}, not one of {[k.value for k in RunKind]}") from None
+    model = settings_model(kind)
+    settings = dict(manifest.get("settings") or {})
+    if manifest["format_version"] == 1:  # free-form then: what no model field names is dropped
+        settings = {k: v for k, v in settings.items() if k in model.model_fields}
+    if kind is not RunKind.RECONSTRUCT and "branch_frame" not in settings and manifest.get("frames"):
+        settings["branch_frame"] = int(manifest["frames"][0]["t"]) - 1  # version 1 before --from-frame
+    try:
+        typed = model.model_validate(settings)
+    except ValidationError as exc:
+        raise RunError(f"run: {where}: settings do not fit a {kind} run ({exc.errors()[0]['loc']}: {exc.errors()[0]['msg']})") from None
+    return {**manifest, "format_version": FORMAT_VERSION, "kind": kind.value, "settings": typed.model_dump(mode="json")}
+
+
+class RunRecord:
+    """A run's manifest, read and migrated (`_migrate`), with typed accessors: what every reader
+    of a run sees, whether it holds the folder (`Run`) or only the manifest's bytes (the API,
+    from storage: `from_bytes`)."""
+
+    def __init__(self, manifest: dict[str, Any]) -> None:
+        self.manifest = manifest
+
+    @classmethod
+    def from_bytes(cls, data: bytes, where: str) -> RunRecord:
+        """The manifest in `data` (`where` names it in errors)."""
+        return cls(_parse_manifest(data, where))
+
+    @property
+    def kind(self) -> RunKind:
+        return RunKind(self.manifest["kind"])
+
+    @property
+    def settings(self) -> Settings:
+        """`ReconstructSettings` for a reconstruction, else `ContinuationSettings`."""
+        return settings_model(self.kind).model_validate(self.manifest["settings"])
+
+    @property
+    def channels(self) -> int:
+        return int(self.manifest["channels"])
+
+    @property
+    def fps(self) -> float:
+        return float(self.manifest["fps"])
+
+    @property
+    def scene(self) -> Scene:
+        return Scene.from_json(self.manifest["scene"])
+
+    @property
+    def input_views(self) -> list[str]:
+        return list(self.manifest["input_views"])
+
+    @property
+    def frame_range(self) -> tuple[int, int]:
+        start, stop = self.manifest["frame_range"]
+        return int(start), int(stop)
+
+    @property
+    def background_color(self) -> list[float]:
+        return list(self.manifest["background_color"])
+
+    def cameras(self) -> dict[str, Any]:
+        return {name: camera_from_json(name, data) for name, data in self.manifest["cameras"].items()}
+
+    def frames(self) -> list[int]:
+        """Completed frames, in order."""
+        return [int(entry["t"]) for entry in self.manifest["frames"]]
+
+    def next_frame(self) -> int:
+        """Where a writer goes on: the first frame of the range not yet written."""
+        done = self.frames()
+        return done[-1] + 1 if done else self.frame_range[0]
+
+    def frame_log(self, t: int) -> dict[str, Any]:
+        for entry in self.manifest["frames"]:
+            if entry["t"] == t:
+                return dict(entry)
+        raise RunError(f"frame: {t} is not in this run (frames {self._frames_text()})")
+
+    def _frames_text(self) -> str:
+        done = self.frames()
+        return f"{done[0]}..{done[-1]}" if done else "none"
+
+
+def _parse_manifest(data: bytes, where: str) -> dict[str, Any]:
+    try:
+        manifest = json.loads(data)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(f"run: {where} is not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict):
+        raise RunError(f"run: {where} is not a {FORMAT} manifest")
+    return _migrate(manifest, where)
+
+
+class Run(RunRecord):
     """A run folder opened for reading, or for writing frame after frame."""
 
     def __init__(self, path: Path, manifest: dict[str, Any]) -> None:
+        super().__init__(manifest)
         self.path = path
-        self.manifest = manifest
 
     # -- opening -------------------------------------------------------------------------
     @classmethod
@@ -271,22 +479,14 @@ class Run:
         manifest_path = path / MANIFEST
         if not manifest_path.is_file():
             raise RunError(f"run: {path} is not a run folder (no {MANIFEST})")
-        try:
-            manifest = json.loads(manifest_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise RunError(f"run: {manifest_path} is not valid JSON ({exc})") from None
-        if manifest.get("format") != FORMAT:
-            raise RunError(f"run: {manifest_path} is not a {FORMAT} manifest")
-        if manifest.get("format_version") != FORMAT_VERSION:
-            raise RunError(f"run: format_version {manifest.get('format_version')} is not supported")
-        return cls(path, manifest)
+        return cls(path, _parse_manifest(manifest_path.read_bytes(), str(manifest_path)))
 
     @classmethod
     def create(
         cls,
         path: str | os.PathLike[str],
         *,
-        kind: str,
+        kind: RunKind,
         cameras: Mapping[str, Any],
         input_views: Sequence[str],
         frame_range: tuple[int, int],
@@ -294,7 +494,7 @@ class Run:
         channels: int,
         background_color: Sequence[float],
         scene: Scene,
-        settings: Mapping[str, Any],
+        settings: Settings,
         parent: str | os.PathLike[str] | None = None,
     ) -> Run:
         """Start a run in `path`, or reopen the same run there to resume it."""
@@ -303,8 +503,10 @@ class Run:
             raise RunError(f"channels must be 1 or 3 with as many background values, got {channels}")
         if frame_range[1] <= frame_range[0]:
             raise RunError(f"frame_range: {frame_range} is empty")
+        if not isinstance(settings, settings_model(RunKind(kind))):
+            raise RunError(f"settings: a {kind} run records {settings_model(RunKind(kind)).__name__}")
         identity = {
-            "kind": kind,
+            "kind": RunKind(kind).value,
             "parent": None if parent is None else _relative(parent, path),
             "cameras": {name: camera_to_json(cam) for name, cam in cameras.items()},
             "input_views": list(input_views),
@@ -312,7 +514,7 @@ class Run:
             "fps": float(fps),
             "channels": int(channels),
             "scene": scene.to_json(),
-            "settings": json.loads(json.dumps(dict(settings))),
+            "settings": settings.model_dump(mode="json"),
         }
         if (path / MANIFEST).exists():
             run = cls.open(path)
@@ -341,55 +543,17 @@ class Run:
 
     # -- reading ------------------------------------------------------------------------
     @property
-    def kind(self) -> str:
-        return str(self.manifest["kind"])
-
-    @property
-    def channels(self) -> int:
-        return int(self.manifest["channels"])
-
-    @property
-    def fps(self) -> float:
-        return float(self.manifest["fps"])
-
-    @property
-    def scene(self) -> Scene:
-        return Scene.from_json(self.manifest["scene"])
-
-    @property
     def parent(self) -> Run | None:
         parent = self.manifest.get("parent")
         return None if parent is None else Run.open(self.path / parent)  # an absolute path stays itself
 
-    @property
-    def background_color(self) -> list[float]:
-        return list(self.manifest["background_color"])
-
-    def cameras(self) -> dict[str, Any]:
-        return {name: camera_from_json(name, data) for name, data in self.manifest["cameras"].items()}
-
-    def frames(self) -> list[int]:
-        """Completed frames, in order."""
-        return [int(entry["t"]) for entry in self.manifest["frames"]]
-
-    def next_frame(self) -> int:
-        """Where a writer goes on: the first frame of the range not yet written."""
-        done = self.frames()
-        return done[-1] + 1 if done else int(self.manifest["frame_range"][0])
-
     def state_path(self, t: int) -> Path:
-        return self.path / STATES_DIR / f"frame_{t:06d}.npz"
+        return self.path / state_file(t)
 
     def read_frame(self, t: int) -> FrameState:
         if t not in self.frames():
             raise RunError(f"frame: {t} is not in this run (frames {self._frames_text()})")
         return FrameState.load(self.state_path(t))
-
-    def frame_log(self, t: int) -> dict[str, Any]:
-        for entry in self.manifest["frames"]:
-            if entry["t"] == t:
-                return dict(entry)
-        raise RunError(f"frame: {t} is not in this run (frames {self._frames_text()})")
 
     def background_images(self) -> dict[str, np.ndarray]:
         path = self.path / BACKGROUND
@@ -398,9 +562,9 @@ class Run:
         with np.load(path) as data:
             return {k: data[k] for k in data.files}
 
-    def _frames_text(self) -> str:
-        done = self.frames()
-        return f"{done[0]}..{done[-1]}" if done else "none"
+    def refined(self) -> Run | None:
+        """The sub-run of a prediction reconstructed on its video-model-refined frames, if any."""
+        return Run.open(self.path / REFINED_RUN) if (self.path / REFINED_RUN / MANIFEST).is_file() else None
 
     # -- writing ------------------------------------------------------------------------
     def write_background(self, images: Mapping[str, np.ndarray]) -> None:
@@ -418,12 +582,12 @@ class Run:
         state.save(self.state_path(t))
         entry = {
             "t": int(t),
-            "file": f"{STATES_DIR}/frame_{t:06d}.npz",
+            "file": state_file(t),
             "losses": {k: float(v) for k, v in losses.items()},
             "seconds": float(seconds),
         }
         self.manifest["frames"].append(entry)
-        self.manifest["complete"] = self.next_frame() >= self.manifest["frame_range"][1]
+        self.manifest["complete"] = self.next_frame() >= self.frame_range[1]
         self._save_manifest()
 
     def update(self, **fields: Any) -> None:

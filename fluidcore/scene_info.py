@@ -4,7 +4,7 @@ What a client needs to place a ball (it must lie inside the box, usually above t
 aim a wind, served by `fluidnexus scene info` and `GET /v1/scenes/{id}`.
 
 Two readers: a camera file (box declared there, else the cameras' shared view; no source yet)
-and a run manifest (fluidcore.runs: the box, up and source the reconstruction used). Both are
+and a run (fluidcore.runs: the box, up and source the reconstruction used). Both are
 torch-free JSON/numpy, so the API answers without importing the simulator.
 """
 
@@ -12,11 +12,14 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fluidcore.cameras import Camera, CameraError, frusta_box, load, scene_box
+from fluidcore.cameras import Camera, CameraError, capture_box, load
+
+if TYPE_CHECKING:
+    from fluidcore.runs import RunRecord
 
 WORLD_UP = (0.0, 1.0, 0.0)  # docs/architecture.md: up is +y unless a run says otherwise
 
@@ -44,23 +47,15 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     box when the file declares none and the cameras share no bounded view (a reconstruction
     would refuse such a capture with the same reason)."""
     cameras = load(path)
-    box = scene_box(path)
-    if box is None:
-        try:
-            box = frusta_box(cameras)
-        except CameraError:
-            box = None
+    try:
+        box = capture_box(path, cameras)
+    except CameraError:
+        box = None
     return describe(cameras, box)
 
 
-def from_run_manifest(manifest: Mapping[str, Any]) -> dict[str, Any]:
-    """Geometry a run was made with (its manifest, parsed JSON): box, up, source, cameras."""
-    from fluidcore.runs import RunError, camera_from_json
-
-    try:
-        scene = manifest["scene"]
-        cameras = {name: camera_from_json(name, data) for name, data in manifest["cameras"].items()}
-        box = (np.asarray(scene["box"]["lo"]), np.asarray(scene["box"]["hi"]))
-        return describe(cameras, box, up=scene["up"], source=scene["source"])
-    except (KeyError, TypeError) as exc:
-        raise RunError(f"run manifest: malformed scene or cameras ({exc!r} missing)") from None
+def from_run(run: RunRecord) -> dict[str, Any]:
+    """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source, cameras."""
+    scene = run.scene
+    box = (np.asarray(scene.box_lo), np.asarray(scene.box_hi))
+    return describe(run.cameras(), box, up=scene.up, source={"center": scene.source.center, "radius": scene.source.radius})

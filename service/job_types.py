@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from fluidcore.interaction import Intervention
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
 from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.runs import RunKind
 
 _STRICT = ConfigDict(extra="forbid")
 
@@ -69,22 +70,28 @@ class ResimulateParams(BaseModel):
 
 class JobType(enum.StrEnum):
     """A job type: its name (the value stored in `jobs.type` and sent in requests), its parameter
-    model, and whether it starts from an uploaded scene or continues a succeeded parent job."""
+    model, and whether it starts from an uploaded scene or continues a succeeded parent job.
+    Each is a `fluidcore.runs.RunKind` (same value): the kind of run the job writes."""
 
     params: type[BaseModel]
     starts_from: StartsFrom
 
     def __new__(cls, value: str, params: type[BaseModel], starts_from: StartsFrom) -> JobType:
         member = str.__new__(cls, value)
-        member._value_ = value
+        member._value_ = str(value)
         member.params = params
         member.starts_from = starts_from
         return member
 
-    RECONSTRUCT = "reconstruct", ReconstructParams, "scene"
-    PREDICT = "predict", PredictParams, "parent"
-    INTERACT = "interact", InteractParams, "parent"
-    RESIMULATE = "resimulate", ResimulateParams, "parent"
+    RECONSTRUCT = RunKind.RECONSTRUCT, ReconstructParams, "scene"
+    PREDICT = RunKind.PREDICT, PredictParams, "parent"
+    INTERACT = RunKind.INTERACT, InteractParams, "parent"
+    RESIMULATE = RunKind.RESIMULATE, ResimulateParams, "parent"
+
+    @property
+    def run_kind(self) -> RunKind:
+        """The kind of run this job writes."""
+        return RunKind(self.value)
 
     @property
     def input_field(self) -> str:

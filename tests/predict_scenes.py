@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from fluidcore.physics import ParticleState, Simulator
-from fluidcore.runs import FrameState, Run, Scene
+from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene, VisualSettings
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.synth import SynthSpec, particle_gaussians
 
@@ -21,10 +21,8 @@ SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
 
 
 def scene_of(spec: SynthSpec = SPEC) -> Scene:
-    config, source = spec.config(), spec.source()
-    as_lists = lambda d: {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}  # noqa: E731
     box = spec.box()
-    return Scene(box.lo, box.hi, (0.0, 1.0, 0.0), as_lists(config.__dict__), as_lists(source.__dict__))
+    return Scene(box.lo, box.hi, (0.0, 1.0, 0.0), spec.config(), spec.source())
 
 
 def simulator_of(spec: SynthSpec = SPEC) -> Simulator:
@@ -47,7 +45,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         simulator.step(state)
     run = Run.create(
         path,
-        kind="reconstruct",
+        kind=RunKind.RECONSTRUCT,
         cameras=spec.cameras(),
         input_views=["view_00"],
         frame_range=(0, frames),
@@ -55,7 +53,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         channels=1,
         background_color=[1.0],
         scene=scene_of(spec),
-        settings={"visual": {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}},
+        settings=ReconstructSettings(quality={}, visual=VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)),
     )
     for t in range(frames):
         if t > 0:

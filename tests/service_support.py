@@ -245,3 +245,32 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
 
 
 FAKE_RUNNERS = {job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}
+
+
+def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None) -> None:  # noqa: ANN001 - Storage
+    """What a worker leaves in storage: a run folder written by fluidcore.runs (scene box 1 unit
+    wide, source at height 0.1), with `positions[t]` (P, 3) as frame t's particles, the last one
+    dead; consecutive frames, or none."""
+    import tempfile
+
+    from fluidcore.cameras import Camera
+    from fluidcore.physics.config import PBFConfig, Source
+    from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene
+
+    positions = positions or {}
+    frames = sorted(positions) or [0]
+    scene = Scene((-0.5, 0.0, -0.5), (0.5, 1.0, 0.5), (0.0, 1.0, 0.0), PBFConfig(dt=1 / 30, h=0.05), Source((0.0, 0.1, 0.0), 0.05, 1))
+    camera = Camera("cam0", 30.0, 30.0, 16.0, 12.0, 32, 24, np.eye(4))
+    gaussians = {"means": np.zeros((0, 3)), "log_scales": np.zeros((0, 3)), "quats": np.zeros((0, 4)),
+                 "opacity_logits": np.zeros(0), "colors": np.zeros((0, 1))}
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-stored-run-") as tmp:
+        run = Run.create(Path(tmp) / "run", kind=RunKind.RECONSTRUCT, cameras={"cam0": camera}, input_views=["cam0"],
+                         frame_range=(frames[0], frames[-1] + 1), fps=30.0, channels=1, background_color=[1.0], scene=scene,
+                         settings=ReconstructSettings(quality={}))
+        for t, points in sorted(positions.items()):
+            alive = np.ones(len(points), bool)
+            alive[-1] = False
+            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians), {}, 0.0)
+        for path in sorted(run.path.rglob("*")):
+            if path.is_file():
+                storage.put_bytes(f"jobs/{job_id}/run/{path.relative_to(run.path).as_posix()}", path.read_bytes())

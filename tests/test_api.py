@@ -19,7 +19,7 @@ from service.database import session_scope
 from service.models import Artifact, Job, JobState, Scene
 from service.settings import Settings
 from service.worker_beats import WorkerBeacon
-from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts, write_video
+from service_support import RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, store_run, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -317,12 +317,8 @@ def test_idempotency_key_returns_the_same_job(service: Service, scene_id: str) -
 
 
 def succeed_with_run(service: Service, job_id: str) -> None:
-    """What a worker leaves behind: a succeeded job and a run manifest with its scene (box 1 unit wide)."""
-    from fluidcore.runs import Scene as RunScene
-
-    scene = RunScene(box_lo=(-0.5, 0.0, -0.5), box_hi=(0.5, 1.0, 0.5), up=(0.0, 1.0, 0.0),
-                     physics={"dt": 1 / 30, "h": 0.05}, source={"center": [0.0, 0.1, 0.0], "radius": 0.05})
-    service.storage.put_bytes(f"jobs/{job_id}/run/manifest.json", json.dumps({"scene": scene.to_json()}).encode())
+    """What a worker leaves behind: a succeeded job and a run with its scene (box 1 unit wide)."""
+    store_run(service.storage, job_id)
     service.set_job(job_id, state=JobState.SUCCEEDED)
 
 

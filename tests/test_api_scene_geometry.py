@@ -13,7 +13,8 @@ from fastapi.testclient import TestClient
 
 from fluidcore import cameras, scene_info
 from fluidcore.cameras.single import single_camera
-from fluidcore.runs import Run
+from fluidcore.physics.config import PBFConfig, Source
+from fluidcore.runs import ReconstructSettings, Run
 from fluidcore.runs import Scene as RunScene
 from service.database import session_scope
 from service.models import Job, JobState, Scene
@@ -81,8 +82,8 @@ def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
     # a finished reconstruction: its run manifest knows the source
     run = Run.create(
         tmp_path / "run", kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
-        channels=1, background_color=[0.0], settings={},
-        scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), {"h": 0.05}, {"center": [0.5, -0.8, 0.0], "radius": 0.1}),
+        channels=1, background_color=[0.0], settings=ReconstructSettings(quality={}),
+        scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.5, -0.8, 0.0), 0.1, 1)),
     )
     job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene["id"]}, headers=auth).json()
     http.app.state.storage.put_file(f"{run_prefix(job['id'])}/manifest.json", run.path / "manifest.json")

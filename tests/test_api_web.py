@@ -3,13 +3,12 @@ internet, and particle positions for the 3D what-if view."""
 
 from __future__ import annotations
 
-import io
-import json
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
+from service_support import store_run
 
 from test_api import (  # noqa: F401  (fixtures used by name)
     Service, postgres_url, reconstruct, scene_dir, scene_id, service, sqlite_service,
@@ -66,21 +65,9 @@ def test_ui_scripts_import_only_local_modules() -> None:
 
 def write_states(service: Service, job_id: str, counts: dict[int, int]) -> dict[int, np.ndarray]:
     """A run in storage with one state per frame: `counts[t]` particles, the last one dead."""
-    from fluidcore.runs import Scene as RunScene
-
-    scene = RunScene(box_lo=(-0.5, 0.0, -0.5), box_hi=(0.5, 1.0, 0.5), up=(0.0, 1.0, 0.0),
-                     physics={"dt": 1 / 30, "h": 0.05}, source={"center": [0.0, 0.1, 0.0], "radius": 0.05})
     rng = np.random.default_rng(0)
-    positions = {}
-    for t, n in counts.items():
-        positions[t] = rng.uniform(-0.5, 0.5, size=(n, 3)).astype(np.float32)
-        alive = np.ones(n, bool)
-        alive[-1] = False
-        buffer = io.BytesIO()
-        np.savez(buffer, positions=positions[t], alive=alive, velocities=np.zeros((n, 3), np.float32))
-        service.storage.put_bytes(f"jobs/{job_id}/run/states/frame_{t:06d}.npz", buffer.getvalue())
-    manifest = {"scene": scene.to_json(), "frames": [{"t": t} for t in counts]}
-    service.storage.put_bytes(f"jobs/{job_id}/run/manifest.json", json.dumps(manifest).encode())
+    positions = {t: rng.uniform(-0.5, 0.5, size=(n, 3)).astype(np.float32) for t, n in counts.items()}
+    store_run(service.storage, job_id, positions)
     return positions
 
 

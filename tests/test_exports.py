@@ -59,7 +59,7 @@ def test_density_volume_holds_the_particles_mass(run_dir, tmp_path):
     run = Run.open(run_dir)
     state = run.read_frame(1)
     positions = state.positions[state.alive]
-    h = run.scene.physics["h"]
+    h = run.scene.physics.h
     with np.load(tmp_path / "d.npz") as data:
         density, origin, spacing = data["density"], data["origin"], float(data["spacing"])
         assert float(data["particle_mass"]) == pytest.approx((h / 2) ** 3)

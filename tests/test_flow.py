@@ -20,7 +20,7 @@ import torch
 from scipy import ndimage
 
 from fluidcore.cameras import Camera, look_at
-from fluidcore.reconstruct import Reconstructor, get, prepare
+from fluidcore.reconstruct import Reconstructor, get, prepare, read_inputs
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.presets import Quality
 from fluidcore import synth
@@ -52,7 +52,7 @@ def _camera(width: int = 96, height: int = 64) -> Camera:
 
 def test_flow_recovers_a_known_shift():
     frames = _blob_frames()
-    field = input_flow(_camera(), frames, torch.full((3,), BACKGROUND), threshold=0.04)
+    field = input_flow(_camera(), frames, torch.full((3,), BACKGROUND))
     assert field.flow.shape == (2, 64, 96, 2) and field.confidence.shape == (2, 64, 96)
     for k in range(2):
         confident = field.confidence[k] > 0.5
@@ -126,8 +126,8 @@ def _tiny(scene: synth.SynthScene, flow: float):
                                             appearance_iterations=2, first_frame_factor=1)
     quality = quality.with_overrides(weights={"flow": flow})
     box = spec.box()
-    return prepare(scene.cameras, {"view_01": scene.videos["view_01"]}, frame_range=(0, 3), fps=spec.fps, quality=quality,
-                   box=(np.array(box.lo), np.array(box.hi)))
+    inputs = read_inputs(scene.cameras, {"view_01": scene.videos["view_01"]}, frame_range=(0, 3), quality=quality)
+    return prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)))
 
 
 def test_flow_weight_zero_is_the_path_without_flow(scene, tmp_path):

@@ -12,7 +12,7 @@ import torch
 
 from fluidcore.cameras import Camera, look_at
 from fluidcore.generative import stages
-from fluidcore.reconstruct.views import ViewTarget
+from fluidcore.reconstruct.views import ViewTarget, generated_targets
 
 CENTER = np.array([0.0, 0.4, 0.0])
 UP = np.array([0.0, 1.0, 0.0])
@@ -39,8 +39,9 @@ def test_targets_are_the_other_cameras_at_the_working_size_else_turned_copies() 
 
 
 def test_without_weights_both_steps_say_why_they_were_skipped(tmp_path: Path) -> None:
-    views, status = stages.generated_views(input_view(), [camera_at(1.0, "b")], CENTER, UP, 0.5, stages.GenerativeSettings(models_root=tmp_path))
-    assert views == []
+    source = input_view()
+    frames, status = stages.generated_views(source.camera, source.frames, [camera_at(1.0, "b")], CENTER, UP, stages.GenerativeSettings(models_root=tmp_path))
+    assert frames == {}
     assert status == {"novel_views": f"skipped: no zero123 weights in {tmp_path}", "view_refinement": "skipped: no generated views to refine"}
     video = {"view_00": input_view().frames}
     refined, line = stages.refine_frames(video, stages.GenerativeSettings(models_root=tmp_path))
@@ -52,7 +53,8 @@ def test_generated_views_are_weighted_below_the_input_and_refined(tiny_models: P
     targets = [camera_at(1.5, "view_01"), camera_at(3.0, "view_02")]
     calls: list[tuple[str, int, int]] = []
     settings = stages.GenerativeSettings(models_root=tiny_models, novel_view_steps=2, refine_steps=2, novel_view_batch=4)
-    views, status = stages.generated_views(source, targets, CENTER, UP, 0.5, settings, on_batch=lambda *a: calls.append(a))
+    frames, status = stages.generated_views(source.camera, source.frames, targets, CENTER, UP, settings, on_batch=lambda *a: calls.append(a))
+    views = generated_targets(source, targets, frames, 0.5)
     assert [v.camera.name for v in views] == ["view_01", "view_02"] and {v.kind for v in views} == {"generated"}
     assert sum(v.weight for v in views) == pytest.approx(0.5) and all(v.weight < source.weight for v in views)
     for view in views:
@@ -72,4 +74,5 @@ def test_cancelling_between_batches_stops_the_stage(tiny_models: Path) -> None:
 
     settings = stages.GenerativeSettings(models_root=tiny_models, novel_view_steps=1, novel_view_batch=1)
     with pytest.raises(Stop, match="novel views"):
-        stages.generated_views(input_view(), [camera_at(1.0, "b")], CENTER, UP, 0.5, settings, on_batch=cancel)
+        source = input_view()
+        stages.generated_views(source.camera, source.frames, [camera_at(1.0, "b")], CENTER, UP, settings, on_batch=cancel)

@@ -17,7 +17,7 @@ import pytest
 from typer.testing import CliRunner
 
 from fluidcore import synth
-from fluidcore.reconstruct import get, prepare
+from fluidcore.reconstruct import get, prepare, read_inputs
 from fluidcore.reconstruct.identify import Observation, PhysicsChoiceError, buoyancy_floor, identify, rise_speed
 from fluidcore.physics import PRESETS
 
@@ -33,8 +33,8 @@ def _prepare(scene: synth.SynthScene, physics: str):
     spec = scene.spec
     box = spec.box()
     quality = get("preview").with_overrides(long_side=96, particles_per_frame=spec.particles_per_step, symmetry_views=0)
-    return prepare(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), fps=spec.fps,
-                   quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics=physics)
+    inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), quality=quality)
+    return prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics=physics)
 
 
 def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: synth.SynthScene) -> None:
@@ -46,7 +46,7 @@ def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: s
     assert rec.source.velocity[1] == pytest.approx(true_inflow, rel=0.2)
     prior = PRESETS["scalarflow"].alpha * -9.8 / rec.config.length_scale
     assert abs(buoyancy - true_buoyancy) < abs(prior - true_buoyancy)  # it moved off the prior, towards the truth
-    record = rec.settings()["physics"]
+    record = rec.settings().physics
     assert record["mode"] == "auto" and record["identified"]["buoyancy"] == pytest.approx(buoyancy)
     assert record["stabilization_steps"] == rec.stabilization_steps >= 1
 
@@ -54,7 +54,7 @@ def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: s
 def test_a_preset_keeps_its_buoyancy(rising: synth.SynthScene) -> None:
     rec = _prepare(rising, "scalarflow")
     assert rec.config.alpha == PRESETS["scalarflow"].alpha
-    assert "identified" not in rec.settings()["physics"] and rec.settings()["physics"]["mode"] == "scalarflow"
+    assert "identified" not in rec.settings().physics and rec.settings().physics["mode"] == "scalarflow"
     with pytest.raises(PhysicsChoiceError, match="auto, scalarflow, fluidnexus"):
         _prepare(rising, "phiflow")
 

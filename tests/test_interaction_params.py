@@ -9,20 +9,16 @@ import sys
 import pytest
 
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
+from fluidcore.physics.config import PBFConfig, Source
+from fluidcore.runs import RunError, Scene
 
 FRAMES = 30
 LO, HI = (-1.0, 0.0, -1.0), (1.0, 2.0, 1.0)
 
 
-def scene(hi: tuple[float, float, float] = HI) -> dict:
-    """A run manifest's "scene" entry: speed limit 60 units/s at dt 1/30 (winds up to 1800 units/s^2),
-    source at height 0."""
-    return {
-        "box": {"lo": list(LO), "hi": list(hi)},
-        "up": [0.0, 1.0, 0.0],
-        "physics": {"dt": 1 / 30, "h": 1.0, "max_speed": 60.0},
-        "source": {"center": [0.0, 0.0, 0.0]},
-    }
+def scene(hi: tuple[float, float, float] = HI) -> Scene:
+    """A run's scene: speed limit 60 units/s at dt 1/30 (winds up to 1800 units/s^2), source at height 0."""
+    return Scene(LO, hi, (0.0, 1.0, 0.0), PBFConfig(dt=1 / 30, h=1.0, max_speed=60.0), Source((0.0, 0.0, 0.0), 0.1, 1))
 
 
 def test_wind_direction_is_normalised_and_window_is_exclusive() -> None:
@@ -118,19 +114,19 @@ def test_parameters_import_without_torch() -> None:
 
 
 def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
-    manifest_scene = {
+    manifest_scene = Scene.from_json({
         "box": {"lo": [-1.0, 0.0, -1.0], "hi": [1.0, 2.0, 1.0]},
         "up": [0.0, 1.0, 0.0],
         "physics": {"dt": 1 / 30, "h": 1.0, "max_speed": None},  # h / dt = 30 units/s: winds up to 900 units/s^2
-        "source": {"center": [0.0, 0.5, 0.0]},
-    }
+        "source": {"center": [0.0, 0.5, 0.0], "radius": 0.1, "rate": 1},
+    })
     InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=850.0)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="wind.strength"):
         InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=950.0)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="ball.center"):
         InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_scene(manifest_scene, frames=10)
-    with pytest.raises(InteractionError, match="run scene: malformed"):
-        InteractionParams().check_scene({"box": {}}, frames=10)
+    with pytest.raises(RunError, match="scene: malformed"):
+        Scene.from_json({"box": {}})
 
 
 def test_a_what_if_needs_wind_or_ball_and_its_schema_says_so() -> None:

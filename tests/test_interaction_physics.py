@@ -124,10 +124,10 @@ def test_the_absurd_wind_limit_is_the_simulators_speed_limit(parent: Path) -> No
     for strength, ok in ((0.99 * limit, True), (1.01 * limit, False)):
         params = parse_interaction({"direction": [1, 0, 0], "strength": strength}, None)
         if ok:
-            params.check_scene(run.manifest["scene"], FRAMES)
+            params.check_scene(run.scene, FRAMES)
         else:
             with pytest.raises(InteractionError, match="wind.strength"):
-                params.check_scene(run.manifest["scene"], FRAMES)
+                params.check_scene(run.scene, FRAMES)
 
 
 def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:

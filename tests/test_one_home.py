@@ -120,3 +120,91 @@ def test_the_smoke_state_round_trips_through_a_run_file(tmp_path: Path) -> None:
     inside = smoke.means[:, 0] <= 0.5
     assert torch.equal(cropped.means, smoke.means[inside])
     assert torch.equal(cropped.appearance.colors, appearance.colors[inside])
+
+
+def _sources(*roots: str) -> dict[str, str]:
+    """Python sources of the service and fluidcore packages, by path relative to the repository."""
+    top = Path(__file__).resolve().parents[1]
+    return {str(path.relative_to(top)): path.read_text() for root in roots for path in sorted((top / root).rglob("*.py"))}
+
+
+def test_a_runs_file_names_are_known_to_fluidcore_runs_alone() -> None:
+    """The API, the worker and the CLI read a run through fluidcore.runs: no other module spells
+    its manifest or state file names."""
+    for path, text in _sources("api", "worker", "service", "fluidnexus", "fluidcore", "bench").items():
+        if path != "fluidcore/runs.py":
+            assert "manifest.json" not in text and "states/" not in text, path
+
+
+def test_every_job_type_writes_the_run_kind_of_its_name() -> None:
+    from fluidcore.runs import RunKind
+    from service.job_types import JobType
+
+    assert {job.run_kind for job in JobType} == set(RunKind)
+    assert all(job.run_kind.value == job.value for job in JobType)
+
+
+def test_the_smoke_mask_has_one_home() -> None:
+    """Source estimate, physics identification, mirror agreement and flow confidence all take
+    the smoke where `init.smoke_mask` (or, with the contrast in hand, `init.is_smoke`) says."""
+    import torch
+
+    from fluidcore.reconstruct import flow, identify, init, loop, views
+
+    for function in (loop.read_inputs, identify.scene_physics, views.mirror_agreement, flow.input_flow):
+        text = inspect.getsource(function)
+        assert "smoke_mask(" in text or "is_smoke(" in text, function.__name__
+        assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__
+    frames = torch.tensor([[[[0.5, 0.5, 0.5], [0.5, 0.55, 0.5]], [[0.3, 0.9, 0.5], [0.53, 0.53, 0.53]]]])  # (1, 2, 2, 3)
+    background = torch.tensor([0.5, 0.5, 0.5])
+    assert init.smoke_mask(frames, background).tolist() == [[[False, False], [True, False]]]  # 0.05/3 and 0.03 are not smoke
+
+
+def test_the_wind_speed_limit_is_the_physics_configs() -> None:
+    """`check_scene` asks PBFConfig for the speed limit instead of re-deriving it from h and dt."""
+    from fluidcore.interaction import InteractionError, InteractionParams, WindParams
+    from fluidcore.physics.config import PBFConfig, Source
+    from fluidcore.runs import Scene
+
+    assert "max_speed" not in inspect.getsource(InteractionParams.check_scene)
+    for config in (PBFConfig(h=0.1, dt=0.05), PBFConfig(h=0.1, dt=0.05, max_speed=0.5)):
+        scene = Scene((-1.0, 0.0, -1.0), (1.0, 2.0, 1.0), (0.0, 1.0, 0.0), config, Source((0.0, 0.0, 0.0), 0.1, 1))
+        limit = config.speed_limit / config.dt  # the largest acceleration the scene resolves
+        InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=0.99 * limit)).check_scene(scene, 10)
+        with pytest.raises(InteractionError, match="wind.strength"):
+            InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=1.01 * limit)).check_scene(scene, 10)
+
+
+def test_a_what_if_needs_a_wind_or_a_ball_alike_at_the_api_and_in_the_job(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    from fluidcore.interaction import InteractionError, InteractionParams
+    from fluidcore.predict import run_interact
+    from service.job_types import InteractParams
+
+    with pytest.raises(InteractionError) as job:
+        run_interact(tmp_path / "no-parent-needed", tmp_path / "out", InteractionParams(), frames=3)
+    with pytest.raises(ValidationError) as api:
+        InteractParams(frames=3)
+    assert str(job.value) in str(api.value)
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_physics_mode_is_checked_where_it_is_interpreted() -> None:
+    """One check of the physics mode on the way from a request to the simulator: `scene_physics`."""
+    calls = [path for path, text in _sources("fluidcore").items() if "check_mode(" in text.replace("def check_mode(", "")]
+    assert calls == ["fluidcore/reconstruct/identify.py"]
+    from fluidcore.reconstruct import identify
+
+    assert inspect.getsource(identify).count("check_mode(") == 2  # its definition and its one call
+
+
+def test_the_scene_box_falls_back_to_the_cameras_in_one_place() -> None:
+    """A reconstruction and the scene geometry the API shows take the same box:
+    `cameras.capture_box` (declared box, else the cameras' shared view)."""
+    users = [path for path, text in _sources("fluidcore", "api", "service").items() if "scene_box(" in text and "frusta_box(" in text]
+    assert users == ["fluidcore/cameras/boxes.py"]
+    from fluidcore import scene_info
+    from fluidcore.reconstruct import job
+
+    assert "capture_box(" in inspect.getsource(job.run_reconstruct) and "capture_box(" in inspect.getsource(scene_info.from_cameras_file)

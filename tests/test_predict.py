@@ -152,11 +152,11 @@ def test_newborn_smoke_looks_like_the_reconstructed_smoke_at_the_source(parent: 
     source = Run.open(parent)
     Run.create(
         recoloured, kind="reconstruct", cameras=source.cameras(), input_views=["view_00"], frame_range=(0, 1),
-        fps=30.0, channels=1, background_color=[1.0], scene=source.scene, settings=source.manifest["settings"],
-    ).write_frame(0, _recoloured(source.read_frame(2), source.scene.source["center"]), {}, 0.0)
+        fps=30.0, channels=1, background_color=[1.0], scene=source.scene, settings=source.settings,
+    ).write_frame(0, _recoloured(source.read_frame(2), source.scene.source.center), {}, 0.0)
     run = Run.open(job.run_predict(recoloured, tmp_path / "pred", frames=1))
     colors = run.read_frame(1).gaussians["colors"]
-    born = run.scene.source["rate"] * run.manifest["settings"]["visual"]["per_physical"]
+    born = run.scene.source.rate * run.manifest["settings"]["visual"]["per_physical"]
     # Births are appended last. The height profile then nudges every band's mean colour back to
     # the parent's, so newborns end near, not exactly at, the 0.9 they copied.
     assert (colors[-born:] > 0.6).all()
@@ -267,9 +267,9 @@ def test_a_prediction_records_the_inlet_rate_it_used(tmp_path: Path) -> None:
     parent = plume_run(tmp_path / "parent", frames=1, warmup=2, spec=flooded)
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=2))
     assert run.manifest["settings"]["parent_source_rate"] == 10 * source.rate
-    assert run.scene.source["rate"] == rollout.inlet_source(flooded.source(), config).rate < 10 * source.rate
+    assert run.scene.source.rate == rollout.inlet_source(flooded.source(), config).rate < 10 * source.rate
     continued = Run.open(job.run_predict(run.path, tmp_path / "again", frames=1))
-    assert continued.scene.source["rate"] == run.scene.source["rate"]
+    assert continued.scene.source.rate == run.scene.source.rate
 
 
 @pytest.mark.parametrize("preset_factor", [0.5, 1.0, 2.0, 4.0])
@@ -278,7 +278,7 @@ def test_the_buoyancy_is_identified_from_the_reconstructed_motion(tmp_path: Path
     # misstates the buoyancy: replaying its last frames finds the factor that undoes the preset.
     parent = Run.open(plume_run(tmp_path / "parent", frames=6, warmup=20))
     truth = parent.scene
-    preset = replace(truth, physics={**truth.physics, "alpha": truth.physics["alpha"] * preset_factor})
+    preset = truth.with_buoyancy_scaled(preset_factor)
     scale, errors = identification.calibrate_buoyancy(parent, preset, parent.frames()[-1], "cpu")
     assert scale == 1.0 / preset_factor
     assert errors[f"{scale:g}"] < min(e for k, e in errors.items() if k != f"{scale:g}")
@@ -288,7 +288,7 @@ def test_a_prediction_from_a_reconstruction_records_its_calibration_and_profile(
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=2))
     settings = run.manifest["settings"]
     assert settings["buoyancy_scale"] == 1.0  # the test plume is pure physics under its own alpha
-    assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]
+    assert run.scene.physics.alpha == Run.open(parent).scene.physics.alpha
     assert set(settings["buoyancy_calibration_error"]) == {f"{s:g}" for s in identification.BUOYANCY_SCALES}
     chained = Run.open(job.run_predict(run.path, tmp_path / "again", frames=1))
     assert chained.manifest["settings"]["buoyancy_calibration_error"] == {}  # physics is not re-identified on itself
@@ -370,5 +370,5 @@ def test_identified_physics_is_predicted_with_as_it_is_and_calibration_never_zer
     (identified / "manifest.json").write_text(json.dumps(manifest))
     run = Run.open(job.run_predict(identified, tmp_path / "pred", frames=1))
     assert run.manifest["settings"]["buoyancy_calibration_error"] == {}
-    assert run.scene.physics["alpha"] == Run.open(parent).scene.physics["alpha"]
+    assert run.scene.physics.alpha == Run.open(parent).scene.physics.alpha
     assert run.manifest["settings"]["priors"] == [] and run.manifest["settings"]["appearance_profile"] is None

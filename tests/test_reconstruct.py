@@ -22,7 +22,7 @@ import torch
 
 from fluidcore import artifacts, metrics, synth
 from fluidcore.physics import interpolate_velocity
-from fluidcore.reconstruct import Reconstructor, ReconstructionError, get, prepare
+from fluidcore.reconstruct import Reconstructor, ReconstructionError, get, prepare, read_inputs
 from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError, parse_source
 from fluidcore.runs import Run
 
@@ -41,8 +41,7 @@ def _prepare(scene: synth.SynthScene, frames: int = FRAMES, source: SourceHint |
     box = spec.box()
     return prepare(
         scene.cameras,
-        {INPUT: scene.videos[INPUT][:frames]},
-        frame_range=(0, frames),
+        read_inputs(scene.cameras, {INPUT: scene.videos[INPUT][:frames]}, frame_range=(0, frames), quality=quality),
         fps=spec.fps,
         quality=quality,
         box=(np.array(box.lo), np.array(box.hi)),
@@ -85,7 +84,7 @@ def test_forecast_of_each_unseen_frame_is_recorded_from_the_input_view_alone(run
 
 
 def test_particles_move_the_right_way(scene, run):
-    radius = 2.0 * run.scene.physics["h"]
+    radius = 2.0 * run.scene.physics.h
     for t in range(1, FRAMES):
         state = run.read_frame(t)
         alive = state.alive
@@ -126,8 +125,8 @@ def test_a_known_source_keeps_its_depth_and_its_radius_is_measured_there(scene):
     assert np.linalg.norm(across(rec.source.center)) < 1e-6
     assert np.linalg.norm(across(guessed.source.center)) > 0.05
     assert 0.3 * truth.radius < rec.source.radius < 3 * truth.radius
-    assert rec.settings()["source_hint"] == {"center": list(hint.center), "radius": None}
-    assert guessed.settings()["source_hint"] is None
+    assert rec.settings().source_hint == {"center": list(hint.center), "radius": None}
+    assert guessed.settings().source_hint is None
 
 
 def test_a_source_hint_outside_the_box_or_malformed_is_refused(scene):
@@ -156,8 +155,34 @@ def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path):
 
 def test_bad_inputs_name_the_field(scene):
     with pytest.raises(ReconstructionError, match="videos"):
-        prepare(scene.cameras, {"nope": scene.videos[INPUT]}, frame_range=(0, FRAMES), fps=10.0, quality=get("preview"), box=(np.zeros(3), np.ones(3)))
+        read_inputs(scene.cameras, {"nope": scene.videos[INPUT]}, frame_range=(0, FRAMES), quality=get("preview"))
     with pytest.raises(ReconstructionError, match="frames"):
-        prepare(scene.cameras, {INPUT: scene.videos[INPUT][:2]}, frame_range=(0, FRAMES), fps=10.0, quality=get("preview"), box=(np.zeros(3), np.ones(3)))
+        read_inputs(scene.cameras, {INPUT: scene.videos[INPUT][:2]}, frame_range=(0, FRAMES), quality=get("preview"))
     with pytest.raises(ValueError, match="quality"):
         get("ultra")
+
+
+def test_prepare_fits_the_views_it_is_given_and_the_reconstruction_is_frozen(scene):
+    """Views made before `prepare` (the generated ones) take the place of the symmetry
+    pseudo-views; a refinement fits its inputs alone; nobody rewrites the views afterwards."""
+    from dataclasses import FrozenInstanceError
+
+    from fluidcore.reconstruct.views import generated_targets
+
+    spec = scene.spec
+    quality = get("preview").with_overrides(long_side=64, particles_per_frame=spec.particles_per_step)
+    inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT][:2]}, frame_range=(0, 2), quality=quality)
+    box = spec.box()
+    common = dict(fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics="scalarflow")
+    plain = prepare(scene.cameras, inputs, **common)
+    source = inputs.targets[0]
+    other = scene.cameras["view_00"].scaled(source.camera.width, source.camera.height)
+    drawn = generated_targets(source, [other], {"view_00": source.frames.clone()}, quality.symmetry_weight)
+    generated = prepare(scene.cameras, inputs, extra_views=drawn, **common)
+    alone = prepare(scene.cameras, inputs, pseudo_views=False, **common)
+    assert [v.kind for v in plain.views] == ["input"] + ["symmetry"] * quality.symmetry_views
+    assert [v.kind for v in generated.views] == ["input", "generated"] and generated.views[1].weight == quality.symmetry_weight
+    assert [v.kind for v in alone.views] == ["input"]
+    assert plain.symmetry == generated.symmetry == alone.symmetry  # the prior's record stays in the manifest
+    with pytest.raises(FrozenInstanceError):
+        plain.views = ()

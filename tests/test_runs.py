@@ -3,12 +3,27 @@
 from __future__ import annotations
 
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fluidcore.cameras import Camera
-from fluidcore.runs import FrameState, Run, RunError, Scene
+from fluidcore.physics import PBFConfig, Source
+from fluidcore.runs import (
+    ContinuationSettings,
+    FrameState,
+    ReconstructSettings,
+    Run,
+    RunError,
+    RunKind,
+    RunRecord,
+    Scene,
+    state_file,
+)
+
+OLD_RUNS = Path(__file__).parent / "fixtures" / "runs_v1"  # written by format version 1 (see its README.md)
 
 
 def _camera(name: str = "cam") -> Camera:
@@ -22,8 +37,8 @@ def _scene() -> Scene:
         box_lo=(-1.0, 0.0, -1.0),
         box_hi=(1.0, 2.0, 1.0),
         up=(0.0, 1.0, 0.0),
-        physics={"rho0": 2.0, "alpha": -3.0, "h": 0.1, "length_scale": 37.5},
-        source={"center": [0.0, 0.1, 0.0], "radius": 0.1, "rate": 3, "velocity": [0.0, 0.1, 0.0], "seed": 1},
+        physics=PBFConfig(rho0=2.0, alpha=-3.0, h=0.1, length_scale=37.5),
+        source=Source(center=(0.0, 0.1, 0.0), radius=0.1, rate=3, velocity=(0.0, 0.1, 0.0), seed=1),
     )
 
 
@@ -37,7 +52,7 @@ def _create(path, **changes):
         channels=1,
         background_color=[1.0],
         scene=_scene(),
-        settings={"quality": "preview", "iterations": 5},
+        settings=ReconstructSettings(quality={"name": "preview", "iterations": 5}),
     )
     args.update(changes)
     return Run.create(path, **args)
@@ -89,7 +104,7 @@ def test_reopening_the_same_run_resumes_and_a_different_one_is_refused(tmp_path)
     again = _create(tmp_path / "run")
     assert again.next_frame() == 1
     with pytest.raises(RunError, match="settings"):
-        _create(tmp_path / "run", settings={"quality": "paper"})
+        _create(tmp_path / "run", settings=ReconstructSettings(quality={"name": "paper"}))
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("mine")
     with pytest.raises(RunError, match="not a run folder"):
@@ -138,3 +153,53 @@ def test_open_rejects_folders_that_are_not_runs(tmp_path):
     (tmp_path / "manifest.json").write_text("{not json")
     with pytest.raises(RunError, match="not valid JSON"):
         Run.open(tmp_path)
+
+
+def test_runs_written_before_the_typed_record_are_read_migrated(tmp_path):
+    """Version-1 folders from main (kept in tests/fixtures/runs_v1) read as typed records of their
+    kind; reading never rewrites them."""
+    rec = Run.open(OLD_RUNS / "reconstruct")
+    assert rec.kind is RunKind.RECONSTRUCT and rec.manifest["format_version"] == 2
+    assert isinstance(rec.settings, ReconstructSettings) and rec.settings.physics_mode == "auto"
+    assert rec.settings.visual.per_physical == 2 and [v.kind for v in rec.settings.views][:2] == ["input", "symmetry"]
+    assert isinstance(rec.scene.physics, PBFConfig) and rec.scene.physics.h == pytest.approx(0.021333, rel=1e-4)
+    assert isinstance(rec.scene.source, Source) and rec.scene.source.rate == 27
+    interact = Run.open(OLD_RUNS / "interact")
+    assert interact.kind is RunKind.INTERACT and interact.parent.path == OLD_RUNS / "interact" / ".." / "reconstruct"
+    assert isinstance(interact.settings, ContinuationSettings) and interact.settings.branch_frame == 2
+    assert interact.settings.wind.strength == 0.5 and interact.settings.ball.radius == 0.05
+    assert Run.open(OLD_RUNS / "predict").settings.wind is None
+    assert json.loads((OLD_RUNS / "interact" / "manifest.json").read_text())["format_version"] == 1
+    stored = (OLD_RUNS / "interact" / "manifest.json").read_bytes()  # as the API fetches it from storage
+    assert RunRecord.from_bytes(stored, "interact").manifest == interact.manifest
+    assert interact.read_frame(3).positions.shape[1] == 3 and state_file(3) == "states/frame_000003.npz"
+
+
+def test_version_1_settings_missing_later_fields_get_their_defaults_and_strangers_are_refused(tmp_path):
+    """Version 1 before --physics had no physics record, before --from-frame no branch frame;
+    keys it wrote that no model knows are dropped. Another kind or version is refused."""
+    old = json.loads((OLD_RUNS / "predict" / "manifest.json").read_text())
+    early = {**old, "settings": {k: v for k, v in old["settings"].items() if k != "branch_frame"} | {"retired": 1}}
+    assert RunRecord.from_bytes(json.dumps(early).encode(), "early").settings.branch_frame == 2  # first frame - 1
+    rec = json.loads((OLD_RUNS / "reconstruct" / "manifest.json").read_text())
+    del rec["settings"]["physics"]
+    assert RunRecord.from_bytes(json.dumps(rec).encode(), "rec").settings.physics_mode == "scalarflow"
+    with pytest.raises(RunError, match="kind 'guess'"):
+        RunRecord.from_bytes(json.dumps({**old, "kind": "guess"}).encode(), "guess")
+    with pytest.raises(RunError, match="format_version 3"):
+        RunRecord.from_bytes(json.dumps({**old, "format_version": 3}).encode(), "future")
+    with pytest.raises(RunError, match="settings do not fit"):
+        RunRecord.from_bytes(json.dumps({**old, "format_version": 2, "settings": {"visual": None}}).encode(), "broken")
+
+
+def test_a_version_1_reconstruction_is_continued_into_a_version_2_run(tmp_path):
+    from fluidcore.interaction import BallParams, InteractionParams
+    from fluidcore.predict import run_interact
+
+    shutil.copytree(OLD_RUNS / "reconstruct", tmp_path / "reconstruct")
+    ball = InteractionParams(ball=BallParams(center=(0.0, 0.3, 0.0), radius=0.05))
+    out = run_interact(tmp_path / "reconstruct", tmp_path / "what-if", ball, frames=1)
+    run = Run.open(out)
+    assert json.loads((out / "manifest.json").read_text())["format_version"] == 2
+    assert run.frames() == [3] and run.settings.branch_frame == 2 and run.settings.ball.radius == 0.05
+    assert run.scene.physics == Run.open(tmp_path / "reconstruct").scene.physics  # auto physics: used as identified

@@ -98,7 +98,7 @@ def test_a_new_job_type_is_one_member_plus_its_runner(tmp_path: Path) -> None:
     overlay = tmp_path / "overlay"
     shutil.copytree(ROOT / "service", overlay / "service", ignore=shutil.ignore_patterns("__pycache__"))
     job_types = overlay / "service" / "job_types.py"
-    last = '    RESIMULATE = "resimulate", ResimulateParams, "parent"\n'
+    last = '    RESIMULATE = RunKind.RESIMULATE, ResimulateParams, "parent"\n'
     assert last in job_types.read_text()
     job_types.write_text(job_types.read_text().replace(last, last + '    REPLAY = "replay", ResimulateParams, "parent"\n'))
 

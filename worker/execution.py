@@ -32,7 +32,8 @@ from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
 from worker.runners import Runner, RunInputs
-from worker.sync import MANIFEST, FolderMirror
+from fluidcore.runs import MANIFEST, STATES_DIR
+from worker.sync import FolderMirror
 
 log = logging.getLogger(__name__)
 # Internal errors are logged here, outside the loggers JobLog copies into the job's log: its owner
@@ -286,7 +287,7 @@ class JobExecutor:
         prefix = run_prefix(claim.job_id)
         for info in self.storage.list(f"{prefix}/"):
             name = info.key[len(prefix) + 1 :]
-            kind = "manifest" if name == MANIFEST else "state" if name.startswith("states/") else "file"
+            kind = "manifest" if name == MANIFEST else "state" if name.startswith(f"{STATES_DIR}/") else "file"
             content_type = "application/json" if name.endswith(".json") else "application/octet-stream"
             rows.append(
                 Artifact(job_id=claim.job_id, name=f"run/{name}", kind=kind, key=info.key, size=info.size,

@@ -13,9 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from fluidcore.names import safe_join
+from fluidcore.runs import MANIFEST
 from service.storage import Storage
-
-MANIFEST = "manifest.json"
 
 
 def _content_type(path: Path) -> str:

@@ -232,12 +232,16 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
     that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
     later."""
     from fluidcore.interaction import InteractionError
+    from fluidcore.runs import MANIFEST, RunError, RunRecord
 
     try:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(parent_id)}/manifest.json"))
+        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(parent_id)}/{MANIFEST}"), f"parent job {parent_id}'s run")
+        scene = record.scene
     except ObjectNotFound:
         raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
-    frames = [entry.get("t") for entry in manifest.get("frames") or []]
+    except RunError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    frames = record.frames()
     if params.from_frame is not None and params.from_frame not in frames:
         held = f"{frames[0]}..{frames[-1]}" if frames else "none"
         raise HTTPException(
@@ -245,7 +249,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
             f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
         )
     try:
-        params.check_scene(manifest.get("scene") or {}, params.frames)
+        params.check_scene(scene, params.frames)
     except InteractionError as exc:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params: {exc}") from None
 

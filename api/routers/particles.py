@@ -7,9 +7,7 @@ runs (frames done so far). numpy only: the API process never imports torch.
 
 from __future__ import annotations
 
-import io
-import json
-from typing import Annotated, Any
+from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, HTTPException, Query, status
@@ -18,6 +16,7 @@ from api.deps import OwnerDep, SessionDep, StorageDep
 from api.errors import error_responses
 from api.routers.jobs import owned_job
 from api.schemas import ParticlesOut, RunScene
+from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, Scene, state_file
 from service.storage import ObjectNotFound, Storage, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["particles"], responses=error_responses(401, 422, 503))
@@ -42,8 +41,8 @@ def get_particles(
     """Live particle positions (world units) of one frame, evenly subsampled to at most
     `max_points`, with the run's scene box, up axis and smoke source."""
     job = owned_job(session, job_id, owner)
-    manifest = _manifest(storage, job.id)
-    frames = [int(entry["t"]) for entry in manifest.get("frames", [])]
+    record, scene = _record(storage, job.id)
+    frames = record.frames()
     if not frames:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job.id} has not written a frame yet")
     t = frames[-1] if frame is None else frame
@@ -53,41 +52,37 @@ def get_particles(
         )
     positions = _positions(storage, job.id, t)
     keep = _even_subsample(len(positions), max_points)
-    scene = manifest.get("scene") or {}
     return ParticlesOut(
         job_id=job.id,
         frame=t,
         frames=frames,
         total=len(positions),
         positions=np.round(positions[keep], 5).astype(float).ravel().tolist(),
-        scene=RunScene(
-            box_lo=scene["box"]["lo"], box_hi=scene["box"]["hi"], up=scene.get("up", [0.0, 1.0, 0.0]),
-            source=scene.get("source") or {},
-            dt=(scene.get("physics") or {}).get("dt"),
-        ),
+        scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"], dt=scene.physics.dt),
     )
 
 
-def _manifest(storage: Storage, job_id: str) -> dict[str, Any]:
+def _record(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
+    """The job's run record and its scene, read from storage (a run that has none yet, or an
+    unreadable one, is a 409)."""
     try:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(job_id)}/manifest.json"))
+        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job_id)}/{MANIFEST}"), f"job {job_id}'s run")
+        return record, record.scene
     except ObjectNotFound:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} has no run in storage yet") from None
-    if not isinstance((manifest.get("scene") or {}).get("box"), dict):
-        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id}'s run records no scene box")
-    return manifest
+    except RunError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
 
 
 def _positions(storage: Storage, job_id: str, t: int) -> np.ndarray:
     """(P, 3) float32 positions of the particles alive at frame t."""
     try:
-        data = storage.read_bytes(f"{run_prefix(job_id)}/states/frame_{t:06d}.npz")
+        state = FrameState.from_bytes(storage.read_bytes(f"{run_prefix(job_id)}/{state_file(t)}"), f"frame {t} of job {job_id}")
     except ObjectNotFound:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"frame {t} of job {job_id} is missing from storage") from None
-    with np.load(io.BytesIO(data)) as state:
-        positions = np.asarray(state["positions"], dtype=np.float32)
-        alive = np.asarray(state["alive"], dtype=bool) if "alive" in state.files else np.ones(len(positions), bool)
-    return positions[alive]
+    except RunError as exc:
+        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
+    return state.positions[state.alive.astype(bool)].astype(np.float32)
 
 
 def _even_subsample(count: int, cap: int) -> np.ndarray:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
@@ -163,16 +162,17 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     """From the latest succeeded reconstruction of the scene (its run knows the source), else
     from the uploaded cameras file alone."""
     from fluidcore import scene_info
+    from fluidcore.runs import MANIFEST, RunRecord
 
     job = session.scalars(
         select(Job)
-        .where(Job.scene_id == scene.id, Job.type == "reconstruct", Job.state == JobState.SUCCEEDED)
+        .where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT, Job.state == JobState.SUCCEEDED)
         .order_by(Job.finished_at.desc())
         .limit(1)
     ).first()
     if job is not None:
-        manifest = json.loads(storage.read_bytes(f"{run_prefix(job.id)}/manifest.json"))
-        return SceneGeometry.model_validate(scene_info.from_run_manifest(manifest))
+        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job.id)}/{MANIFEST}"), f"job {job.id}'s run")
+        return SceneGeometry.model_validate(scene_info.from_run(record))
     return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
 
 

@@ -47,6 +47,13 @@ def scene_box(path: str | Path) -> Box | None:
     return voxel_box(data, path.name)
 
 
+def capture_box(path: str | Path, cameras: Sequence[Camera] | dict[str, Camera]) -> Box:
+    """The box a capture is reconstructed in: the one its camera file declares, else the
+    cameras' shared view (`frusta_box`, which raises CameraError when they share none)."""
+    box = scene_box(path)
+    return box if box is not None else frusta_box(cameras)
+
+
 def _is_zip(path: Path) -> bool:
     with path.open("rb") as handle:
         return handle.read(4) == b"PK\x03\x04"

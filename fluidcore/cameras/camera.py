@@ -331,3 +331,22 @@ def orbit(
         eye = c + radius * (math.cos(angle) * a + math.sin(angle) * b) + height * up_v
         cameras.append(look_at(eye, c, up_v, like, f"orbit_{i:03d}"))
     return cameras
+
+
+def rotate_about_axis(camera: Camera, center: np.ndarray, up: np.ndarray, angle: float, name: str) -> Camera:
+    """The camera carried around the axis through `center` along `up` by `angle` radians."""
+    axis = up / np.linalg.norm(up)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+    inverse = np.eye(4)  # world -> world map x -> R^T (x - c) + c, i.e. the inverse motion
+    inverse[:3, :3] = rotation.T
+    inverse[:3, 3] = center - rotation.T @ center
+    return replace(camera, name=name, world_to_camera=camera.world_to_camera @ inverse, file_path=None)
+
+
+def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
+    """(W, H) for rendering an input of width x height at `long_side * fraction`, never upscaled,
+    aspect kept, at least 8 px per side."""
+    target = min(max(width, height), long_side) * fraction
+    factor = target / max(width, height)
+    return max(8, round(width * factor)), max(8, round(height * factor))

@@ -89,7 +89,7 @@ def load_scene(folder: Path, long_side: int, exclude: Sequence[str] = ()) -> Sce
     """Cameras and videos of one scene folder: the cameras with a video (their file_path), less
     those named in `exclude` (views held out for measuring: never trained on)."""
     from fluidcore import cameras as camera_io
-    from fluidcore.reconstruct.presets import render_size
+    from fluidcore.cameras import render_size
     from fluidcore.video import probe, read_frames
 
     cameras = camera_io.load(folder / "transforms.json")
@@ -104,7 +104,7 @@ def load_scene(folder: Path, long_side: int, exclude: Sequence[str] = ()) -> Sce
         scaled[name] = camera.scaled(width, height)
     if len(videos) < 2:
         raise FinetuneError(f"--data: {folder} has {len(videos)} camera(s) with a video; fine-tuning needs at least 2")
-    box = camera_io.scene_box(folder / "transforms.json") or camera_io.frusta_box(cameras)
+    box = camera_io.capture_box(folder / "transforms.json", cameras)
     return Scene(scaled, videos, camera_io.box_center(box), np.array([0.0, 1.0, 0.0]))
 
 

@@ -1,11 +1,10 @@
 """The generative stages as the jobs run them, each either run or skipped with its reason.
 
     generated_views   single-view reconstruction (Algorithm S1): the novel-view model draws the
-                      other cameras' views of every frame from the INPUT view alone, the video
-                      model refines each generated video (strength 0.5), and they become
-                      ViewTargets of kind "generated", weighted below the real view;
-                      `with_generated_views` puts them into a prepared reconstruction in place
-                      of the plume-symmetry pseudo-views
+                      other cameras' views of every frame from the INPUT view alone and the video
+                      model refines each generated video (strength 0.5); the reconstruction job
+                      fits them as views of kind "generated" in place of the plume-symmetry
+                      pseudo-views (fluidcore.reconstruct.job, before `prepare`)
     refine_frames     prediction (Algorithm S2): rough future frames rendered from the input
                       camera are refined by the video model (strength 0.75)
 
@@ -27,21 +26,16 @@ import json
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from fluidcore.cameras import Camera
+from fluidcore.cameras import Camera, rotate_about_axis
 from fluidcore.generative import models
 from fluidcore.jobs import BatchProgress
+from fluidcore.names import safe_join
 from fluidcore.generative.novel_view import SamplingOptions, generate_views
 from fluidcore.generative.refine import STRENGTH_FUTURES, STRENGTH_NOVEL_VIEWS, RefineOptions, refine_video, window_starts
-from fluidcore.names import safe_join
-from fluidcore.reconstruct.views import ViewTarget, rotate_about_axis
-
-if TYPE_CHECKING:
-    from fluidcore.reconstruct.loop import Reconstruction
 
 GENERATED_DIR = "generated"  # in a reconstruction's run folder
 NOVEL_VIEWS = "novel views"
@@ -92,106 +86,41 @@ def target_cameras(
 
 
 def generated_views(
-    source: ViewTarget,
+    source: Camera,
+    frames: torch.Tensor,
     targets: Sequence[Camera],
     center: np.ndarray,
     up: np.ndarray,
-    weight: float,
     settings: GenerativeSettings,
     device: str | torch.device = "cpu",
     on_batch: BatchProgress | None = None,
-) -> tuple[list[ViewTarget], dict[str, str]]:
-    """Generated ViewTargets (total loss weight `weight`, split evenly) and the status of both
-    steps: {"novel_views": ..., "view_refinement": ...}. Only `source.frames` reach a model."""
+) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    """The views of `targets` drawn from the input view's `frames` ((T, H, W, C) in [0, 1], seen
+    by `source`), rounded to 8 bits, by camera name ({} when the weights are absent), and the
+    status of both steps: {"novel_views": ..., "view_refinement": ...}. Only `frames` reach a model."""
     skipped = models.skip_reason(models.NOVEL_VIEW, settings.models_root)
     if skipped is not None:
-        return [], {"novel_views": skipped, "view_refinement": "skipped: no generated views to refine"}
+        return {}, {"novel_views": skipped, "view_refinement": "skipped: no generated views to refine"}
     dtype = settings.dtype(device)
     model = models.load_novel_view(settings.models_root, device, dtype)
     options = SamplingOptions(steps=settings.novel_view_steps, batch_size=settings.batch(device), seed=settings.seed)
     report = _stage(on_batch, NOVEL_VIEWS)
-    frames = generate_views(model, source.frames, source.camera, targets, center, up, options, report)
+    drawn = generate_views(model, frames, source, targets, center, up, options, report)
     del model
     _free_memory()
-    status = {"novel_views": f"generated {len(targets)} views x {len(source.frames)} frames from {source.camera.name} "
+    status = {"novel_views": f"generated {len(targets)} views x {len(frames)} frames from {source.name} "
                              f"({options.steps} DDIM steps, {_adapter_note(models.NOVEL_VIEW, settings)})"}
-    frames, status["view_refinement"] = _refine_all(frames, STRENGTH_NOVEL_VIEWS, REFINE_VIEWS, settings, device, on_batch)
-    eight_bit = {name: torch.round(video.clamp(0.0, 1.0) * 255.0) / 255.0 for name, video in frames.items()}
-    return _as_targets(source, targets, eight_bit, weight), status
+    drawn, status["view_refinement"] = _refine_all(drawn, STRENGTH_NOVEL_VIEWS, REFINE_VIEWS, settings, device, on_batch)
+    return {name: torch.round(video.clamp(0.0, 1.0) * 255.0) / 255.0 for name, video in drawn.items()}, status
 
 
-def _as_targets(
-    source: ViewTarget, targets: Sequence[Camera], frames: Mapping[str, torch.Tensor], weight: float
-) -> list[ViewTarget]:
-    """Generated frames as fitting targets: the input's background colour, `weight` split evenly."""
-    background = _colour(source.background)
-    per_view = weight / max(len(targets), 1)
-    return [
-        ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated")
-        for camera in targets
-    ]
-
-
-def with_generated_views(
-    rec: Reconstruction,
-    settings: GenerativeSettings,
-    device: str | torch.device = "cpu",
-    on_batch: BatchProgress | None = None,
-    stored: Path | None = None,
-) -> dict[str, str]:
-    """Replace the symmetry pseudo-views of a single-view reconstruction by generated views
-    (same total weight, `Quality.symmetry_weight`) when the novel-view weights exist; returns
-    the manifest's status lines. The generated cameras are the scene's other cameras (their
-    poses only), else as many turned copies of the input camera as the symmetry prior uses.
-    Views saved in `stored` (`save_generated_views`) from the same inputs and settings are read
-    back instead of sampled again."""
-    if len(rec.input_views) != 1:
-        reason = "skipped: more than one input view (real views constrain the depth)"
-        return {"novel_views": reason, "view_refinement": reason}
-    quality = rec.quality
-    if quality.symmetry_views < 1 or quality.symmetry_weight <= 0:
-        reason = "skipped: pseudo-views are off in this quality (symmetry_views or symmetry_weight is 0)"
-        return {"novel_views": reason, "view_refinement": reason}
-    source = rec.views[0]
-    center = 0.5 * (np.asarray(rec.box.lo) + np.asarray(rec.box.hi))
-    count = min(quality.symmetry_views, settings.max_views)
-    targets = target_cameras(rec.cameras, source.camera, center, rec.up, count)
-    saved = _read_saved(stored, _saved_key(rec, targets, settings)) if stored is not None else None
-    if saved is not None:
-        frames, status = saved
-        views = _as_targets(source, targets, frames, quality.symmetry_weight)
-        status = {name: f"{line} (read back from {GENERATED_DIR}/)" for name, line in status.items()}
-    else:
-        views, status = generated_views(source, targets, center, rec.up, quality.symmetry_weight, settings, device, on_batch)
-    if views:
-        rec.views = [v for v in rec.views if v.kind != "symmetry"] + views
-    return status
-
-
-def save_generated_views(rec: Reconstruction, settings: GenerativeSettings, status: Mapping[str, str], folder: Path) -> None:
-    """Keep the generated views of `rec` in `folder` (a run's GENERATED_DIR) for a resume; the
-    index (views.json) is written last, so a half-written folder is never read back."""
-    from fluidcore.files import atomic_output
-
-    generated = [v for v in rec.views if v.kind == "generated"]
-    key = _saved_key(rec, [v.camera for v in generated], settings)
-    index = folder / "views.json"
-    if not generated or (index.is_file() and json.loads(index.read_text()).get("key") == json.loads(json.dumps(key))):
-        return
-    folder.mkdir(parents=True, exist_ok=True)
-    for view in generated:
-        frames = torch.round(view.frames.cpu() * 255.0).to(torch.uint8).numpy()
-        with atomic_output(safe_join(folder, f"{view.camera.name}.npz"), suffix=".npz") as tmp:
-            np.savez_compressed(tmp, frames=frames)
-    with atomic_output(index) as tmp:
-        tmp.write_text(json.dumps({"key": key, "status": dict(status)}, indent=1))
-
-
-def _saved_key(rec: Reconstruction, targets: Sequence[Camera], settings: GenerativeSettings) -> dict:
-    """What saved views were made from: reading them back is only right when all of it agrees."""
+def saved_key(source: str, frame_range: tuple[int, int], targets: Sequence[Camera], settings: GenerativeSettings) -> dict:
+    """What saved views were made from (the input camera's name, its frames, the generated
+    cameras, the sampling settings and the weights): reading them back is only right when all of
+    it agrees."""
     return {
-        "input": rec.input_views[0],
-        "frame_range": list(rec.frame_range),
+        "input": source,
+        "frame_range": list(frame_range),
         "targets": [[c.name, c.width, c.height] for c in targets],
         "novel_view_steps": settings.novel_view_steps,
         "refine_steps": settings.refine_steps,
@@ -200,7 +129,27 @@ def _saved_key(rec: Reconstruction, targets: Sequence[Camera], settings: Generat
     }
 
 
-def _read_saved(folder: Path, key: dict) -> tuple[dict[str, torch.Tensor], dict[str, str]] | None:
+def save_generated_views(frames: Mapping[str, torch.Tensor], key: dict, status: Mapping[str, str], folder: Path) -> None:
+    """Keep generated `frames` (by camera name, made from `key`, `saved_key`) in `folder` (a run's
+    GENERATED_DIR) for a resume; the index (views.json) is written last, so a half-written folder
+    is never read back."""
+    from fluidcore.files import atomic_output
+
+    index = folder / "views.json"
+    if not frames or (index.is_file() and json.loads(index.read_text()).get("key") == json.loads(json.dumps(key))):
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    for name, video in frames.items():
+        eight_bit = torch.round(video.cpu() * 255.0).to(torch.uint8).numpy()
+        with atomic_output(safe_join(folder, f"{name}.npz"), suffix=".npz") as tmp:
+            np.savez_compressed(tmp, frames=eight_bit)
+    with atomic_output(index) as tmp:
+        tmp.write_text(json.dumps({"key": key, "status": dict(status)}, indent=1))
+
+
+def read_generated_views(folder: Path, key: dict) -> tuple[dict[str, torch.Tensor], dict[str, str]] | None:
+    """The views `save_generated_views` kept in `folder` for exactly `key`, with their status
+    lines (marked as read back), or None."""
     index = folder / "views.json"
     if not index.is_file():
         return None
@@ -211,7 +160,7 @@ def _read_saved(folder: Path, key: dict) -> tuple[dict[str, torch.Tensor], dict[
     for name, _width, _height in key["targets"]:
         with np.load(safe_join(folder, f"{name}.npz")) as data:
             frames[name] = torch.from_numpy(data["frames"]).float() / 255.0
-    return frames, saved["status"]
+    return frames, {name: f"{line} (read back from {GENERATED_DIR}/)" for name, line in saved["status"].items()}
 
 
 def refine_frames(
@@ -260,14 +209,6 @@ def _stage(on_batch: BatchProgress | None, stage: str) -> Callable[[int, int], N
     if on_batch is None:
         return None
     return lambda done, total: on_batch(stage, done, total)
-
-
-def _colour(background: torch.Tensor) -> torch.Tensor:
-    """A generated view's background: the input's background colour (its background image
-    belongs to the input camera's viewpoint)."""
-    if background.ndim == 1:
-        return background
-    return background.reshape(-1, background.shape[-1]).median(dim=0).values
 
 
 def _free_memory() -> None:

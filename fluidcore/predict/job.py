@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
@@ -34,7 +33,7 @@ from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
 from fluidcore.predict.rollout import Rollout, continued_scene, source_template
-from fluidcore.runs import Run, Scene
+from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind, Scene, VisualSettings
 from fluidcore.smoke import SmokeState
 
 if TYPE_CHECKING:
@@ -49,7 +48,7 @@ class Continuation:
     interventions it applies and, for a prediction, the generative settings of its refinement.
     How the kinds differ is answered here, once."""
 
-    kind: str  # "predict" | "interact" | "resimulate"
+    kind: RunKind  # PREDICT, INTERACT or RESIMULATE
     params: InteractionParams = field(default_factory=InteractionParams)
     generative: GenerativeSettings | None = None
 
@@ -57,12 +56,12 @@ class Continuation:
     def keeps_priors(self) -> bool:
         """Whether the parent's calibration and look carry over: a re-simulation measures what
         the physics alone explains, so it takes neither."""
-        return self.kind != "resimulate"
+        return self.kind is not RunKind.RESIMULATE
 
     @property
     def refined(self) -> bool:
         """Only predictions are refined (Algorithm S2); what-ifs and re-simulations show the physics."""
-        return self.kind == "predict"
+        return self.kind is RunKind.PREDICT
 
 
 def run_predict(
@@ -78,7 +77,7 @@ def run_predict(
     interventions; then, when the video model's weights exist (`generative`, default:
     `fluidcore.weights.weights_dir()`), refine and reconstruct them (`priors.refine_future`,
     Algorithm S2)."""
-    return _continue(parent_run, out_dir, Continuation("predict", generative=generative), frames, from_frame, context)
+    return _continue(parent_run, out_dir, Continuation(RunKind.PREDICT, generative=generative), frames, from_frame, context)
 
 
 def run_interact(
@@ -100,7 +99,7 @@ def run_interact(
     asks "what if the wind had started here".
     """
     params = parse_interaction(params.wind, params.ball, Intervention)  # the one rule: a wind, a ball or both
-    return _continue(parent_run, out_dir, Continuation("interact", params), frames, from_frame, context)
+    return _continue(parent_run, out_dir, Continuation(RunKind.INTERACT, params), frames, from_frame, context)
 
 
 def run_resimulate(
@@ -113,7 +112,7 @@ def run_resimulate(
     initial state itself, every later frame is physics only."""
     parent = _open_parent(parent_run)
     first, stop = parent.frames()[0], parent.frames()[-1] + 1
-    return _write(parent, out_dir, Continuation("resimulate"), first, (first, stop), context)
+    return _write(parent, out_dir, Continuation(RunKind.RESIMULATE), first, (first, stop), context)
 
 
 def _continue(
@@ -164,46 +163,47 @@ def _write(
     device, params = context.device, request.params
     start = SmokeState.from_frame(parent.read_frame(start_frame), device)
     buoyancy_scale, calibration, profile, observed = 1.0, {}, None, None
-    if request.keeps_priors and parent.kind == "reconstruct":
+    parent_settings = parent.settings
+    if request.keeps_priors and isinstance(parent_settings, ReconstructSettings):
         # Identified physics (fluidcore.reconstruct.identify) is used as it is, without the height-profile
         # prior: with it the future scored +0.33 dB on the dev scene but -0.17 dB on ScalarFlow
         # (docs/bench_generalise.md). Preset physics keeps the paper path: calibration and the prior,
         # both taken from the reconstruction's last frames even for a branch from an earlier one:
         # the whole window is observed footage, and at an early branch frame (frame 0 above all)
         # the plume has not risen yet to show its speed or its look higher up.
-        if parent.manifest["settings"].get("physics", {}).get("mode") != "auto":
+        if parent_settings.physics_mode != "auto":
             observed = parent.frames()[-1]
             buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
             look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
             profile = HeightProfile.observe(look, scene.up)
-        scene = replace(scene, physics={**scene.physics, "alpha": scene.physics["alpha"] * buoyancy_scale})
-    elif request.keeps_priors and parent.manifest["settings"].get("appearance_profile"):
-        profile = HeightProfile.from_json(parent.manifest["settings"]["appearance_profile"])  # a chained prediction
+        scene = scene.with_buoyancy_scaled(buoyancy_scale)
+    elif request.keeps_priors and parent_settings.appearance_profile:
+        profile = HeightProfile.from_json(parent_settings.appearance_profile)  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
-    params.check_scene(scene.to_json(), n_frames)  # before anything is written
+    params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
     run = Run.create(
         out_dir,
         kind=request.kind,
         cameras=parent.cameras(),
-        input_views=parent.manifest["input_views"],
+        input_views=parent.input_views,
         frame_range=frame_range,
         fps=parent.fps,
         channels=parent.channels,
         background_color=parent.background_color,
         scene=scene,
-        settings={
-            "branch_frame": start_frame,  # the parent frame this run continues from
-            "visual": visual_settings,
-            "parent_source_rate": parent.scene.source["rate"],
-            "identified_on_frame": observed,
-            "buoyancy_scale": buoyancy_scale,
-            "buoyancy_calibration_error": calibration,
-            "appearance_profile": None if profile is None else profile.to_json(),
-            "priors": [] if profile is None else ["appearance height profile (fluidcore.predict.priors.HeightProfile)"],
-            "wind": None if params.wind is None else params.wind.model_dump(),
-            "ball": None if params.ball is None else params.ball.model_dump(),
-        },
+        settings=ContinuationSettings(
+            branch_frame=start_frame,
+            visual=visual_settings,
+            parent_source_rate=parent.scene.source.rate,
+            identified_on_frame=observed,
+            buoyancy_scale=buoyancy_scale,
+            buoyancy_calibration_error=calibration,
+            appearance_profile=None if profile is None else profile.to_json(),
+            priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
+            wind=params.wind,
+            ball=params.ball,
+        ),
         parent=parent.path,
     )
     run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
@@ -228,7 +228,7 @@ def _rollout(
     scene: Scene,
     start: SmokeState,
     params: InteractionParams,
-    visual: Mapping[str, Any],
+    visual: VisualSettings,
     device: str,
     profile: HeightProfile | None,
 ) -> Rollout:
@@ -242,18 +242,18 @@ def _rollout(
     return Rollout(
         Simulator(config, box, source, force=applied.force, air=applied.air, device=device),
         source_template(start, source.center),
-        velocity_radius=visual["velocity_radius"] * config.h,
-        per_physical=visual["per_physical"],
-        seed=visual["seed"],
+        velocity_radius=visual.velocity_radius * config.h,
+        per_physical=visual.per_physical,
+        seed=visual.seed,
         ball=applied.ball,
         profile=profile,
     )
 
 
-def _visual_settings(parent: Run) -> dict[str, Any]:
+def _visual_settings(parent: Run) -> VisualSettings:
     """How visual Gaussians move and are born in the parent (a reconstruction records them from
     its quality preset, a prediction passes them on): a continuation must move them alike."""
-    visual = parent.manifest.get("settings", {}).get("visual")
-    if not isinstance(visual, Mapping) or set(visual) != {"velocity_radius", "per_physical", "seed"}:
+    visual = parent.settings.visual
+    if visual is None:
         raise JobInputError(f"run: {parent.path} records no settings.visual (written by an older version?); reconstruct again")
-    return dict(visual)
+    return visual

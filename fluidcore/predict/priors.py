@@ -22,7 +22,7 @@ import torch
 
 from fluidcore.jobs import JobContext, JobInputError
 from fluidcore.reconstruct.source_hint import SourceHint
-from fluidcore.runs import REFINED_RUN, Run
+from fluidcore.runs import REFINED_RUN, ReconstructSettings, Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
@@ -123,35 +123,36 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
     from fluidcore.reconstruct.job import fit
-    from fluidcore.reconstruct.loop import prepare
-    from fluidcore.reconstruct.presets import Quality, render_size
+    from fluidcore.reconstruct.loop import prepare, read_inputs
+    from fluidcore.cameras import render_size
+    from fluidcore.reconstruct.presets import Quality
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
     if skipped is not None:
         return skipped
     origin = run.parent
-    while origin is not None and origin.kind != "reconstruct":
+    while origin is not None and not isinstance(origin.settings, ReconstructSettings):
         origin = origin.parent
     if origin is None:
         return "skipped: no reconstruction among the run's parents to take the quality and physics from"
-    quality = Quality.from_json(origin.manifest["settings"]["quality"])
+    origin_settings = origin.settings
+    quality = Quality.from_json(origin_settings.quality)
     cameras = run.cameras()
     rough = {}
-    for name in run.manifest["input_views"]:
+    for name in run.input_views:
         camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
         rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), context.device)).float() / 255.0
     refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
-    rec = prepare(
-        cameras, videos, frame_range=tuple(run.manifest["frame_range"]), fps=run.fps, quality=quality,
+    inputs = read_inputs(cameras, videos, frame_range=run.frame_range, quality=quality, device=context.device)
+    rec = prepare(  # the refined input views alone are the targets
+        cameras, inputs, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=SourceHint(center=tuple(scene.source["center"]), radius=scene.source["radius"]),
-        physics=origin.manifest["settings"].get("physics", {}).get("mode", "scalarflow"),  # runs from before --physics: the preset
-        device=context.device,
+        source=SourceHint(center=scene.source.center, radius=scene.source.radius),
+        physics=origin_settings.physics_mode, pseudo_views=False, device=context.device,
     )
-    rec.views = [v for v in rec.views if v.kind == "input"]  # the refined input views are the targets
     first = run.frames()[0]
     fit(rec, run.path / REFINED_RUN, context=context,
         status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")

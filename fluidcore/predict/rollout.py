@@ -127,5 +127,4 @@ def inlet_source(source: Source, config: PBFConfig) -> Source:
 
 def continued_scene(scene: Scene) -> Scene:
     """The parent's scene, its source seeding at most what the inlet carries at rest density."""
-    config, _, source = scene.simulator_parts()
-    return replace(scene, source={**scene.source, "rate": inlet_source(source, config).rate})
+    return replace(scene, source=inlet_source(scene.source, scene.physics))

@@ -3,10 +3,10 @@ from one video or a few calibrated ones.
 
     job       `run_reconstruct`: the job the CLI, the worker and the benchmark run
     init      background, smoke masks, source and length scale estimated from the input videos
-    views     fitting targets: input views and pseudo-views (plume symmetry; generated views later)
+    views     fitting targets: input views, pseudo-views (plume symmetry) and generated views
     physical  the position fit of one frame (L_sim + L_incomp + image loss through advection)
     visual    visual Gaussians: birth, advection, appearance fit with temporal regularisation
-    loop      `prepare` and `Reconstructor`: the per-frame driver with checkpoint / resume
+    loop      `read_inputs`, `prepare` and `Reconstructor`: the per-frame driver with checkpoint / resume
     presets   quality presets (preview, standard, paper) and the default; torch-free
 
 Only the presets load with the package; the rest (torch) on first use (`fluidcore.lazy`).
@@ -22,11 +22,12 @@ __getattr__ = lazy_exports(
         "ReconstructionError": "loop",
         "Reconstructor": "loop",
         "prepare": "loop",
+        "read_inputs": "loop",
         "run_reconstruct": "job",
     },
 )
 
 __all__ = [
     "DEFAULT_QUALITY", "PRESETS", "Quality", "Reconstruction", "ReconstructionError", "Reconstructor", "get", "prepare",
-    "run_reconstruct",
+    "read_inputs", "run_reconstruct",
 ]

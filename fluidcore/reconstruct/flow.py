@@ -34,6 +34,7 @@ import torch
 import torch.nn.functional as F
 
 from fluidcore.cameras import Camera
+from fluidcore.reconstruct.init import is_smoke, smoke_contrast
 
 CONTRAST_PERCENTILE = 99.5  # the smoke contrast mapped to 8-bit white (robust to a few hot pixels)
 FB_RELATIVE = 0.01  # forward-backward check (Sundaram et al. 2010): |f + b|^2 <= FB_RELATIVE (|f|^2 + |b|^2) + FB_ABSOLUTE
@@ -89,12 +90,12 @@ def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
     return error <= FB_RELATIVE * (np.square(forward).sum(-1) + np.square(back).sum(-1)) + FB_ABSOLUTE
 
 
-def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor, threshold: float) -> FlowField:
+def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor) -> FlowField:
     """DIS flow between consecutive `frames` ((T, H, W, C) float in [0, 1], `camera` at their
     resolution, `background` (H, W, C) or (C,)), with the confidence of the module docstring;
-    a pixel is smoke where its contrast exceeds `threshold`."""
-    contrast = (frames - background).abs().mean(dim=-1).cpu().numpy()  # channel mean
-    images, smoke = contrast_images(contrast), contrast > threshold
+    a pixel is smoke where `fluidcore.reconstruct.init.smoke_mask` says so."""
+    contrast = smoke_contrast(frames, background)
+    images, smoke = contrast_images(contrast), is_smoke(contrast)
     flows, confidences = [], []
     for k in range(len(images) - 1):
         forward = _dis(images[k], images[k + 1])

@@ -323,7 +323,7 @@ def scene_physics(
     keeps that preset's buoyancy (the paper's setting for its datasets). Either way the source seeds what its inlet carries
     at rest density (`inlet_rate`, capped by `budget`) at the buoyancy's terminal speed.
     """
-    from fluidcore.reconstruct.init import SMOKE_THRESHOLD
+    from fluidcore.reconstruct.init import smoke_mask
 
     prior_name = PHYSICS_MODES[check_mode(mode)]
     h = float(np.abs(np.subtract(box.hi, box.lo)) @ np.abs(up)) / KERNEL_RADII_PER_BOX
@@ -332,7 +332,7 @@ def scene_physics(
     source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
     record: dict = {"mode": mode, "prior_preset": prior_name, "kernel_radius": h}
     if mode == "auto":
-        masks = ((frames - background).abs().mean(dim=-1) > SMOKE_THRESHOLD).cpu().numpy()
+        masks = smoke_mask(frames, background)
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)

@@ -14,10 +14,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fluidcore.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
 
 
 MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
@@ -94,10 +98,22 @@ def estimate_background(frames: np.ndarray) -> Background:
     return Background(color=color, image=image)
 
 
-def smoke_mask(frame: np.ndarray, background: Background) -> np.ndarray:
-    """(H, W) bool: where a frame (H, W, C) differs visibly from the background."""
-    bg = background.as_image(frame.shape[0], frame.shape[1])
-    return np.abs(frame - bg).mean(axis=-1) > SMOKE_THRESHOLD
+def smoke_contrast(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+    """(..., H, W) float32: how far `frames` (..., H, W, C) lie from the `background` ((H, W, C)
+    or (C,)), averaged over the channels; the measure every smoke mask thresholds."""
+    return (frames - background).abs().mean(dim=-1).cpu().numpy()
+
+
+def smoke_mask(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+    """(..., H, W) bool: where `frames` (..., H, W, C) differ visibly from the `background`
+    ((H, W, C) or (C,)): the one smoke mask of the reconstruction (source estimate, physics
+    identification, mirror agreement, optical flow confidence)."""
+    return is_smoke(smoke_contrast(frames, background))
+
+
+def is_smoke(contrast: np.ndarray) -> np.ndarray:
+    """Where a `smoke_contrast` is visible smoke (for a caller that needs the contrast too)."""
+    return contrast > SMOKE_THRESHOLD
 
 
 def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:

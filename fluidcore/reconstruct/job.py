@@ -11,27 +11,25 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from fluidcore.jobs import Cancelled, JobContext, JobInputError
+from fluidcore.jobs import BatchProgress, Cancelled, JobContext, JobInputError
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 
 if TYPE_CHECKING:
+    import torch
+
+    from fluidcore.cameras import Camera
     from fluidcore.generative.stages import GenerativeSettings
-    from fluidcore.reconstruct.loop import Reconstruction
+    from fluidcore.reconstruct.loop import InputViews, Reconstruction
+    from fluidcore.reconstruct.views import ViewTarget
     from fluidcore.runs import FrameState, Run
-
-
-def _box(cameras_path: Path, cameras: Mapping[str, object]) -> tuple[np.ndarray, np.ndarray]:
-    from fluidcore.cameras import frusta_box, scene_box
-
-    box = scene_box(cameras_path)
-    return box if box is not None else frusta_box(cameras)
 
 
 def _frame_range(infos: Mapping[str, object], frames: tuple[int, int] | None) -> tuple[int, int]:
@@ -69,9 +67,10 @@ def run_reconstruct(
     """
     from fluidcore import cameras as camera_io
     from fluidcore import video
-    from fluidcore.generative.stages import GENERATED_DIR, GenerativeSettings, save_generated_views, with_generated_views
-    from fluidcore.reconstruct.loop import prepare
-    from fluidcore.reconstruct.presets import get, render_size
+    from fluidcore.generative.stages import GENERATED_DIR, GenerativeSettings, save_generated_views
+    from fluidcore.reconstruct.loop import prepare, read_inputs
+    from fluidcore.scene_info import WORLD_UP
+    from fluidcore.reconstruct.presets import get
 
     preset = quality if isinstance(quality, Quality) else get(quality)
     cameras_path = Path(cameras_path)
@@ -93,25 +92,77 @@ def run_reconstruct(
         name: camera_io.undistort_frames(
             cameras[name],
             video.read_frames(
-                path, frame_range[0], frame_range[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side)
+                path, frame_range[0], frame_range[1], size=camera_io.render_size(cameras[name].width, cameras[name].height, preset.long_side)
             ),
         )
         for name, path in videos.items()
     }
     cameras = {name: camera.pinhole() for name, camera in cameras.items()}
     context.progress(0.0, "prepare")
-    rec = prepare(
-        cameras, decoded, frame_range=frame_range, fps=fps, quality=preset, box=_box(cameras_path, cameras),
-        source=source, physics=physics, device=context.device,
-    )
+    inputs = read_inputs(cameras, decoded, frame_range=frame_range, quality=preset, device=context.device)
     del decoded
+    box = camera_io.capture_box(cameras_path, cameras)
     settings = generative or GenerativeSettings()
     on_batch = context.batch_progress(f"reconstruction in {out_dir}")
-    status = with_generated_views(rec, settings, context.device, on_batch, stored=Path(out_dir) / GENERATED_DIR)
-    return fit(
-        rec, out_dir, context=context, progress_bar=progress_bar, status=status,
-        on_open=lambda run: save_generated_views(rec, settings, status, run.path / GENERATED_DIR),
+    novel = novel_views(inputs, cameras, box, WORLD_UP, preset, settings, context.device, on_batch, stored=Path(out_dir) / GENERATED_DIR)
+    rec = prepare(
+        cameras, inputs, fps=fps, quality=preset, box=box, up=WORLD_UP, source=source, physics=physics, extra_views=novel.views,
+        device=context.device,
     )
+    return fit(
+        rec, out_dir, context=context, progress_bar=progress_bar, status=novel.status,
+        on_open=lambda run: save_generated_views(novel.frames, novel.key, novel.status, run.path / GENERATED_DIR),
+    )
+
+
+@dataclass(frozen=True)
+class NovelViews:
+    """What the generative stage gave a single-view reconstruction: the views to fit in place of
+    the symmetry pseudo-views (none when it was skipped), the manifest's status lines, and the
+    frames with what they were made from (`saved_key`) for keeping them in the run folder."""
+
+    views: list[ViewTarget]
+    status: dict[str, str]
+    frames: dict[str, torch.Tensor]
+    key: dict
+
+
+def novel_views(
+    inputs: InputViews,
+    cameras: Mapping[str, Camera],
+    box: tuple[np.ndarray, np.ndarray],
+    up: Sequence[float],
+    quality: Quality,
+    settings: GenerativeSettings,
+    device: str = "cpu",
+    on_batch: BatchProgress | None = None,
+    stored: Path | None = None,
+) -> NovelViews:
+    """Generated views of a single-view reconstruction (same total weight as the symmetry prior,
+    `Quality.symmetry_weight`) when the novel-view weights exist. The generated cameras are the
+    scene's other cameras (their poses only), else as many turned copies of the input camera as
+    the symmetry prior uses. Views saved in `stored` from the same inputs and settings are read
+    back instead of sampled again."""
+    from fluidcore.generative.stages import generated_views, read_generated_views, saved_key, target_cameras
+    from fluidcore.reconstruct.views import generated_targets
+
+    if len(inputs.targets) != 1:
+        reason = "skipped: more than one input view (real views constrain the depth)"
+        return NovelViews([], {"novel_views": reason, "view_refinement": reason}, {}, {})
+    if quality.symmetry_views < 1 or quality.symmetry_weight <= 0:
+        reason = "skipped: pseudo-views are off in this quality (symmetry_views or symmetry_weight is 0)"
+        return NovelViews([], {"novel_views": reason, "view_refinement": reason}, {}, {})
+    source = inputs.targets[0]
+    center = 0.5 * (np.asarray(box[0]) + np.asarray(box[1]))
+    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    targets = target_cameras(cameras, source.camera, center, up_v, min(quality.symmetry_views, settings.max_views))
+    key = saved_key(source.camera.name, inputs.frame_range, targets, settings)
+    saved = read_generated_views(stored, key) if stored is not None else None
+    frames, status = saved if saved is not None else generated_views(
+        source.camera, source.frames, targets, center, up_v, settings, device, on_batch
+    )
+    views = generated_targets(source, targets, frames, quality.symmetry_weight) if frames else []
+    return NovelViews(views, status, frames, key)
 
 
 def fit(

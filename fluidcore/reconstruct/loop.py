@@ -1,8 +1,10 @@
 """The per-frame driver of Algorithm S1, with a checkpoint after every frame.
 
-`prepare` turns cameras and decoded input videos into a `Reconstruction` (targets at the
-working resolution, background, source, physics in this scene's units); `run` then goes
-frame by frame:
+`read_inputs` turns decoded input videos into `InputViews` (targets at the working resolution,
+backgrounds, the smoke masks the source is estimated from); views made from them before any fit
+(the generative novel views, fluidcore.reconstruct.job) join them, and `prepare` turns all of it
+into a frozen `Reconstruction` (every view it fits, source, physics in this scene's units);
+`run` then goes frame by frame:
 
     frame 0: the source seeds particles for 20 stabilisation steps; positions are fitted
              (with `first_frame_factor` times more iterations), the visual Gaussians are born
@@ -35,19 +37,19 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from fluidcore.cameras import Camera
+from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.identify import check_mode, scene_physics
+from fluidcore.reconstruct.identify import scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality, render_size
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import Run, Scene
+from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene
 from fluidcore.smoke import SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
@@ -57,12 +59,27 @@ class ReconstructionError(InputError):
     """Inputs a reconstruction cannot start from; the message names the field."""
 
 
-@dataclass
+@dataclass(frozen=True)
+class InputViews:
+    """The input videos as fitting targets, and what is read off them before any fit."""
+
+    targets: tuple[ViewTarget, ...]  # kind "input", at the working resolution, in the order of the videos
+    frame_range: tuple[int, int]
+    channels: int
+    background_images: dict[str, np.ndarray]  # camera -> background image at the camera's full size (where not flat)
+    masks: dict[str, np.ndarray]  # camera -> (SOURCE_FRAMES, H, W) bool smoke masks: what the source estimate reads
+
+    @property
+    def names(self) -> list[str]:
+        return [v.camera.name for v in self.targets]
+
+
+@dataclass(frozen=True)
 class Reconstruction:
     """Everything fixed before frame 0."""
 
     cameras: dict[str, Camera]
-    views: list[ViewTarget]  # the input views first, then pseudo-views
+    views: tuple[ViewTarget, ...]  # the input views first, then pseudo- or generated views
     input_views: list[str]
     frame_range: tuple[int, int]
     fps: float
@@ -86,53 +103,37 @@ class Reconstruction:
             box_lo=self.box.lo,
             box_hi=self.box.hi,
             up=tuple(map(float, self.up)),
-            physics=_jsonable(self.config.__dict__),
-            source=_jsonable(self.source.__dict__),
+            physics=self.config,
+            source=self.source,
         )
 
-    def settings(self) -> dict:
-        return {
-            "quality": self.quality.to_json(),
-            "visual": self.quality.visual_settings(),
-            "physics": self.physics,
-            "symmetry": self.symmetry,
-            "source_hint": self.source_hint,
-            "views": [{"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views],
-        }
+    def settings(self) -> ReconstructSettings:
+        return ReconstructSettings(
+            quality=self.quality.to_json(),
+            visual=self.quality.visual_settings(),
+            physics=self.physics,
+            symmetry=self.symmetry,
+            source_hint=self.source_hint,
+            views=tuple({"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views),
+        )
 
 
-def _jsonable(d: Mapping) -> dict:
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
-
-
-def prepare(
+def read_inputs(
     cameras: Mapping[str, Camera],
     videos: Mapping[str, np.ndarray],
     *,
     frame_range: tuple[int, int],
-    fps: float,
     quality: Quality,
-    box: tuple[np.ndarray, np.ndarray],
-    up: Sequence[float] = (0.0, 1.0, 0.0),
-    source: SourceHint | None = None,
-    physics: str = DEFAULT_PHYSICS,
-    extra_views: Sequence[ViewTarget] = (),
     device: str | torch.device = "cpu",
-) -> Reconstruction:
-    """Targets, background, source and physics for reconstructing `videos` (uint8 (T, H, W, 3)
-    per input camera, frames of `frame_range` only, at any size with the camera's aspect).
-
-    `source` is where the user knows the source to be (its radius, if not given, is measured at
-    that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
-    fluidcore.reconstruct.identify) or a preset name. `extra_views` is the slot for generated
-    novel views.
-    """
+) -> InputViews:
+    """The input `videos` (uint8 (T, H, W, 3) per input camera, frames of `frame_range` only, at
+    any size with the camera's aspect) as targets at the quality's working resolution, with their
+    backgrounds and the smoke masks of their first frames."""
     if not videos:
         raise ReconstructionError("videos: at least one input view is needed")
     unknown = sorted(set(videos) - set(cameras))
     if unknown:
         raise ReconstructionError(f"videos: no camera named {unknown} in the cameras file (have {sorted(cameras)})")
-    check_mode(physics)
     n_frames = frame_range[1] - frame_range[0]
     lengths = {name: len(v) for name, v in videos.items()}
     if any(n != n_frames for n in lengths.values()):
@@ -140,8 +141,6 @@ def prepare(
     from fluidcore.video import is_grayscale
 
     channels = 1 if all(is_grayscale(v) for v in videos.values()) else 3
-    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-
     targets, backgrounds, masks = [], {}, {}
     for name, frames in videos.items():
         camera = cameras[name]
@@ -151,9 +150,37 @@ def prepare(
         background = init.estimate_background(data)
         if background.image is not None:
             backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
-        masks[name] = np.stack([init.smoke_mask(f, background) for f in data[: init.SOURCE_FRAMES]])
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
+        masks[name] = init.smoke_mask(torch.from_numpy(data[: init.SOURCE_FRAMES]), bg)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
+    return InputViews(tuple(targets), frame_range, channels, backgrounds, masks)
+
+
+def prepare(
+    cameras: Mapping[str, Camera],
+    inputs: InputViews,
+    *,
+    fps: float,
+    quality: Quality,
+    box: tuple[np.ndarray, np.ndarray],
+    up: Sequence[float] = (0.0, 1.0, 0.0),
+    source: SourceHint | None = None,
+    physics: str = DEFAULT_PHYSICS,
+    extra_views: Sequence[ViewTarget] = (),
+    pseudo_views: bool = True,
+    device: str | torch.device = "cpu",
+) -> Reconstruction:
+    """Background, source and physics for reconstructing `inputs`, and every view it fits.
+
+    `source` is where the user knows the source to be (its radius, if not given, is measured at
+    that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
+    fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
+    (the generative novel views of a single input view): they take the place of the symmetry
+    pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
+    (a refinement fits its refined input views only).
+    """
+    targets, masks, channels = list(inputs.targets), inputs.masks, inputs.channels
+    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)
 
@@ -172,21 +199,21 @@ def prepare(
     center = np.asarray(src.center)
     pseudo, symmetry = [], None
     if quality.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
-        agreement = mirror_agreement(targets[0], center, up_v, init.SMOKE_THRESHOLD)
+        agreement = mirror_agreement(targets[0], center, up_v)
         weight = quality.symmetry_weight * symmetry_support(agreement) / quality.symmetry_views
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
-        if weight > 0:
+        if weight > 0 and pseudo_views and not extra_views:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
-    flow = input_flow(first.camera, first.frames, first.background, init.SMOKE_THRESHOLD) if quality.weights.flow > 0 else None
+    flow = input_flow(first.camera, first.frames, first.background) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
-        views=[*targets, *pseudo, *extra_views],
-        input_views=list(videos),
-        frame_range=frame_range,
+        views=(*targets, *pseudo, *extra_views),
+        input_views=inputs.names,
+        frame_range=inputs.frame_range,
         fps=fps,
         channels=channels,
         background_color=background_color.astype(np.float32),
-        background_images=backgrounds,
+        background_images=inputs.background_images,
         smoke_color=smoke_color,
         config=config,
         box=sim_box,
@@ -226,7 +253,7 @@ class Reconstructor:
         rec = self.rec
         run = Run.create(
             out_dir,
-            kind="reconstruct",
+            kind=RunKind.RECONSTRUCT,
             cameras=rec.cameras,
             input_views=rec.input_views,
             frame_range=rec.frame_range,

@@ -171,19 +171,14 @@ def get(name: str) -> Quality:
         raise PresetError(f"quality must be one of {', '.join(PRESETS)}, got {name!r}") from None
 
 
+
 def reconstruction_quality(run) -> Quality | None:  # noqa: ANN001 - fluidcore.runs.Run
     """The quality of the reconstruction `run` is or descends from (its nearest reconstruct
     ancestor); None when there is none or it records none (a run made by hand or by a test)."""
+    from fluidcore.runs import RunKind
+
     origin = run
-    while origin is not None and origin.kind != "reconstruct":
+    while origin is not None and origin.kind is not RunKind.RECONSTRUCT:
         origin = origin.parent
-    recorded = None if origin is None else origin.manifest.get("settings", {}).get("quality")
-    return None if recorded is None else Quality.from_json(recorded)
-
-
-def render_size(width: int, height: int, long_side: int, fraction: float = 1.0) -> tuple[int, int]:
-    """(W, H) for rendering an input of width x height at `long_side * fraction`, never upscaled,
-    aspect kept, at least 8 px per side."""
-    target = min(max(width, height), long_side) * fraction
-    factor = target / max(width, height)
-    return max(8, round(width * factor)), max(8, round(height * factor))
+    recorded = None if origin is None else origin.settings.quality
+    return Quality.from_json(recorded) if recorded else None

@@ -15,18 +15,18 @@ explains the input view. It uses nothing but the input view and the estimated so
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fluidcore.cameras import Camera
+from fluidcore.cameras import Camera, rotate_about_axis
 from fluidcore.metrics import ssim_tensor
 
 
-@dataclass
+@dataclass(frozen=True)
 class ViewTarget:
     """One camera to fit: `frames[k]` is the target of the k-th frame of the run's range."""
 
@@ -52,17 +52,6 @@ def resize(image: torch.Tensor, width: int, height: int) -> torch.Tensor:
     return out[0].permute(1, 2, 0)
 
 
-def rotate_about_axis(camera: Camera, center: np.ndarray, up: np.ndarray, angle: float, name: str) -> Camera:
-    """The camera carried around the axis through `center` along `up` by `angle` radians."""
-    axis = up / np.linalg.norm(up)
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
-    inverse = np.eye(4)  # world -> world map x -> R^T (x - c) + c, i.e. the inverse motion
-    inverse[:3, :3] = rotation.T
-    inverse[:3, 3] = center - rotation.T @ center
-    return replace(camera, name=name, world_to_camera=camera.world_to_camera @ inverse, file_path=None)
-
-
 def symmetry_views(
     inputs: Sequence[ViewTarget], center: np.ndarray, up: np.ndarray, count: int, weight: float
 ) -> list[ViewTarget]:
@@ -77,6 +66,22 @@ def symmetry_views(
     return views
 
 
+def generated_targets(
+    source: ViewTarget, targets: Sequence[Camera], frames: Mapping[str, torch.Tensor], weight: float
+) -> list[ViewTarget]:
+    """Views the novel-view model drew from `source` (`fluidcore.generative.stages`, (T, H, W, C)
+    per camera name) as fitting targets of kind "generated": `weight` split evenly, and the input's
+    background colour (its background image belongs to the input camera's viewpoint)."""
+    background = source.background
+    if background.ndim > 1:
+        background = background.reshape(-1, background.shape[-1]).median(dim=0).values
+    per_view = weight / max(len(targets), 1)
+    return [
+        ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated")
+        for camera in targets
+    ]
+
+
 MIRROR_OFF, MIRROR_FULL = 0.3, 0.6  # mirror agreement at which the symmetry prior is off / at full weight
 
 
@@ -88,16 +93,16 @@ def symmetry_support(agreement: float) -> float:
     return float(np.clip((agreement - MIRROR_OFF) / (MIRROR_FULL - MIRROR_OFF), 0.0, 1.0))
 
 
-def mirror_agreement(view: ViewTarget, center: np.ndarray, up: np.ndarray, threshold: float) -> float:
+def mirror_agreement(view: ViewTarget, center: np.ndarray, up: np.ndarray) -> float:
     """How much the view's smoke looks like its own mirror image about the plume's axis: the
     mean over frames with smoke of IoU(mask, mask mirrored about the image line through the
-    source along up); masks are |frame - background| above `threshold`.
+    source along up); masks are `fluidcore.reconstruct.init.smoke_mask`.
 
     An axisymmetric plume projects to a mirror-symmetric image from any side, so a low score
     says the symmetry prior is wrong for this plume (a high one cannot prove it right: one view
     never sees the depth). It scales the symmetry pseudo-views' weight (fluidcore.reconstruct.loop).
     """
-    from fluidcore.reconstruct.init import image_up
+    from fluidcore.reconstruct.init import image_up, smoke_mask
 
     camera = view.camera
     (origin,), _ = camera.project_numpy(np.asarray(center, dtype=np.float64)[None])
@@ -109,7 +114,7 @@ def mirror_agreement(view: ViewTarget, center: np.ndarray, up: np.ndarray, thres
     mirrored = origin + 2.0 * along[..., None] * axis - offset  # reflection of (u, v) across the axis line
     mu, mv = np.floor(mirrored[..., 0]).astype(np.int64), np.floor(mirrored[..., 1]).astype(np.int64)
     inside = (mu >= 0) & (mv >= 0) & (mu < width) & (mv < height)
-    masks = ((view.frames - view.background).abs().mean(dim=-1) > threshold).cpu().numpy()
+    masks = smoke_mask(view.frames, view.background)
     scores = []
     for mask in masks:
         if not mask.any():

@@ -34,16 +34,13 @@ def info(
     path: Path = typer.Argument(..., exists=True, help="A run folder (box, source, cameras) or a camera file (box, cameras)."),
 ) -> None:
     """Print the scene box, the estimated source and the camera centres (world units) as JSON."""
-    import json
-
     from fluidcore import scene_info
-    from fluidcore.runs import MANIFEST
+    from fluidcore.runs import MANIFEST, Run
     from fluidnexus.cli.errors import echo_json
 
     with user_errors():
-        manifest = path / MANIFEST
-        if manifest.is_file():
-            echo_json(scene_info.from_run_manifest(json.loads(manifest.read_text())))
+        if (path / MANIFEST).is_file():
+            echo_json(scene_info.from_run(Run.open(path)))
         else:
             echo_json(scene_info.from_cameras_file(path))
 

@@ -75,8 +75,8 @@ def run_fields(path: object) -> dict[str, object]:
         "run": str(path),
         "kind": run.kind,
         "frames": [frames[0], frames[-1]] if frames else [],
-        "parent": None if run.manifest.get("parent") is None else str(run.parent.path),
-        "settings": {k: run.manifest["settings"].get(k) for k in ("branch_frame", "wind", "ball") if k in run.manifest["settings"]},
+        "parent": None if run.parent is None else str(run.parent.path),
+        "settings": run.settings.model_dump(mode="json", include={"branch_frame", "wind", "ball"}),
     }
 
 

@@ -119,7 +119,7 @@ def render(
     from fluidcore import cameras as camera_io
     from fluidcore.artifacts import render_frames, render_orbit
     from fluidcore.jobs import parse_frames
-    from fluidcore.runs import Run
+    from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4
 
     with user_errors():
@@ -129,7 +129,7 @@ def render(
             raise UserError("--camera NAME is required (or --camera orbit)")
         check_device(device)
         the_run = Run.open(run)
-        draw = the_run.kind == "interact" if interventions is None else interventions
+        draw = the_run.kind is RunKind.INTERACT if interventions is None else interventions
         selected = _select_frames(the_run.frames(), parse_frames(frames))
         if camera == "orbit" and cameras is None:
             video = render_orbit(the_run, selected, device, draw)
