@@ -19,6 +19,7 @@ from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, particles, scenes, webhooks
+from api.uploads import Validators
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
@@ -41,6 +42,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         reaper = asyncio.create_task(_reap_forever(app))
         yield
         reaper.cancel()
+        app.state.validators.close()
         app.state.engine.dispose()
 
     # FastAPIOffline: /docs loads Swagger UI from the installed package, not a CDN, so the reference
@@ -59,6 +61,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
+    app.state.validators = Validators(settings.max_concurrent_uploads)
 
     app.add_middleware(BodySizeLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes)
     app.add_middleware(

@@ -14,6 +14,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api.auth import owner_for_key
+from api.uploads import Validators
 from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import Storage
@@ -42,6 +43,10 @@ def get_storage(request: Request) -> Storage:
 
 def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
+
+
+def get_validators(request: Request) -> Validators:
+    return request.app.state.validators
 
 
 def unauthorized() -> HTTPException:
@@ -84,5 +89,6 @@ SessionDep = Annotated[Session, Depends(get_session)]
 StorageDep = Annotated[Storage, Depends(get_storage)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
+ValidatorsDep = Annotated[Validators, Depends(get_validators)]
 OwnerDep = Annotated[str, Depends(current_owner)]
 OptionalOwnerDep = Annotated[str | None, Depends(optional_owner)]

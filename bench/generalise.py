@@ -1,6 +1,6 @@
 """The whole generalisation protocol on one scene folder with ground-truth videos (issue 12).
 
-    fluidnexus bench generalise SCENE_DIR --input-view view_02 --observed 0:90 [--future 60]
+    fluidnexus bench generalise SCENE_DIR [--input-view view_02 --observed 0:90] [--future 60]
         [--quality preview] [--set FIELD=JSON] [--score-every 3] [--score-long-side 240]
         [--tasks nvs,input,future,velocity,whatif,rise] [--figure per_frame.png] [--json]
 
@@ -19,7 +19,8 @@ computed in the same run):
     velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
               at the truth's sample points (voxels with density > 0.05, or the synth's particles),
               at every saved frame of the observed and predicted windows; baseline: zero velocity
-    whatif    per counterfactual variant beside the scene (wind / ball, from its gt/meta.json):
+    whatif    per counterfactual variant beside the scene (wind / ball, from the protocol.json beside
+              it where there is one, else from each variant's gt/meta.json):
               the reconstruction branched at the variant's branch frame, continued once with the
               intervention and once without it (the "own factual prediction" baseline), both
               scored against the variant's truth on its window and on its late window
@@ -35,7 +36,6 @@ bench/gt_scenes.py.
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 import tempfile
@@ -67,8 +67,8 @@ def _log(message: str) -> None:
 
 def command(
     scene_dir: Path = typer.Argument(..., exists=True, file_okay=False, help="Scene folder with transforms.json and ground truth."),
-    input_view: str = typer.Option(..., "--input-view", help="The one camera whose video is reconstructed."),
-    observed: str = typer.Option(..., "--observed", help="A:B, the observed frames (end exclusive)."),
+    input_view: str | None = typer.Option(None, "--input-view", help="The one camera whose video is reconstructed (default: the scene's protocol.json)."),
+    observed: str | None = typer.Option(None, "--observed", help="A:B, the observed frames, end exclusive (default: the scene's protocol.json)."),
     future: int | None = typer.Option(None, "--future", min=1, help="Frames to predict after B (default: up to 60, as many as the truth has)."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. long_side=240."),
@@ -91,6 +91,7 @@ def command(
             torch.set_num_threads(threads)
         chosen = _tasks(tasks)
         gt = open_scene(scene_dir)
+        input_view, observed = _protocol_defaults(gt, input_view, observed)
         input_path = gt.input_path(input_view)
         window = parse_frames(observed)
         if window[1] > gt.n_frames:
@@ -108,6 +109,18 @@ def command(
         echo_json(result)
     else:
         print_table(result)
+
+
+def _protocol_defaults(gt: GroundTruth, input_view: str | None, observed: str | None) -> tuple[str, str]:
+    """--input-view and --observed as given, else as the scene's protocol.json says."""
+    protocol = gt.protocol or {}
+    if input_view is None:
+        input_view = protocol.get("input_view")
+    if observed is None and "observed" in protocol:
+        observed = "{}:{}".format(*protocol["observed"])
+    if input_view is None or observed is None:
+        raise UserError("--input-view and --observed are needed: the scene has no protocol.json that names them")
+    return input_view, observed
 
 
 def _tasks(text: str) -> list[str]:
@@ -306,12 +319,7 @@ class Protocol:
         """The variant's intervention and the own factual prediction, both against its truth."""
         branch = _branch(recon, variant.branch_frame, self.folder / f"branch_{variant.branch_frame:04d}")
         n = variant.scene.n_frames - 1 - variant.branch_frame
-        wind = None
-        if variant.wind is not None:  # the same acceleration field, expressed at our source's height
-            up = recon.scene.up
-            base = sum(c * u for c, u in zip(recon.scene.source.center, up, strict=True))
-            strength = variant.wind["strength"] * math.exp(variant.wind["growth"] * (base - variant.wind_base))
-            wind = {**variant.wind, "strength": strength}
+        wind = variant.wind  # the truth's acceleration field, based at its own world height
         intervened = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"whatif_{variant.name}", n,
                                                                  wind=wind, ball=variant.ball))
         factual = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"factual_{variant.branch_frame:04d}", n))

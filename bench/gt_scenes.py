@@ -13,7 +13,8 @@ Layouts:
 
     PhiFlowScene     ../shared/devdata (transforms.json, videos/view_KK.mp4, gt/meta.json, gt/density_ and
                      velocity_XXXX.npz at the saved frames; variants are sibling folders whose meta.json names
-                     this scene in `counterfactual_of`)
+                     this scene in `counterfactual_of`, described by the parent folder's protocol.json where
+                     there is one (input view, windows, what-ifs), else by each variant's meta.json)
     SynthScene       `fluidnexus synth` (transforms.json, videos/, truth/frame_XXXXXX.npz particles)
     ScalarFlowScene  ../shared/realdata/scalarflow (videos/input_view_02.mp4, gt/nvs_view_0K.mp4 for
                      t < 120, gt/future_view_0K.mp4 frame i = t 60 + i, windows.json)
@@ -45,8 +46,7 @@ class Variant:
     scene: GroundTruth
     branch_frame: int  # the factual reconstruction is continued from this frame
     first_frame: int  # the first frame the intervention acts on (scoring starts here)
-    wind: dict[str, Any] | None = None  # WindParams fields relative to the first new frame, base at `wind_base`
-    wind_base: float = 0.0  # height (world, along up) at which `wind["strength"]` is the acceleration
+    wind: dict[str, Any] | None = None  # WindParams fields relative to the first new frame, with a world base_height
     ball: dict[str, Any] | None = None  # BallParams fields relative to the first new frame
     late_start: int = 0
 
@@ -87,11 +87,26 @@ class GroundTruth:
     def top_height(self, t: int) -> float | None:
         return None
 
-    def source_height(self) -> float | None:
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        """The true source: (centre (3,) world, radius world units), where the layout records it."""
         return None
+
+    def source_height(self) -> float | None:
+        truth = self.source_truth()
+        return None if truth is None else float(truth[0][1])
 
     def variants(self) -> list[Variant]:
         return []
+
+    @property
+    def protocol(self) -> dict[str, Any] | None:
+        """The scene's machine-readable protocol (input view, windows, what-ifs): the parent
+        folder's protocol.json when it names this folder as its factual scene."""
+        path = self.root.parent / "protocol.json"
+        if not path.is_file():
+            return None
+        protocol = json.loads(path.read_text())
+        return protocol if protocol.get("scenes", {}).get("factual") == self.root.name else None
 
 
 class PhiFlowScene(GroundTruth):
@@ -131,10 +146,14 @@ class PhiFlowScene(GroundTruth):
         smoke = density > DENSITY_THRESHOLD
         return float(np.quantile(centres[smoke][:, 1], TOP_QUANTILE)) if smoke.any() else None
 
-    def source_height(self) -> float | None:
-        return float(self.meta["source"]["center_world"][1])
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        source = self.meta["source"]
+        return np.asarray(source["center_world"], dtype=np.float64), float(source["radius"])
 
     def variants(self) -> list[Variant]:
+        protocol = self.protocol
+        if protocol is not None:
+            return _protocol_variants(protocol, self)
         out = []
         for folder in sorted(p for p in self.root.parent.iterdir() if p.is_dir() and p != self.root):
             meta_path = folder / "gt" / "meta.json"
@@ -155,11 +174,12 @@ def _phiflow_variant(folder: Path, meta: dict[str, Any], factual: PhiFlowScene) 
     scene = open_scene(folder)
     late = _anchor_late_starts(folder.parent / "anchors.json").get(folder.name)
     wind, obstacle = meta["forces"].get("wind"), meta.get("obstacle")
-    if wind is not None:
+    if wind is not None:  # an exponential wind whose strength is given at the true source's height
         branch = int(wind["start_frame"]) - 1
         params = {"direction": tuple(wind["direction_world"]), "strength": float(wind["strength"]),
-                  "growth": float(wind.get("growth", 0.0)), "start_frame": 0}
-        return Variant(folder.name, scene, branch, branch + 1, wind=params, wind_base=float(wind.get("source_height_world", 0.0)),
+                  "growth": float(wind.get("growth", 0.0)), "base_height": float(wind.get("source_height_world", 0.0)),
+                  "start_frame": 0}
+        return Variant(folder.name, scene, branch, branch + 1, wind=params,
                        late_start=late if late is not None else branch + 1 + (factual.n_frames - branch - 1) // 3)
     if obstacle is not None and obstacle.get("shape") == "sphere":
         first = int(obstacle.get("present_from_frame", 0))
@@ -169,6 +189,28 @@ def _phiflow_variant(folder: Path, meta: dict[str, Any], factual: PhiFlowScene) 
         return Variant(folder.name, scene, branch, first, ball=params,
                        late_start=late if late is not None else branch + (factual.n_frames - branch) // 3)
     return None
+
+
+def _protocol_variants(protocol: dict[str, Any], factual: GroundTruth) -> list[Variant]:
+    """The what-ifs of a protocol.json: a wind ramping linearly from zero at world height y0 to
+    `acc_top` at y_top (WindParams profile linear, based at y_top, growth 1 / (y_top - y0)) and
+    a ball; each branched the frame before it starts, scored late on the protocol's window."""
+    out = []
+    scenes, wind, ball = protocol["scenes"], protocol.get("wind"), protocol.get("ball")
+    if wind is not None and "wind" in scenes:
+        start, y0, y_top = int(wind["start_frame"]), float(wind["y0_world"]), float(wind["y_top_world"])
+        params = {"direction": tuple(wind["direction"]), "strength": float(wind["acc_top"]), "profile": "linear",
+                  "growth": 1.0 / (y_top - y0), "base_height": y_top, "start_frame": 0}
+        scene = open_scene(factual.root.parent / scenes["wind"])
+        out.append(Variant(scene.root.name, scene, start - 1, start, wind=params, late_start=int(wind["late"][0])))
+    if ball is not None and "ball" in scenes:
+        first = int(ball.get("start_frame", 0))
+        branch = max(first - 1, 0)
+        params = {"center": tuple(ball["center"]), "radius": float(ball["radius"]),
+                  "velocity": tuple(ball.get("velocity", (0.0, 0.0, 0.0))), "start_frame": max(first - branch - 1, 0)}
+        scene = open_scene(factual.root.parent / scenes["ball"])
+        out.append(Variant(scene.root.name, scene, branch, first, ball=params, late_start=int(ball["late"][0])))
+    return out
 
 
 def _anchor_late_starts(path: Path) -> dict[str, int]:
@@ -198,8 +240,9 @@ class SynthScene(GroundTruth):
         truth = self.velocity(t)
         return None if truth is None or len(truth[0]) == 0 else float(np.quantile(truth[0][:, 1], TOP_QUANTILE))
 
-    def source_height(self) -> float | None:
-        return float(json.loads((self.root / "synth.json").read_text())["source"]["center"][1])
+    def source_truth(self) -> tuple[np.ndarray, float] | None:
+        source = json.loads((self.root / "synth.json").read_text())["source"]
+        return np.asarray(source["center"], dtype=np.float64), float(source["radius"])
 
 
 class ScalarFlowScene(GroundTruth):
@@ -215,6 +258,10 @@ class ScalarFlowScene(GroundTruth):
     def views(self) -> list[str]:
         return [name for name in self.cameras if (self.root / "gt" / f"nvs_{name}.mp4").is_file()]
 
+    def truth_path(self, view: str) -> Path:
+        """The held-out view's clip of the observed window (its frame t = scene frame t)."""
+        return self.root / "gt" / f"nvs_{view}.mp4"
+
     def truth(self, view: str, frames: list[int], size: tuple[int, int] | None = None) -> np.ndarray:
         future = self.windows["future"]
         first_predicted = future["prediction_t"][0]
@@ -223,7 +270,7 @@ class ScalarFlowScene(GroundTruth):
         late = [t - offset for t in frames if t >= first_predicted]
         parts = []
         if early:
-            parts.append(read_frames_at(self.root / "gt" / f"nvs_{view}.mp4", early, size))
+            parts.append(read_frames_at(self.truth_path(view), early, size))
         if late:
             parts.append(read_frames_at(self.root / "gt" / f"future_{view}.mp4", late, size))
         return np.concatenate(parts)

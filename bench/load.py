@@ -1,13 +1,17 @@
 """Load on a live `fluidnexus serve` over loopback: pollers, listers and uploads at once (issue 16).
 
-    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20] [--computing] [--json]
+    python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20]
+                         [--scene dev|tiny] [--computing] [--json]
 
 Starts `fluidnexus serve --no-worker` on 127.0.0.1 with a fresh data folder (`--backend
 postgres`: a fresh database on the local PostgreSQL and a key prefix of its own on the local
 Redis, both removed afterwards), creates a key, a scene and one job, then for `--seconds` runs
   - `--clients` closed-loop clients, half polling the job (GET /v1/jobs/{id}), half listing
     (GET /v1/jobs/{id}/artifacts and GET /v1/jobs, alternately);
-  - `--uploads` clients uploading a two-camera scene (POST /v1/scenes) again and again;
+  - `--uploads` clients uploading a scene (POST /v1/scenes) again and again: with `--scene dev`
+    (default) the dev scene's transforms.json and its 150-frame 270x480 input view
+    (../shared/devdata/phiflow_D/D/videos/view_02.mp4, 95 kB), or a synthesized clip of the same
+    size and length when ../shared is absent; `--scene tiny` two 6-frame 32x24 clips;
   - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own;
   - with `--computing`, serve's embedded worker reconstructs the job meanwhile (issue 20).
 Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
@@ -49,6 +53,8 @@ REDIS_URL = "redis://127.0.0.1:6379/0"
 HEALTH_PERIOD_S = 0.25
 NO_WORKER = "503_no_worker"  # /readyz of a server run --no-worker: every check ok but the worker's
 STARTUP_TIMEOUT_S = 60.0
+DEV_SCENE = Path(__file__).resolve().parents[2] / "shared" / "devdata" / "phiflow_D" / "D"
+DEV_VIEW = "view_02"  # the dev scene's input view: 150 frames of 270x480
 
 
 @dataclass
@@ -58,6 +64,7 @@ class Server:
     job_id: str
     scene: dict[str, tuple[str, bytes, str]]  # multipart parts: field -> (filename, content, type)
     backend: str
+    pid: int  # the server's process
     worker: bool = False  # without one, /readyz answers 503 "no worker" by design (NO_WORKER)
 
 
@@ -110,6 +117,40 @@ def tiny_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     for name in ("left", "right"):
         parts[name] = (f"{name}.mp4", (folder / f"{name}.mp4").read_bytes(), "video/mp4")
     return parts
+
+
+def camera_json(name: str, width: int, height: int) -> bytes:
+    """A transforms.json of one camera named `name` of that size, looking at the origin."""
+    frame = {
+        "camera": name, "fl_x": 1.2 * width, "fl_y": 1.2 * width, "cx": width / 2, "cy": height / 2,
+        "w": width, "h": height, "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]],
+    }
+    return json.dumps({"frames": [frame]}).encode()
+
+
+def dev_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
+    """The upload a user of the dev scene makes: its transforms.json and its input view; without
+    ../shared, one camera and a synthesized 150-frame 270x480 clip of a rising noisy plume (about
+    the same bytes and decoding cost)."""
+    video = DEV_SCENE / "videos" / f"{DEV_VIEW}.mp4"
+    if video.is_file():
+        cameras = (DEV_SCENE / "transforms.json").read_bytes()
+        return {"cameras": ("transforms.json", cameras, "application/json"),
+                DEV_VIEW: (video.name, video.read_bytes(), "video/mp4")}
+    import numpy as np
+
+    from fluidcore.video import write_mp4
+
+    yy, xx = np.mgrid[0:480, 0:270]
+    grain = np.random.default_rng(0).integers(0, 6, (480, 270), dtype=np.uint8)  # a fixed sensor pattern
+    frames = np.stack([
+        (np.exp(-((xx - 135 - 20 * np.sin(yy / 40 + t / 10)) ** 2 / 900 + (yy - 400 + 2 * t) ** 2 / 4000)) * 200)
+        .astype(np.uint8) + grain
+        for t in range(150)
+    ])
+    path = write_mp4(folder / f"{DEV_VIEW}.mp4", np.repeat(frames[..., None], 3, axis=-1))
+    return {"cameras": ("transforms.json", camera_json(DEV_VIEW, 270, 480), "application/json"),
+            DEV_VIEW: (path.name, path.read_bytes(), "video/mp4")}
 
 
 def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
@@ -170,9 +211,12 @@ def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
 
 
 @contextmanager
-def live_server(backend: str, log: Path | None = None, worker: bool = False) -> Iterator[Server]:
-    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene and one job
-    (`worker`: with its embedded worker, which computes the job while the load runs)."""
+def live_server(
+    backend: str, log: Path | None = None, worker: bool = False, scene: str = "tiny"
+) -> Iterator[Server]:
+    """`fluidnexus serve --no-worker` on a free loopback port with one key, one scene (`dev_scene`
+    or `tiny_scene`) and one job (`worker`: with its embedded worker, which computes the job while
+    the load runs)."""
     import httpx
 
     fluidnexus = Path(sys.executable).with_name("fluidnexus")
@@ -187,10 +231,10 @@ def live_server(backend: str, log: Path | None = None, worker: bool = False) -> 
         process = subprocess.Popen(serve, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             _wait_healthy(base_url, process)
-            scene = tiny_scene(Path(tmp))
+            parts = dev_scene(Path(tmp)) if scene == "dev" else tiny_scene(Path(tmp))
             headers = {"Authorization": f"Bearer {key}"}
             with httpx.Client(base_url=base_url, headers=headers, timeout=30) as client:
-                created = client.post("/v1/scenes", files=multipart(plume_scene(Path(tmp)) if worker else scene))
+                created = client.post("/v1/scenes", files=multipart(plume_scene(Path(tmp)) if worker else parts))
                 created.raise_for_status()
                 job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": created.json()["id"]})
                 job.raise_for_status()
@@ -199,7 +243,7 @@ def live_server(backend: str, log: Path | None = None, worker: bool = False) -> 
                     if time.monotonic() > deadline:  # the load must start with the job computing
                         raise UserError(f"the embedded worker did not start the job within {STARTUP_TIMEOUT_S:g} s")
                     time.sleep(0.2)
-            yield Server(base_url, key, job.json()["id"], scene, backend, worker)
+            yield Server(base_url, key, job.json()["id"], parts, backend, process.pid, worker)
         finally:
             process.send_signal(signal.SIGINT)
             try:
@@ -348,6 +392,7 @@ async def _load(server: Server, seconds: float, clients: int, uploads: int, time
         "seconds": elapsed,
         "clients": clients,
         "uploads": uploads,
+        "upload_bytes": sum(len(part[1]) for part in server.scene.values()),
         "timeout_s": timeout,
         "routes": routes,
         "total_5xx": sum(r["5xx"] for r in routes.values()),
@@ -382,6 +427,7 @@ def command(
     clients: int = typer.Option(200, "--clients", min=2, max=1000, help="Concurrent pollers + listers."),
     uploads: int = typer.Option(20, "--uploads", min=0, max=200, help="Concurrent uploaders."),
     timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Per-request timeout, seconds."),
+    scene: str = typer.Option("dev", "--scene", help="dev (the dev scene's 150-frame view) | tiny (6-frame 32x24 clips)."),
     server_log: Path | None = typer.Option(None, "--server-log", help="Keep the server's log here."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     computing: bool = typer.Option(
@@ -392,13 +438,16 @@ def command(
     with user_errors():
         if backend not in ("sqlite", "postgres"):
             raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
-        with live_server(backend, server_log, worker=computing) as server:
+        if scene not in ("dev", "tiny"):
+            raise UserError(f"--scene must be dev or tiny, got {scene!r}")
+        with live_server(backend, server_log, worker=computing, scene=scene) as server:
             result = run_load(server, seconds, clients, uploads, timeout)
     if json_out:
         echo_json(result)
         return
     computed = f", job {result['job_after']['state']} at {result['job_after']['progress']:.2f}" if computing else ""
-    print(f"{backend}: {clients} clients + {uploads} uploaders for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
+    print(f"{backend}: {clients} clients + {uploads} uploaders ({result['upload_bytes']} bytes each, --scene {scene}) "
+          f"for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
           f"{result['cpus']} CPUs, load {result['load_average'][0]:.2f}")
     print(f"{'route':<30} {'req/s':>7} {'p50 s':>7} {'p99 s':>7} {'max s':>7} {'2xx':>6} {'4xx':>5} {'5xx':>5} {'t/o':>4} {'err':>4}")
     for route, r in result["routes"].items():

@@ -39,8 +39,12 @@ WindProfile = Literal["exponential", "linear", "uniform"]  # fluidcore.physics.W
 
 
 class WindParams(BaseModel):
-    """Wind: acceleration = strength * direction * gain(z), z = height above the source centre
+    """Wind: acceleration = strength * direction * gain(z), z = height above the base height
     (world units, along the scene's up), blowing during new frames [start_frame, end_frame).
+
+    The base height is `base_height` where given (a world height: a wind placed in the scene's
+    own coordinates, the same whatever the reconstruction estimated the source to be) and the
+    source centre's height otherwise (`reference_height`, the one definition).
 
     gain(z) by `profile`:
       exponential  exp(growth * z)         the paper's wind (the default);
@@ -48,9 +52,11 @@ class WindParams(BaseModel):
       uniform      1                       the same push everywhere (growth must be 0).
     The acceleration drives the air around the smoke as well as the smoke itself, so the smoke is
     carried by the air the wind sets moving (fluidcore.physics.forces.wind_air).
-    Units: `strength` in world units / s^2 (the acceleration at the source height), `growth`
-    per world unit of height, `direction` unitless (normalised here). `end_frame` is exclusive;
-    None means the wind blows until the end of the run.
+    A linear ramp from zero at height y0 to `strength` at y1 is profile "linear" with
+    base_height y1 and growth 1 / (y1 - y0).
+    Units: `strength` in world units / s^2 (the acceleration at the base height), `growth`
+    per world unit of height, `direction` unitless (normalised here), `base_height` world units.
+    `end_frame` is exclusive; None means the wind blows until the end of the run.
     """
 
     model_config = _STRICT
@@ -61,6 +67,7 @@ class WindParams(BaseModel):
     profile: WindProfile = "exponential"
     start_frame: int = Field(default=0, ge=0)
     end_frame: int | None = Field(default=None, ge=0)
+    base_height: float | None = None
 
     @field_validator("direction")
     @classmethod
@@ -84,6 +91,11 @@ class WindParams(BaseModel):
         (the physics asks it for every step through `fluidcore.predict.interventions`, the
         renders before drawing the wind arrow)."""
         return frame >= self.start_frame and (self.end_frame is None or frame < self.end_frame)
+
+    def reference_height(self, source_height: float) -> float:
+        """The height (world units along up) where the acceleration is `strength`: `base_height`
+        when the wind names one, else the height of the run's source centre."""
+        return source_height if self.base_height is None else self.base_height
 
     def peak_acceleration(self, lo: Vec3, hi: Vec3, base_height: float, up: Vec3 = (0.0, 1.0, 0.0)) -> float:
         """The largest wind acceleration anywhere in the box [lo, hi] (every gain is monotonic in
@@ -178,9 +190,10 @@ class InteractionParams(BaseModel):
         """
         lo, hi, up = scene.box_lo, scene.box_hi, scene.up
         dt, speed_limit = scene.physics.dt, scene.physics.speed_limit
-        base_height = sum(u * c for u, c in zip(up, scene.source.center))
+        center = scene.source.center
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
+            base_height = self.wind.reference_height(sum(u * c for u, c in zip(up, center)))
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)
             if peak * dt > speed_limit:
                 raise InteractionError(

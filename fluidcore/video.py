@@ -14,6 +14,14 @@ failed encode never leaves a half-written file where a good one was.
 
 Any file PyAV cannot read as video (random bytes, text named .mp4, truncated downloads) raises
 VideoError with the file name and the reason. No torch here: the API probes uploads.
+
+Uploads are hostile input, so decoding is bounded: every file is opened with a cap on the pixels
+of one frame, passed to FFmpeg's decoder (`max_pixels`), which refuses a larger frame before
+allocating it (a 0.8 MB MOV holding one 16000x16000 PNG frame otherwise costs 768 MB as it is
+merely opened); `read_header` reads size and frame count without decoding anything, and
+`verify` decodes the whole stream frame by frame under that cap and a frame-count cap, with
+FFmpeg's error concealment off (`err_detect=explode`), so damage after the first frame is found
+at upload time instead of being decoded into grey frames by the job.
 """
 
 from __future__ import annotations
@@ -34,6 +42,8 @@ CRF = 18  # visually lossless for smoke; the shared benchmark files use the same
 GREY_TOLERANCE = 3  # max |R-G|, |G-B| of a grey pixel after 4:2:0 chroma rounding
 GREY_FRACTION = 0.999  # share of pixels that must be grey (a few noisy pixels do not make colour)
 _COLORSPACES = {1: "itu709", 5: "itu601", 6: "itu601", 7: "smpte240m", 9: "bt2020"}  # AVColorSpace -> swscale
+MAX_PIXELS = 7680 * 4320  # one frame's pixels unless the caller allows fewer: 8K UHD, 100 MB as RGB24
+MAX_FRAMES = 100_000  # frames `verify` decodes unless the caller allows fewer: 55 min at 30 fps
 
 
 class VideoError(InputError):
@@ -53,42 +63,147 @@ class VideoInfo:
     pix_fmt: str = ""
 
 
-def _open(path: str | Path) -> av.container.InputContainer:
+@dataclass(frozen=True)
+class VideoHeader:
+    """What the container and stream headers declare, before any frame is decoded: the stored
+    (not displayed) size, 0 x 0 when the header does not give it; n_frames 0 when not stored
+    (WebM). Headers can lie: `verify` checks every decoded frame against them."""
+
+    width: int
+    height: int
+    n_frames: int
+    fps: float
+    codec: str
+
+
+def _open(path: str | Path, max_pixels: int = MAX_PIXELS) -> av.container.InputContainer:
+    """The container, its first video stream's decoder capped at `max_pixels` per frame and
+    with error concealment off (a damaged frame raises instead of being patched over).
+
+    The cap is also given to the stream probing that opening does (FFmpeg decodes a frame there
+    when the header lacks the size); formats that only reveal their streams by decoding, where
+    it cannot apply, are refused."""
     path = Path(path)
     if not path.is_file():
         raise VideoError(f"{path}: no such file")
+    # Decoders allocate the coded size, padded to their block size (H.264 decodes 270x480 as
+    # 272x480), so FFmpeg's cap leaves room for that; callers check the exact one per frame.
+    cap = {"max_pixels": str(2 * int(max_pixels) + 64 * 64)}
     try:
-        container = av.open(str(path), mode="r")
+        container = av.open(str(path), mode="r", options=cap, stream_options=[{}])
+    except ValueError:  # PyAV: the format exposes no streams before probing them
+        raise VideoError(
+            f"{path.name}: not a readable video (no streams declared in its header; remux it to MP4)"
+        ) from None
     except (av.FFmpegError, UnicodeDecodeError) as error:
         raise VideoError(f"{path.name}: not a readable video ({_reason(error)})") from None
     if not container.streams.video:
         container.close()
         raise VideoError(f"{path.name}: contains no video stream")
+    container.streams.video[0].codec_context.options = {**cap, "err_detect": "explode"}
     return container
+
+
+def _rate(stream: av.VideoStream) -> float:
+    rate = stream.average_rate or stream.guessed_rate or stream.base_rate
+    return float(rate) if rate else 0.0
+
+
+def read_header(path: str | Path, max_pixels: int = MAX_PIXELS) -> VideoHeader:
+    """Size, declared frame count, frame rate and codec from the headers alone (nothing is
+    decoded), so a caller can refuse a video that cannot fit before paying for decoding it.
+    A declared size over `max_pixels` raises VideoError."""
+    path = Path(path)
+    with _open(path, max_pixels) as container:
+        stream = container.streams.video[0]
+        context = stream.codec_context
+        header = VideoHeader(context.width, context.height, stream.frames, _rate(stream), context.name)
+    if header.width * header.height > max_pixels:
+        raise VideoError(
+            f"{path.name}: frames are {header.width}x{header.height}, more than the limit of {max_pixels} pixels"
+        )
+    return header
 
 
 def _reason(error: Exception) -> str:
     return getattr(error, "strerror", None) or str(error)
 
 
-def probe(path: str | Path) -> VideoInfo:
+def probe(path: str | Path, max_pixels: int = MAX_PIXELS) -> VideoInfo:
     """Displayed size (rotation applied), frame rate, frame count and codec of the first video
-    stream. Decodes the first frame, so a file that is not a playable video fails here, at
-    upload time; a file with fewer packets than its header declares is reported truncated."""
+    stream. Decodes the first frame (no larger than `max_pixels`), so a file that is not a
+    playable video fails here; a file with fewer packets than its header declares is reported
+    truncated. `verify` decodes them all."""
     path = Path(path)
-    with _open(path) as container:
+    with _open(path, max_pixels) as container:
         stream = container.streams.video[0]
         first = _first_frame(container, stream, path)
-        rate = stream.average_rate or stream.guessed_rate or stream.base_rate
-        fps = float(rate) if rate else 0.0
+        fps = _rate(stream)
         codec, pix_fmt, declared = stream.codec_context.name, stream.codec_context.pix_fmt or "", stream.frames
-    n_frames = _packets_in(path)
+        shape = (first.width, first.height, _quarter_turns(first))
+    return _info(path, shape, fps, _packets_in(path, max_pixels), declared, codec, pix_fmt)
+
+
+def verify(path: str | Path, max_pixels: int = MAX_PIXELS, max_frames: int = MAX_FRAMES) -> VideoInfo:
+    """`probe`, after decoding every frame (without colour conversion) under the caps: a frame
+    larger than `max_pixels`, a size that changes between frames or differs from the header's,
+    more than `max_frames` packets, or any damaged frame raises VideoError. What the API runs
+    on an upload, once `read_header` has shown that the video can fit; 150 frames of 270x480
+    H.264 take about 0.1 s of one core."""
+    path = Path(path)
+    header = read_header(path, max_pixels)
+    if header.n_frames > max_frames:
+        raise VideoError(f"{path.name}: {header.n_frames} frames, more than the limit of {max_frames}")
+    with _open(path, max_pixels) as container:
+        stream = container.streams.video[0]
+        packets, shape = 0, None
+        try:
+            for packet in container.demux(stream):  # the last, empty packet flushes the decoder
+                if packet.size:
+                    packets += 1
+                if packets > max_frames:
+                    raise VideoError(f"{path.name}: more than the limit of {max_frames} frames")
+                for frame in packet.decode():
+                    shape = _same_shape(path, header, shape, frame, max_pixels)
+        except av.FFmpegError as error:
+            raise VideoError(
+                f"{path.name}: damaged video, or a frame larger than {max_pixels} pixels, at packet {packets} "
+                f"({_reason(error)})"
+            ) from None
+        pix_fmt = stream.codec_context.pix_fmt or ""
+    if shape is None:
+        raise VideoError(f"{path.name}: the video stream holds no decodable frame")
+    return _info(path, shape, header.fps, packets, header.n_frames, header.codec, pix_fmt)
+
+
+def _same_shape(
+    path: Path, header: VideoHeader, shape: tuple[int, int, int] | None, frame: av.VideoFrame, max_pixels: int
+) -> tuple[int, int, int]:
+    """(width, height, quarter turns) of the first frame; later frames must match it, it the
+    header, and none may exceed `max_pixels`."""
+    current = (frame.width, frame.height, _quarter_turns(frame))
+    if frame.width * frame.height > max_pixels:
+        raise VideoError(f"{path.name}: a frame is {frame.width}x{frame.height}, more than the limit of {max_pixels} pixels")
+    expected = shape or ((header.width, header.height) if header.width and header.height else current[:2])
+    if current[:2] != expected[:2]:
+        said = "the first frame" if shape else "the header"
+        raise VideoError(
+            f"{path.name}: a frame is {current[0]}x{current[1]} but {said} says {expected[0]}x{expected[1]}"
+        )
+    return shape or current
+
+
+def _info(
+    path: Path, shape: tuple[int, int, int], fps: float, n_frames: int, declared: int, codec: str, pix_fmt: str
+) -> VideoInfo:
+    """VideoInfo as displayed, after the checks every reader shares: no fewer packets than the
+    header declares (a cut-off upload), at least one frame, a finite positive rate."""
     if declared and n_frames < declared:
         raise VideoError(f"{path.name}: truncated video: header says {declared} frames, only {n_frames} present")
     if not (n_frames > 0 and math.isfinite(fps) and fps > 0):
         raise VideoError(f"{path.name}: unusable video stream ({n_frames} frames, {fps} fps)")
-    width, height = first.width, first.height
-    if _quarter_turns(first) % 2:
+    width, height, turns = shape
+    if turns % 2:
         width, height = height, width
     return VideoInfo(width, height, fps, n_frames, codec, pix_fmt)
 
@@ -108,8 +223,8 @@ def _quarter_turns(frame: av.VideoFrame) -> int:
     return round(frame.rotation / 90) % 4
 
 
-def _packets_in(path: Path) -> int:
-    with _open(path) as container:
+def _packets_in(path: Path, max_pixels: int = MAX_PIXELS) -> int:
+    with _open(path, max_pixels) as container:
         return _count_packets(container, container.streams.video[0], path)
 
 

@@ -71,7 +71,10 @@ class Scene(Base):
     """An uploaded capture: a cameras file and one video per camera, all in object storage."""
 
     __tablename__ = "scenes"
-    __table_args__ = (Index("ix_scenes_owner_created", "owner", "created_at"),)
+    __table_args__ = (
+        Index("ix_scenes_owner_created", "owner", "created_at"),
+        UniqueConstraint("owner", "idempotency_key", name="uq_scenes_owner_idempotency_key"),
+    )
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
     owner: Mapped[str] = mapped_column(String(128))
@@ -83,6 +86,9 @@ class Scene(Base):
     videos: Mapped[dict[str, dict[str, Any]]] = mapped_column(JSON)
     n_frames: Mapped[int] = mapped_column(Integer)
     fps: Mapped[float] = mapped_column(Float)
+    # A retried upload with the same key returns this scene; the hash tells a different upload apart.
+    idempotency_key: Mapped[str | None] = mapped_column(String(256), default=None)
+    request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
 
 
 class Job(Base):

@@ -60,6 +60,9 @@ class Settings(BaseSettings):
     max_upload_bytes: int = Field(default=2 * 1024**3, gt=0, description="whole multipart request")
     max_video_bytes: int = Field(default=1024**3, gt=0)
     max_video_seconds: float = Field(default=120.0, gt=0)
+    max_video_frames: int = Field(
+        default=7200, gt=0, description="frames in one video (120 s at 60 fps), checked in its header before decoding"
+    )
     max_videos: int = Field(default=16, gt=0)
     max_predict_frames: int = Field(default=600, gt=0)
 

@@ -143,8 +143,60 @@ def test_phiflow_reader_finds_variants_and_samples_velocity_where_smoke_is(tmp_p
     variants = {v.name: v for v in gt.variants()}
     assert sorted(variants) == ["S_ball", "S_wind"]
     w, b = variants["S_wind"], variants["S_ball"]
-    assert (w.branch_frame, w.first_frame, w.late_start, w.wind["start_frame"], w.wind_base) == (4, 5, 8, 0, 0.1)
+    assert (w.branch_frame, w.first_frame, w.late_start, w.wind["start_frame"], w.wind["base_height"]) == (4, 5, 8, 0, 0.1)
     assert (b.branch_frame, b.first_frame, b.late_start, b.ball["start_frame"]) == (0, 0, 6, 0)
+
+
+def test_a_protocol_json_gives_the_input_view_windows_and_what_ifs_in_world_units(tmp_path: Path) -> None:
+    """A scene folder with a protocol.json (the dev scene F's layout) is run from it: its wind,
+    a linear ramp from zero at world height y0 to acc_top at y_top, becomes a WindParams that
+    pushes exactly that much at every height, whatever source the reconstruction estimates."""
+    import torch
+
+    from bench.generalise import _protocol_defaults
+    from fluidcore.interaction import WindParams
+    from fluidcore.physics.forces import wind_acceleration
+
+    meta = {"saved_frames": [0], "source": {"center_world": [0.26, 0.065, -0.2]}, "forces": {"wind": None}, "obstacle": None}
+    for name in ("F", "F_wind", "F_ball"):
+        folder = tmp_path / name
+        (folder / "gt").mkdir(parents=True)
+        _cameras(folder, ["view_02"], {"view_02": "videos/view_02.mp4"})
+        (folder / "videos").mkdir()
+        _tiny_video(folder / "videos" / "view_02.mp4", [0] * 12)
+        (folder / "gt" / "meta.json").write_text(json.dumps({**meta, "counterfactual_of": None if name == "F" else "F"}))
+    protocol = {
+        "input_view": "view_02", "observed": [0, 8], "future": [8, 12],
+        "wind": {"start_frame": 5, "direction": [0, 0, -1], "acc_top": 0.2, "y0_world": 0.065, "y_top_world": 0.765, "late": [9, 12]},
+        "ball": {"center": [0.26, 0.265, -0.2], "radius": 0.045, "start_frame": 0, "late": [6, 12]},
+        "scenes": {"factual": "F", "wind": "F_wind", "ball": "F_ball"},
+    }
+    (tmp_path / "protocol.json").write_text(json.dumps(protocol))
+    gt = open_scene(tmp_path / "F")
+    assert _protocol_defaults(gt, None, None) == ("view_02", "0:8")
+    assert _protocol_defaults(gt, "view_00", "0:4") == ("view_00", "0:4")
+    assert open_scene(tmp_path / "F_wind").protocol is None  # it names F as the factual scene, not F_wind
+    variants = {v.name: v for v in gt.variants()}
+    w, b = variants["F_wind"], variants["F_ball"]
+    assert (w.branch_frame, w.first_frame, w.late_start) == (4, 5, 9)
+    assert (b.branch_frame, b.first_frame, b.late_start, b.ball["center"], b.ball["radius"]) == (0, 0, 6, (0.26, 0.265, -0.2), 0.045)
+    heights = np.array([0.0, 0.065, 0.2, 0.5, 0.765])
+    points = torch.tensor([[0.3, y, -0.2] for y in heights], dtype=torch.float32)
+    pushed = wind_acceleration(WindParams(**w.wind), points, WindParams(**w.wind).reference_height(0.5), (0.0, 1.0, 0.0))
+    truth = 0.2 * np.clip((heights - 0.065) / 0.7, 0.0, 1.0)  # F_wind/gt/meta.json's law
+    np.testing.assert_allclose(-pushed[:, 2].numpy(), truth, atol=1e-6)
+    np.testing.assert_allclose(pushed[:, :2].numpy(), 0.0, atol=1e-7)
+
+
+def test_a_scene_without_protocol_needs_its_input_view_and_window(tmp_path: Path) -> None:
+    from bench.generalise import _protocol_defaults
+    from fluidnexus.cli.errors import UserError
+
+    (tmp_path / "videos").mkdir()
+    _cameras(tmp_path, ["view_00"], {"view_00": "videos/view_00.mp4"})
+    _tiny_video(tmp_path / "videos" / "view_00.mp4", [0] * 4)
+    with pytest.raises(UserError, match="--input-view and --observed"):
+        _protocol_defaults(open_scene(tmp_path), None, "0:4")
 
 
 @pytest.mark.slow

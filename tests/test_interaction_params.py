@@ -152,3 +152,15 @@ def test_a_what_if_needs_wind_or_ball_and_its_schema_says_so() -> None:
         except ValueError:
             accepted = False
         assert accepted == valid, params  # the model and its schema agree
+
+
+def test_a_wind_base_height_replaces_the_source_height_in_the_scene_check() -> None:
+    """The peak is measured from the wind's own base height when it names one: the same wind is
+    fine measured from the source (z <= 0 in a decaying wind) and absurd from a base far above."""
+    decaying = {"direction": (1, 0, 0), "strength": 100.0, "growth": -math.log(10.0)}
+    InteractionParams(wind=WindParams(**decaying)).check_scene(scene(), FRAMES)
+    assert WindParams(**decaying).reference_height(0.25) == 0.25
+    high = WindParams(**decaying, base_height=2.0)
+    assert high.reference_height(0.25) == 2.0
+    with pytest.raises(InteractionError, match="wind.strength"):
+        InteractionParams(wind=high).check_scene(scene(), FRAMES)

@@ -207,3 +207,21 @@ def test_sparse_smoke_moves_with_the_wind_blown_air_not_at_drag_terminal_speed()
     seconds = steps * config.dt  # a lone particle's own kernel density weakens its drag a little
     assert speeds["still air"] == pytest.approx(wind.strength / config.drag, rel=0.15)
     assert speeds["moving air"] == pytest.approx(wind.strength * seconds, rel=0.05)
+
+
+def test_a_wind_with_its_own_base_height_ramps_from_zero_in_world_units_wherever_the_source_is() -> None:
+    """A ramp from zero at world height 0.065 to 0.2 at 0.765 (profile linear, base_height 0.765,
+    growth 1 / 0.7) pushes the same at every height whichever source the reconstruction found."""
+    from fluidcore.interaction import InteractionParams
+    from fluidcore.physics import PRESETS, Source
+    from fluidcore.predict.interventions import interventions
+
+    wind = WindParams(direction=(0, 0, -1), strength=0.2, growth=1 / 0.7, profile="linear", base_height=0.765)
+    heights = torch.tensor([0.0, 0.065, 0.415, 0.765])
+    p = torch.stack([torch.zeros(4), heights, torch.zeros(4)], dim=1)
+    expected = torch.tensor([0.0, 0.0, 0.1, 0.2])
+    for source_height in (0.03, 0.1, 0.3):
+        source = Source((0.0, source_height, 0.0), 0.04, 1)
+        force = interventions(InteractionParams(wind=wind), PRESETS["fluidnexus_smoke"], source, (0, 1, 0), 0.0).force
+        pushed = -force(p, 0.0)[:, 2]
+        assert torch.allclose(pushed, expected, atol=1e-6), (source_height, pushed)

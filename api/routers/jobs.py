@@ -14,6 +14,7 @@ from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.errors import StrictJSONRoute, error_responses
+from api.idempotency import replay
 from api.routers.scenes import capture_geometry_of, check_reconstruct_params, owned_scene
 from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
 from service import webhooks
@@ -51,7 +52,7 @@ def create_job(
     body = request.model_dump(mode="json")
     request_hash = hashlib.sha256(json.dumps(body, sort_keys=True).encode()).hexdigest()
     if idempotency_key is not None:
-        existing = _replay(session, owner, idempotency_key, request_hash)
+        existing = replay(session, Job, owner, idempotency_key, request_hash)
         if existing is not None:
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
@@ -75,7 +76,7 @@ def create_job(
         session.commit()
     except IntegrityError:  # a concurrent request with the same Idempotency-Key won the race
         session.rollback()
-        existing = _replay(session, owner, idempotency_key or "", request_hash)
+        existing = replay(session, Job, owner, idempotency_key or "", request_hash)
         if existing is None:
             raise
         response.headers["Idempotent-Replayed"] = "true"
@@ -175,16 +176,6 @@ def owned_job(session: Session, job_id: str, owner: str, for_update: bool = Fals
     job = session.scalars(query.with_for_update() if for_update else query).first()
     if job is None or job.owner != owner:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
-    return job
-
-
-def _replay(session: Session, owner: str, key: str, request_hash: str) -> Job | None:
-    job = session.scalars(select(Job).where(Job.owner == owner, Job.idempotency_key == key)).first()
-    if job is not None and job.request_hash != request_hash:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"Idempotency-Key {key!r} was already used for a different request (job {job.id})",
-        )
     return job
 
 

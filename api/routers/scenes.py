@@ -2,20 +2,23 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import tempfile
 from pathlib import Path
 from typing import Annotated, Any
 
-from fastapi import APIRouter, File, Form, HTTPException, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
 from pydantic import ValidationError
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
+from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
 from api.errors import error_responses, strict_json
+from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
-from api.uploads import ValidatedScene, safe_filename, single_camera_file, spool, store_scene, validate_scene
+from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
 from fluidcore.reconstruct.source_hint import SourceHintError
 from service.job_types import JobType, ReconstructParams
@@ -26,13 +29,29 @@ from service.storage import Storage, run_prefix, scene_prefix
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
 
-@router.post("", status_code=status.HTTP_201_CREATED, response_model=SceneOut, responses=error_responses(400, 413))
+async def one_cameras_part(request: Request) -> None:
+    """422 for a second `cameras` part, which the form binding would otherwise drop silently.
+    The form is already parsed (and cached) when dependencies run, so this reads no body."""
+    count = len((await request.form()).getlist("cameras"))
+    if count > 1:
+        raise HTTPException(422, f"cameras: give one cameras file, got {count} cameras parts")
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=SceneOut,
+    responses=error_responses(400, 413),
+    dependencies=[Depends(one_cameras_part)],
+)
 def create_scene(
     owner: OwnerDep,
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
     queue: QueueDep,
+    validators: ValidatorsDep,
+    response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
     cameras: Annotated[
         UploadFile | None, File(description="transforms.json, info.json or a zipped COLMAP model; or give fov instead")
@@ -47,14 +66,19 @@ def create_scene(
         str | None,
         Form(max_length=4096, description="queue a reconstruction of the scene: its params as JSON, as in POST /v1/jobs"),
     ] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> SceneOut:
     """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it.
 
     Without a cameras file, `fov` (and `distance`, `up`) declare the one video's camera and scene
-    box as `fluidnexus cameras single` does. With `reconstruct`, its params are checked against
-    the upload (frames within the videos, source inside the box) before anything is stored, and
-    the scene and its queued reconstruction are stored together: a refused reconstruction (422)
-    or an unreachable queue (503) leaves no scene behind, so a retry never piles up copies."""
+    box as `fluidnexus cameras single` does. A repeated upload with the same `Idempotency-Key`
+    returns the first scene (a client that timed out can retry without making a second one);
+    the same key with different files or fields is 422. The scene is stored whole or not at all.
+    With `reconstruct`, its params are checked against the upload (frames within the videos,
+    source inside the box) before anything is stored, and the scene and its queued
+    reconstruction are stored together: a refused reconstruction (422) or an unreachable queue
+    (503) leaves no scene behind, so a retry never piles up copies."""
+    idempotency_key = idempotency_key or None  # an empty header is no key
     if (cameras is None) == (fov is None):
         raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
     params = None if reconstruct is None else parse_reconstruct(reconstruct)
@@ -70,29 +94,39 @@ def create_scene(
             if filename in sizes or filename == cameras_name:
                 raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
             sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
-        if cameras_name is None:
-            cameras_name = single_camera_file(folder, sizes, fov, distance, up)
-        validated = validate_scene(folder, cameras_name, sizes, settings)
-        geometry = capture_geometry(folder / cameras_name)
+        request_hash = None
+        if idempotency_key is not None:
+            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name, reconstruct])
+            if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
+                response.headers["Idempotent-Replayed"] = "true"
+                return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
+        single = None if fov is None else (fov, distance, up)
+        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
         if params is not None:
-            box = geometry.box.model_dump() if geometry.box is not None else None
-            check_reconstruct_params(params, validated.n_frames, box, "reconstruct")
+            check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
         job = None
         try:
             scene = _scene_row(scene_id, owner, name, validated, keys)
+            scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
             session.add(scene)
             if params is not None:
                 session.flush()  # the scene row first: the job refers to it
                 job = Job(owner=owner, type=JobType.RECONSTRUCT, scene_id=scene_id, params=params.model_dump(mode="json"))
                 session.add(job)
             session.commit()
-        except BaseException:
+        except BaseException as exc:
             session.rollback()
             for key in keys.values():
                 storage.delete(key)
+            if isinstance(exc, IntegrityError) and idempotency_key is not None and request_hash is not None:
+                # a concurrent upload with the same key won the race: answer with its scene
+                existing = replay(session, Scene, owner, idempotency_key, request_hash)
+                if existing is not None:
+                    response.headers["Idempotent-Replayed"] = "true"
+                    return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
             raise
         if job is not None:
             try:
@@ -105,7 +139,7 @@ def create_scene(
                 for key in keys.values():
                     storage.delete(key)
                 raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
-    return scene_out(scene, geometry, job)
+    return scene_out(scene, SceneGeometry.model_validate(geometry), job)
 
 
 def parse_reconstruct(text: str) -> ReconstructParams:
@@ -132,6 +166,26 @@ def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict
             params.source.check_in_box(box["min"], box["max"])
         except SourceHintError as exc:
             raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.{exc}") from None
+
+
+def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
+    """SHA-256 over the spooled parts (names and bytes, in order) and the form fields: what
+    tells a retried upload from a different one under the same Idempotency-Key."""
+    digest = hashlib.sha256(json.dumps([cameras_name, videos, fields]).encode())
+    for filename in ([cameras_name] if cameras_name else []) + videos:
+        with safe_join(folder, filename).open("rb") as handle:
+            digest.update(hashlib.file_digest(handle, "sha256").digest())
+    return digest.hexdigest()
+
+
+def _queued_with(session: Session, scene: Scene, reconstruct: str | None) -> Job | None:
+    """The reconstruction an upload with a `reconstruct` field queued with its scene (a replayed
+    upload answers with it); None for an upload without one."""
+    if reconstruct is None:
+        return None
+    return session.scalars(
+        select(Job).where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT).order_by(Job.created_at).limit(1)
+    ).first()
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -185,13 +239,6 @@ def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
         path = safe_join(tmp, Path(scene.cameras_key).name)
         storage.get_file(scene.cameras_key, path)
         return scene_info.from_cameras_file(path)
-
-
-def capture_geometry(cameras_path: Path) -> SceneGeometry:
-    """Box and cameras of an uploaded camera file (no source before a reconstruction)."""
-    from fluidcore import scene_info
-
-    return SceneGeometry.model_validate(scene_info.from_cameras_file(cameras_path))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))

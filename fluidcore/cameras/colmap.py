@@ -10,8 +10,9 @@ coefficients as the camera's `distortion` (OpenCV order), and the reconstruction
 the frames with OpenCV (fluidcore.cameras.undistort). Fisheye and other models are rejected.
 
 Zips (what the API receives) are opened defensively: member names may not escape the folder
-(fluidcore.names.safe_join) and the members read must have plain names (`check_relative`),
-and the unpacked size is capped, so an upload cannot write elsewhere or fill the disk.
+(fluidcore.names.safe_join) and the members read must have plain names (`check_relative`), and
+the member count and the declared size of the model files are capped before anything is
+unpacked, so an upload cannot write elsewhere, fill the disk or keep the API busy.
 """
 
 from __future__ import annotations
@@ -40,7 +41,14 @@ DISTORTION_SLOTS = {
     "FULL_OPENCV": (0, 1, 2, 3, 4, 5, 6, 7),
 }
 MODEL_FILES = ("cameras", "images")
-MAX_UNZIPPED_BYTES = 512 * 1024 * 1024
+EXTRACTED_FILES = (*MODEL_FILES, "points3D", "rigs", "frames")  # what pycolmap reads of a model
+# Caps checked on the zip's directory before anything is unpacked. A 2.5 MB zip of 20,000
+# members cost 26.6 s of API CPU and a 510 kB one unpacked 500 MiB before these existed. A model
+# is 2 to 5 files; 1,000 members leaves room for a zipped project folder's images and logs.
+MAX_MEMBERS = 1_000
+# Declared (and, while unpacking, actual) bytes of the model files: a 64-camera model with
+# 10,000 keypoints per image and 200,000 points is about 40 MiB in text.
+MAX_UNZIPPED_BYTES = 64 * 1024 * 1024
 
 
 def find_model_dir(root: Path) -> Path | None:
@@ -116,12 +124,11 @@ def _safe_extract(path: Path, target: Path) -> None:
         raise CameraError(f"{path.name}: not a readable zip archive ({error})") from None
     with archive:
         members = [m for m in archive.infolist() if not m.is_dir()]
-        if sum(m.file_size for m in members) > MAX_UNZIPPED_BYTES:
-            raise CameraError(f"{path.name}: unpacks to more than {MAX_UNZIPPED_BYTES >> 20} MiB")
+        models = _model_members(path, members)
         for member in members:
             try:  # a member that would land outside is refused even when it would not be extracted
                 destination = safe_join(target, member.filename)
-                wanted = PurePosixPath(member.filename).name.split(".")[0] in (*MODEL_FILES, "points3D", "rigs", "frames")
+                wanted = member in models
                 if wanted:
                     check_relative(member.filename, "member")
             except (UnsafeName, UnsafePath) as error:
@@ -133,6 +140,25 @@ def _safe_extract(path: Path, target: Path) -> None:
                         shutil.copyfileobj(source, out)
                 except (zipfile.BadZipFile, OSError) as error:
                     raise CameraError(f"{path.name}: cannot unpack {member.filename}: {error}") from None
+
+
+def _model_members(path: Path, members: list[zipfile.ZipInfo]) -> list[zipfile.ZipInfo]:
+    """The model files among `members` (the zip's files), after the caps on the zip's directory:
+    at most MAX_MEMBERS members, one model folder, and MAX_UNZIPPED_BYTES declared for its
+    files. The declared sizes bound what is written: zipfile reads no more than a member's
+    declared size (and a member whose data runs longer fails its CRC check)."""
+    if len(members) > MAX_MEMBERS:
+        raise CameraError(f"{path.name}: {len(members)} members, more than the limit of {MAX_MEMBERS}")
+    models = [m for m in members if PurePosixPath(m.filename).name.split(".")[0] in EXTRACTED_FILES]
+    folders = sorted({str(PurePosixPath(m.filename).parent) for m in models})
+    if len(folders) > 1:
+        listed = ", ".join(folders[:5]) + (", ..." if len(folders) > 5 else "")
+        raise CameraError(f"{path.name}: several COLMAP models ({listed}); upload exactly one")
+    declared = sum(m.file_size for m in models)
+    if declared > MAX_UNZIPPED_BYTES:
+        raise CameraError(f"{path.name}: its model files unpack to {declared >> 20} MiB, more than the limit of "
+                          f"{MAX_UNZIPPED_BYTES >> 20} MiB")
+    return models
 
 
 def cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera]:

@@ -43,12 +43,13 @@ def interventions(
 ) -> Interventions:
     """The physics of `params` in a scene whose new frame 0 is the step starting at `start_time`.
 
-    The wind's strength is given at the source's height, so its growth is measured from there.
+    The wind's strength is given at its reference height (its own base height, or the source's),
+    so its growth is measured from there.
     """
     force = air = None
     if params.wind is not None:
         wind = params.wind
-        base_height = float(np.dot(source.center, up))
+        base_height = wind.reference_height(float(np.dot(source.center, up)))
         blowing = lambda time: wind.active(frame_at(time, start_time, config.dt))  # noqa: E731
         force = wind_force(wind, blowing, base_height, tuple(up))
         air = wind_air(wind, seconds_blown(wind, start_time, config.dt), base_height, tuple(up))

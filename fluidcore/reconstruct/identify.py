@@ -20,9 +20,10 @@ what the video shows frame after frame:
 Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
 (a second or two) and compares what the image fit cannot change later: where smoke is. The
 search is coarse to fine (five buoyancies in log steps around one read off the video's rise
-speed; then the source's height and radius around the image estimate of
-`fluidcore.reconstruct.init.estimate_source`, which a smoke edge biases; then two finer
-buoyancy steps), bounded by MAX_EVALUATIONS rollouts.
+speed; then the source's radius from half to twice the image estimate of
+`fluidcore.reconstruct.init.estimate_source`, resting on the same bottom edge, and its height
+half a radius either way, since a smoke edge biases both; then two finer buoyancy steps),
+bounded by MAX_EVALUATIONS rollouts.
 
 The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
 not searched on its own), and the inflow rate follows from it: the source seeds what its inlet carries at rest
@@ -55,8 +56,8 @@ OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
 FLOOR_FRACTION = 0.5  # buoyancy floor: this fraction of drag x observed rise speed
 BUOYANCY_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)  # stage-1 grid around the video's estimate
-SOURCE_LIFTS = (-0.5, 0.0, 0.5)  # source centre moves along up, in radii of the estimate (stage 2)
-SOURCE_SIZES = (0.8, 1.0, 1.25)  # source radius factors (stage 2)
+SOURCE_SIZES = (0.5, 0.71, 1.0, 1.41, 2.0)  # source radius factors (stage 2a): recover a 2x error either way
+SOURCE_LIFTS = (-0.5, 0.5)  # then the centre moves along up from there, in radii of the estimate (stage 2b)
 REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
 
 
@@ -250,7 +251,11 @@ def identify(
     search = _Search(observation, config, box, source, up_v, budget, device)
     best = _best(search, [(base * f, 0.0, 1.0) for f in BUOYANCY_FACTORS], floor)
     a = best[0]
-    best = _best(search, [(a, lift, size) for lift in SOURCE_LIFTS for size in SOURCE_SIZES], floor)
+    # A resized source keeps resting on the smoke's bottom edge (init.source_in_view): its centre
+    # moves up by (size - 1) radii; only then is the height searched on its own.
+    best = _best(search, [(a, size - 1.0, size) for size in SOURCE_SIZES], floor)
+    a, lift, size = best
+    best = _best(search, [(a, lift + step, size) for step in SOURCE_LIFTS], floor)
     for step in REFINE:
         a, lift, size = best
         best = _best(search, [(a / step, lift, size), (a * step, lift, size)], floor)

@@ -3,8 +3,8 @@
 * the background: a colour for empty space (what every novel view shows where there is no
   smoke) and, only when a view's background is textured, a static image for that view;
 * the smoke mask of a frame: where it differs from the background;
-* the source: where smoke enters the scene (the lowest smoke of the first frames, along the
-  scene's up axis), as a 3D centre and radius.
+* the source: where smoke enters the scene (the smoke that stays put at the bottom of the
+  first second, along the scene's up axis), as a 3D centre and radius.
 
 Only the videos handed in are used (never a held-out view), and nothing here is tuned to a
 particular clip: thresholds are in units of the image's own noise or of the scene box.
@@ -12,6 +12,7 @@ particular clip: thresholds are in units of the image's own noise or of the scen
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -28,8 +29,11 @@ MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statis
 TEXTURED_FRACTION = 0.2  # a background image is kept when this much of the view is not flat
 FLAT_TOLERANCE = 0.04  # |pixel - background colour| below this counts as flat (8-bit video noise is ~0.01)
 SMOKE_THRESHOLD = 0.04  # |frame - background| above this is smoke
-SOURCE_FRAMES = 5  # the first frames say where smoke enters
-SOURCE_BAND = 0.1  # the lowest 10% of a view's smoke pixels outline the source
+SOURCE_SECONDS = 1.0  # the first second of video says where smoke enters
+SOURCE_PERSISTENCE = 0.8  # smoke in this fraction of those frames stays put: the inlet, not the rising puff
+# The floor cue needs a ray that descends steeply enough onto the floor: a base that sits dz above
+# the floor misplaces the source by dz / tan(descent) in depth, 5.7 dz at 10 degrees.
+FLOOR_MIN_DESCENT = math.sin(math.radians(10.0))
 
 
 class EstimationError(InputError):
@@ -55,6 +59,8 @@ class SourceEstimate:
     center: np.ndarray  # (3,) world
     radius: float  # world units
     pixels: dict[str, tuple[float, float, float]]  # per view: (u, v, radius in px) at full resolution
+    depth_cue: str  # how the centre's depth was found: "given", "triangulated", "floor" or "box axis"
+    depth_range: tuple[np.ndarray, np.ndarray] | None  # one view: the nearest and farthest centres (3,) in the box on its ray
 
 
 def to_float(frames: np.ndarray, channels: int) -> np.ndarray:
@@ -127,23 +133,46 @@ def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:
     return direction / norm
 
 
+def source_frames(fps: float, available: int) -> int:
+    """How many of the first frames `source_in_view` reads: SOURCE_SECONDS of video, at least one."""
+    return max(1, min(available, round(SOURCE_SECONDS * fps)))
+
+
 def source_in_view(masks: np.ndarray, up2d: np.ndarray) -> tuple[float, float, float]:
-    """(u, v, radius_px) of the source in one view from smoke masks (T, H, W) of the first frames:
-    a ball as wide as the lowest band of smoke pixels (along the image's up direction),
-    resting on the smoke's bottom edge."""
-    union = masks.any(axis=0)
-    rows, cols = np.nonzero(union)
+    """(u, v, radius_px) of the source in one view from smoke masks (T, H, W) of the first frames.
+
+    The inlet is the smoke that stays put: pixels that are smoke in SOURCE_PERSISTENCE of the
+    frames (all smoke pixels when fewer persist, e.g. in a single frame). Its size is the widest
+    row near the base, "near" meaning no higher above the bottom edge than the row is wide: a
+    round source's widest row is its diameter (the lowest band of pixels, the previous
+    estimate, saw only its bottom cap: 12.2 px on dev scene D's input view where the true
+    source projects to 19.1 px), a flat inlet's is its width, and a plume that spreads above its
+    source (half-width r + s z) adds at most s / (1/2 - s) radii. The source is the ball of
+    that radius resting on the bottom edge, centred across on the widest row.
+    """
+    persistent = masks.mean(axis=0) >= SOURCE_PERSISTENCE
+    if persistent.sum() < 4:
+        persistent = masks.any(axis=0)
+    rows, cols = np.nonzero(persistent)
     if len(rows) < 4:
         raise EstimationError("source: no smoke visible in the first frames; give the source explicitly")
     uv = np.stack([cols + 0.5, rows + 0.5], axis=-1).astype(np.float64)
-    height = uv @ up2d
-    across = uv @ np.array([-up2d[1], up2d[0]])
-    low = height <= np.quantile(height, SOURCE_BAND)
-    lo_across, hi_across = np.quantile(across[low], [0.05, 0.95])
-    center_across = 0.5 * (lo_across + hi_across)
-    radius = max(0.5 * float(hi_across - lo_across), 1.0)
-    bottom = float(np.quantile(height, 0.02))  # the bottom edge, robust to a stray pixel
-    center = (bottom + radius) * up2d + center_across * np.array([-up2d[1], up2d[0]])  # a ball resting on it
+    side = np.array([-up2d[1], up2d[0]])
+    height, across = uv @ up2d, uv @ side
+    band = np.floor(height - height.min()).astype(np.int64)  # one-pixel bands along up, bottom first
+    counts = np.bincount(band)
+    first = int(np.argmax(counts >= 2))  # the bottom edge: the lowest band of two pixels or more
+    bottom = height.min() + first - 0.5  # its pixels' lower edge
+    lo = np.full(len(counts), np.inf)
+    hi = np.full(len(counts), -np.inf)
+    np.minimum.at(lo, band, across)
+    np.maximum.at(hi, band, across)
+    width = np.where(counts > 0, hi - lo + 1.0, 0.0)  # pixel centres: a row of n pixels is n wide
+    above = np.arange(len(counts)) - first + 1.0  # each band's top above the bottom edge
+    near = (above <= width) & (above > 0)
+    widest = int(np.argmax(np.where(near, width, -1.0)))
+    radius = max(0.5 * float(width[widest]), 1.0)
+    center = (bottom + radius) * up2d + 0.5 * float(lo[widest] + hi[widest]) * side  # the ball resting on the edge
     return float(center[0]), float(center[1]), radius
 
 
@@ -177,6 +206,39 @@ def ray_point_nearest_axis(origin: np.ndarray, direction: np.ndarray, axis_point
     return origin + max(s, 0.0) * direction
 
 
+def ray_point_on_floor(
+    camera, pixel: tuple[float, float, float], up2d: np.ndarray, up: np.ndarray, floor: float
+) -> np.ndarray | None:
+    """One view's depth from the floor: the source's bottom edge (the pixel `pixel` = (u, v, r)
+    minus r along the image's up `up2d`) cast onto the plane up . x = `floor`; returns the point
+    of the centre's ray at that depth, or None when the ray descends too shallowly to say
+    (FLOOR_MIN_DESCENT) or meets the floor behind the camera."""
+    u, v, r = pixel
+    origin, direction = pixel_ray(camera, u - r * up2d[0], v - r * up2d[1])
+    descent = -float(direction @ up)
+    if descent < FLOOR_MIN_DESCENT:
+        return None
+    base = origin + (float(origin @ up) - floor) / descent * direction
+    depth_axis = camera.world_to_camera[2, :3]
+    origin, direction = pixel_ray(camera, u, v)
+    along = float(depth_axis @ direction)
+    if along <= 1e-9:
+        return None
+    return origin + float(depth_axis @ (base - origin)) / along * direction
+
+
+def ray_in_box(origin: np.ndarray, direction: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The nearest and farthest points of a ray inside the box [lo, hi] (None when it misses)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / direction, (hi - origin) / direction
+    t1 = np.where(np.abs(direction) < 1e-12, np.where((origin >= lo) & (origin <= hi), -np.inf, np.inf), t1)
+    t2 = np.where(np.abs(direction) < 1e-12, np.where((origin >= lo) & (origin <= hi), np.inf, -np.inf), t2)
+    near, far = max(float(np.minimum(t1, t2).max()), 0.0), float(np.maximum(t1, t2).min())
+    if not far > near:
+        return None
+    return origin + near * direction, origin + far * direction
+
+
 def estimate_source(
     cameras: Mapping[str, object],
     masks: Mapping[str, np.ndarray],
@@ -186,31 +248,37 @@ def estimate_source(
 ) -> SourceEstimate:
     """Source centre and radius from the smoke masks of the first frames of each input view.
 
-    Two or more views triangulate the centre. One view leaves depth open: the centre is put
-    on the input ray where it passes closest to the box's vertical axis (the box is where the
-    smoke is). A known `center` (the user's) is kept, and only the radius is measured, at its
-    depth. Masks may be at any resolution; cameras are scaled to match them.
+    Two or more views triangulate the centre. One view leaves depth open: when the camera looks
+    down onto the box's floor steeply enough, the source's base is taken to sit on that floor
+    (`ray_point_on_floor`); otherwise the centre is put on the input ray where it passes closest
+    to the box's vertical axis (the box is where the smoke is), and `depth_range` says how far
+    along the ray it could be. A known `center` (the user's) is kept, and only the radius is
+    measured, at its depth. Masks may be at any resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)
     lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
     box_center = 0.5 * (lo + hi)
-    origins, directions, pixels, px_radii = [], [], {}, []
+    views, rays, pixels = [], [], {}  # views: (camera at the mask's size, (u, v, r) there, image up)
     for name, mask in masks.items():
         camera = cameras[name].scaled(mask.shape[2], mask.shape[1])
-        u, v, r = source_in_view(mask, image_up(camera, box_center, up_v))
-        origin, direction = pixel_ray(camera, u, v)
-        origins.append(origin)
-        directions.append(direction)
-        sx = cameras[name].width / mask.shape[2]
-        pixels[name] = (u * sx, v * cameras[name].height / mask.shape[1], r * sx)
-        px_radii.append((camera, r))
+        up2d = image_up(camera, box_center, up_v)
+        found = source_in_view(mask, up2d)
+        views.append((camera, found, up2d))
+        rays.append(pixel_ray(camera, found[0], found[1]))
+        sx, sy = cameras[name].width / mask.shape[2], cameras[name].height / mask.shape[1]
+        pixels[name] = (found[0] * sx, found[1] * sy, found[2] * sx)
+    origins, directions = np.array([o for o, _ in rays]), np.array([d for _, d in rays])
+    depth_range = None if len(rays) >= 2 else ray_in_box(origins[0], directions[0], lo, hi)
     if center is not None:
-        center = np.asarray(center, dtype=np.float64)
-    elif len(origins) >= 2:
-        center = closest_point_to_rays(np.array(origins), np.array(directions))
+        center, cue = np.asarray(center, dtype=np.float64), "given"
+    elif len(rays) >= 2:
+        center, cue = closest_point_to_rays(origins, directions), "triangulated"
     else:
-        center = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v)
+        camera, found, up2d = views[0]
+        center, cue = ray_point_on_floor(camera, found, up2d, up_v, float(lo @ up_v)), "floor"
+        if center is None or not np.all((center >= lo) & (center <= hi)):
+            center, cue = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v), "box axis"
     center = np.clip(center, lo, hi)
-    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, r in px_radii]
-    return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels)
+    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _ in views]
+    return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels, depth_cue=cue, depth_range=depth_range)

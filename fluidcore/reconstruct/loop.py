@@ -1,9 +1,10 @@
 """The per-frame driver of Algorithm S1, with a checkpoint after every frame.
 
 `read_inputs` turns decoded input videos into `InputViews` (targets at the working resolution,
-backgrounds, the smoke masks the source is estimated from); views made from them before any fit
-(the generative novel views, fluidcore.reconstruct.job) join them, and `prepare` turns all of it
-into a frozen `Reconstruction` (every view it fits, source, physics in this scene's units);
+and their backgrounds); views made from them before any fit (the generative novel views,
+fluidcore.reconstruct.job) join them, and `prepare` turns all of it into a frozen
+`Reconstruction` (every view it fits, the source estimated from the first second's smoke,
+physics in this scene's units);
 `run` then goes frame by frame:
 
     frame 0: the source seeds particles for 20 stabilisation steps; positions are fitted
@@ -67,7 +68,6 @@ class InputViews:
     frame_range: tuple[int, int]
     channels: int
     background_images: dict[str, np.ndarray]  # camera -> background image at the camera's full size (where not flat)
-    masks: dict[str, np.ndarray]  # camera -> (SOURCE_FRAMES, H, W) bool smoke masks: what the source estimate reads
 
     @property
     def names(self) -> list[str]:
@@ -128,7 +128,7 @@ def read_inputs(
 ) -> InputViews:
     """The input `videos` (uint8 (T, H, W, 3) per input camera, frames of `frame_range` only, at
     any size with the camera's aspect) as targets at the quality's working resolution, with their
-    backgrounds and the smoke masks of their first frames."""
+    backgrounds."""
     if not videos:
         raise ReconstructionError("videos: at least one input view is needed")
     unknown = sorted(set(videos) - set(cameras))
@@ -141,7 +141,7 @@ def read_inputs(
     from fluidcore.video import is_grayscale
 
     channels = 1 if all(is_grayscale(v) for v in videos.values()) else 3
-    targets, backgrounds, masks = [], {}, {}
+    targets, backgrounds = [], {}
     for name, frames in videos.items():
         camera = cameras[name]
         width, height = render_size(camera.width, camera.height, quality.long_side)
@@ -151,9 +151,8 @@ def read_inputs(
         if background.image is not None:
             backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
-        masks[name] = init.smoke_mask(torch.from_numpy(data[: init.SOURCE_FRAMES]), bg)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
-    return InputViews(tuple(targets), frame_range, channels, backgrounds, masks)
+    return InputViews(tuple(targets), frame_range, channels, backgrounds)
 
 
 def prepare(
@@ -179,7 +178,10 @@ def prepare(
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
     (a refinement fits its refined input views only).
     """
-    targets, masks, channels = list(inputs.targets), inputs.masks, inputs.channels
+    targets, channels = list(inputs.targets), inputs.channels
+    masks = {  # the first second's smoke: what the source estimate and the smoke colour read
+        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background) for v in targets
+    }
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)

@@ -7,7 +7,10 @@ import importlib
 
 import typer
 
-BENCHMARKS: tuple[str, ...] = ("reconstruct", "predict", "generalise", "metrics", "physics", "render", "generative", "load", "whatif_render")
+BENCHMARKS: tuple[str, ...] = (
+    "reconstruct", "predict", "generalise", "source", "metrics", "physics", "render", "generative", "load", "upload_attacks",
+    "whatif_render",
+)
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:

@@ -72,7 +72,8 @@ def interact(
         None,
         "--wind",
         help='Wind as JSON: {"direction": [x, y, z], "strength": s (units/s^2), "growth": g (per unit height), '
-        '"profile": "exponential|linear|uniform", "start_frame": f, "end_frame": null}',
+        '"profile": "exponential|linear|uniform", "start_frame": f, "end_frame": null, "base_height": null '
+        '(world height where the strength holds; default: the source centre)}',
     ),
     ball: str | None = typer.Option(
         None,

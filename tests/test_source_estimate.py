@@ -1,0 +1,128 @@
+"""The source's size and place in one view (fluidcore.reconstruct.init.source_in_view), on masks
+drawn here with a known source: a round one under a rising puff, a flat inlet, a tilted camera."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fluidcore.reconstruct import init
+
+H, W = 200, 160
+UP = np.array([0.0, -1.0])  # image rows grow downwards, so the world's up points to smaller v
+
+
+def _disc(center: tuple[float, float], radius: float) -> np.ndarray:
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    return (u - center[0]) ** 2 + (v - center[1]) ** 2 <= radius**2
+
+
+def _frames(source: np.ndarray, column_halfwidth: float, puff_radius: float, n: int = 30) -> np.ndarray:
+    """`n` masks: the source always there, a stem above it growing with time, and a puff wider than
+    the source that rises through the picture (smoke in few frames at any one place)."""
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    rows = np.nonzero(source.any(axis=1))[0]
+    top, axis = rows.min(), float(np.nonzero(source.any(axis=0))[0].mean()) + 0.5
+    masks = []
+    for k in range(n):
+        head = top - 4.0 * (k + 1)
+        stem = (np.abs(u - axis) <= column_halfwidth) & (v <= top + 1) & (v >= head)
+        puff = (u - axis) ** 2 + (v - head) ** 2 <= puff_radius**2
+        masks.append(source | stem | puff)
+    return np.stack(masks)
+
+
+@pytest.mark.parametrize("radius", [6.0, 12.0, 20.0])
+def test_a_round_source_under_a_wide_rising_puff_is_measured_at_its_widest_row(radius: float) -> None:
+    """The lowest band of smoke sees only the disc's bottom cap; the widest row resting on the
+    bottom edge is the disc's diameter, and the puff (1.6x wider) passes by too fast to count."""
+    center = (80.0, 160.0)
+    masks = _frames(_disc(center, radius), 0.5 * radius, 1.6 * radius)
+    u, v, r = init.source_in_view(masks, UP)
+    assert r == pytest.approx(radius, rel=0.1)
+    assert abs(u - center[0]) <= 1.0 and abs(v - center[1]) <= 1.0
+
+
+def test_a_flat_inlet_is_its_half_width_and_the_ball_rests_on_its_bottom() -> None:
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    inlet = (np.abs(u - 70.0) <= 10.0) & (v >= 170.0) & (v <= 176.0)  # 20 px wide, 6 px tall
+    masks = _frames(inlet, 6.0, 18.0)
+    u0, v0, r = init.source_in_view(masks, UP)
+    assert r == pytest.approx(10.0, rel=0.15)
+    assert abs(u0 - 70.0) <= 1.0
+    assert v0 == pytest.approx(176.0 - r, abs=1.5)  # a ball of radius r resting on the inlet's bottom edge
+
+
+def test_a_tilted_up_direction_measures_across_it() -> None:
+    """A camera rolled by 30 degrees: the disc is measured along the image's up, not along rows."""
+    angle = np.deg2rad(30.0)
+    up = np.array([np.sin(angle), -np.cos(angle)])
+    masks = np.stack([_disc((80.0, 120.0), 15.0)] * 10)
+    u, v, r = init.source_in_view(masks, up)
+    assert r == pytest.approx(15.0, rel=0.1)
+    assert np.hypot(u - 80.0, v - 120.0) <= 1.5
+
+
+def test_one_frame_of_smoke_is_enough_and_no_smoke_is_a_clear_error() -> None:
+    u, v, r = init.source_in_view(_disc((50.0, 60.0), 8.0)[None], UP)
+    assert r == pytest.approx(8.0, rel=0.15)
+    with pytest.raises(init.EstimationError, match="give the source explicitly"):
+        init.source_in_view(np.zeros((3, H, W), bool), UP)
+
+
+def test_the_source_frames_are_one_second_of_video() -> None:
+    assert init.source_frames(30.0, 90) == 30
+    assert init.source_frames(30.0, 12) == 12
+    assert init.source_frames(0.5, 90) == 1
+
+
+def _camera(eye: tuple[float, float, float], target: tuple[float, float, float]):
+    from fluidcore.cameras import Camera, look_at
+
+    like = Camera("like", 300.0, 300.0, 160.0, 120.0, 320, 240, np.eye(4))
+    return look_at(eye, target, (0.0, 1.0, 0.0), like, "cam")
+
+
+def _sphere_masks(camera, center: np.ndarray, radius: float, frames: int = 8) -> np.ndarray:
+    """The silhouette of a ball, drawn by projecting points that fill it."""
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(200_000, 3))
+    points = center + radius * points / np.linalg.norm(points, axis=1, keepdims=True) * rng.random((200_000, 1)) ** (1 / 3)
+    uv, _ = camera.project_numpy(points)
+    mask = np.zeros((camera.height, camera.width), bool)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    mask[uv[inside, 1].astype(int), uv[inside, 0].astype(int)] = True
+    return np.stack([mask] * frames)
+
+
+BOX = (np.array([-0.3, 0.0, -0.3]), np.array([0.3, 0.8, 0.3]))
+SOURCE = np.array([0.08, 0.045, -0.06])  # resting 0.5 cm above the floor, 10 cm off the box's vertical axis
+SOURCE_RADIUS = 0.04
+
+
+def test_a_camera_looking_down_finds_the_depth_from_the_floor() -> None:
+    camera = _camera((0.0, 0.9, 1.4), (0.0, 0.1, 0.0))  # about 30 degrees down
+    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    assert estimate.depth_cue == "floor"
+    assert np.linalg.norm(estimate.center - SOURCE) < 0.015
+    assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
+
+
+def test_a_level_camera_leaves_the_depth_to_a_range_that_holds_the_truth() -> None:
+    camera = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0))
+    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    assert estimate.depth_cue == "box axis"
+    near, far = estimate.depth_range
+    segment = far - near
+    t = np.clip((SOURCE - near) @ segment / (segment @ segment), 0.0, 1.0)
+    assert np.linalg.norm(near + t * segment - SOURCE) < 0.01  # the truth lies on the reported stretch of the ray
+    assert np.all(near >= BOX[0] - 1e-9) and np.all(far <= BOX[1] + 1e-9)
+    assert estimate.radius == pytest.approx(SOURCE_RADIUS * (1.4 - 0.0) / (1.4 + 0.06), rel=0.2)  # at the axis guess's depth
+
+
+def test_two_views_triangulate_and_report_no_range() -> None:
+    a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
+    masks = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS), "b": _sphere_masks(b, SOURCE, SOURCE_RADIUS)}
+    estimate = init.estimate_source({"a": a, "b": b}, masks, BOX)
+    assert estimate.depth_cue == "triangulated" and estimate.depth_range is None
+    assert np.linalg.norm(estimate.center - SOURCE) < 0.01
