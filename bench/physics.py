@@ -3,6 +3,7 @@
     python bench/physics.py                      # sweep: table + JSON + speed-vs-error PNG
     python bench/physics.py --particles 50000 --iterations 10 --json
     python bench/physics.py --particles 50000 --tolerance 0.002 --steps 20
+    python bench/physics.py --air --threads 1        # the air grid's rows (fluidcore.physics.air)
 
 Scene ("calm"): a steady plume. N particles fill a vertical column (height 4 x radius), at the
 rest density at the bottom thinning linearly to 40 % of it at the top, as a rising plume
@@ -12,6 +13,12 @@ stays constant. "violent": the same column packed 1.6x denser throughout, a stro
 growing with height, a ball rising through the column, and retired particles re-seeded into a
 ball a third as wide (a dense jet): compression that the solver must undo every step. Each run
 warms up (untimed) before the timed steps.
+
+Air rows (--air): on the same two scenes, the air grid (`AirGrid`, 32, 48 and 64 cells on the
+box's long side) is stepped from the particles of every timed PBF step; each row gives the
+seconds per air step, the PBF step's, and their ratio (CPU time, the steadier measure on a shared
+machine; wall time beside it). In "violent" the wind also pushes the air and the ball is a wall
+of it, so the pressure solve needs more than its one direct iteration.
 
 Density error: the one-sided residual max(0, rho/rho0 - 1) that the solver drives to zero,
 over alive particles after each step; "mean" averages it over particles and timed steps,
@@ -38,6 +45,8 @@ SIZES = (10_000, 50_000, 200_000)
 ITERATIONS = (1, 2, 5, 10, 20)
 SWEEP_TOLERANCE = 1e-4
 SCENES = ("calm", "violent")
+AIR_CELLS = (32, 48, 64)
+AIR_PARTICLES = 50_000
 
 
 @dataclass
@@ -52,6 +61,22 @@ class Result:
     cpu_s_per_step: float  # process CPU time (all threads): less sensitive than wall time to other load
     mean_density_error: float
     max_density_error: float
+
+
+@dataclass
+class AirResult:
+    scene: str
+    particles: int
+    cells: int  # on the box's long side
+    grid: tuple[int, int, int]
+    steps: int
+    air_s_per_step: float  # wall
+    air_cpu_s_per_step: float
+    pbf_s_per_step: float  # wall, the simulator's step without air (10 solver iterations)
+    pbf_cpu_s_per_step: float
+    ratio: float  # air CPU s / PBF CPU s
+    pressure_iterations: float  # mean per air step
+    max_divergence_ratio: float  # largest |div| after / before the projection over the timed steps
 
 
 def log(message: str) -> None:
@@ -126,6 +151,64 @@ def run(n: int, iterations: int | None, tolerance: float | None, steps: int, war
     )
 
 
+def run_air(n: int, steps: int, warmup: int, scene: str, device: str, backend: str) -> list[AirResult]:
+    """Time the PBF step of the plume and, on the same particles each step, an air step at each of AIR_CELLS."""
+    import torch
+
+    from fluidcore.physics import PRESETS
+    from fluidcore.physics.air import AirGrid
+
+    config = PRESETS["scalarflow"]
+    sim, state, reseed = plume(n, scene, config, device, backend)
+    grids = [AirGrid(sim.box, cells, force=sim.force) for cells in AIR_CELLS]
+    airs = [grid.still(device) for grid in grids]
+    timing = {key: [0.0, 0.0] for key in ("pbf", *AIR_CELLS)}
+    iterations = {cells: 0 for cells in AIR_CELLS}
+    divergence = {cells: 0.0 for cells in AIR_CELLS}
+
+    def timed(key: object, work):
+        if device == "cuda":
+            torch.cuda.synchronize()
+        start, cpu_start = time.perf_counter(), time.process_time()
+        out = work()
+        if device == "cuda":
+            torch.cuda.synchronize()
+        if key is not None:
+            timing[key][0] += time.perf_counter() - start
+            timing[key][1] += time.process_time() - cpu_start
+        return out
+
+    for step in range(warmup + steps):
+        key = "pbf" if step >= warmup else None
+        smoke = state.positions[state.alive]
+        for grid, air in zip(grids, airs):
+            stats = timed(grid.cells if key else None,
+                          lambda: grid.step(air, smoke, config, state.time, sim.spheres))  # noqa: B023
+            if key:
+                iterations[grid.cells] += stats.iterations
+                divergence[grid.cells] = max(divergence[grid.cells], stats.divergence_after
+                                             / max(stats.divergence_before, 1e-30))
+        reseed(timed(key, lambda: sim.step(state)).retired)
+    pbf_wall, pbf_cpu = (t / steps for t in timing["pbf"])
+    return [AirResult(scene=scene, particles=n, cells=grid.cells, grid=grid.shape, steps=steps,
+                      air_s_per_step=timing[grid.cells][0] / steps, air_cpu_s_per_step=timing[grid.cells][1] / steps,
+                      pbf_s_per_step=pbf_wall, pbf_cpu_s_per_step=pbf_cpu,
+                      ratio=timing[grid.cells][1] / steps / pbf_cpu, pressure_iterations=iterations[grid.cells] / steps,
+                      max_divergence_ratio=divergence[grid.cells]) for grid in grids]
+
+
+def air_table(results: list[AirResult]) -> str:
+    """Markdown table of the air rows."""
+    lines = ["| scene | particles | cells (long side) | grid | air s/step (CPU) | PBF s/step (CPU) | air / PBF "
+             "| air s/step (wall) | PBF s/step (wall) | pressure iterations | max div after / before |",
+             "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in results:
+        lines.append(f"| {r.scene} | {r.particles:,} | {r.cells} | {'x'.join(map(str, r.grid))} | "
+                     f"{r.air_cpu_s_per_step:.3f} | {r.pbf_cpu_s_per_step:.3f} | {r.ratio:.2f} | {r.air_s_per_step:.3f} | "
+                     f"{r.pbf_s_per_step:.3f} | {r.pressure_iterations:.1f} | {r.max_divergence_ratio:.1e} |")
+    return "\n".join(lines)
+
+
 def machine(device: str, threads: int, backend: str) -> dict:
     import torch
 
@@ -189,6 +272,8 @@ def command(
     threads: Optional[int] = typer.Option(None, help="torch/OpenMP threads (default: all cores)."),
     out: Path = typer.Option(Path("bench/results"), help="Folder for physics.json and physics.png (sweep)."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout, nothing else."),
+    air: bool = typer.Option(False, "--air", help="The air grid's rows: s/step at 32, 48, 64 cells vs the PBF step "
+                                                   f"(both scenes, --particles, default {AIR_PARTICLES:,}); writes physics_air.json."),
 ) -> None:
     """Benchmark the PBF simulator: steps/s and density error vs particles and iterations."""
     import torch
@@ -206,6 +291,19 @@ def command(
     torch.set_num_threads(threads or os.cpu_count() or 1)
     info = machine(device, torch.get_num_threads(), backend)
     log(f"physics bench: {info}")
+
+    if air:
+        n = particles or AIR_PARTICLES
+        air_results = []
+        for name in SCENES:
+            log(f"  air rows: {name} n={n} ...")
+            air_results += run_air(n, steps, warmup, name, device, backend)
+        out.mkdir(parents=True, exist_ok=True)
+        payload = {"machine": info, "steps": steps, "warmup": warmup, "air": [asdict(r) for r in air_results]}
+        (out / "physics_air.json").write_text(json.dumps(payload, indent=2))
+        log(f"wrote {out / 'physics_air.json'}")
+        print(json.dumps(payload, indent=2) if as_json else air_table(air_results))
+        return
 
     if particles is not None or iterations is not None or tolerance is not None:
         result = run(particles or 50_000, iterations, tolerance, steps, warmup, scene, device, backend)

@@ -119,6 +119,17 @@ class ViewRecord(BaseModel):
     weight: float
 
 
+class SourceEstimateRecord(BaseModel):
+    """How the source's place was found from the input videos (`fluidcore.reconstruct.init.
+    estimate_source`): the depth cue, and for one view the stretch of its ray inside the box
+    where the centre could lie as well (world units), which the source hint can then pin."""
+
+    model_config = _RECORD
+    depth_cue: str  # "triangulated", "floor", "box axis" or "given"
+    depth_range: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # nearest, farthest
+    pixels: dict[str, tuple[float, float, float]] = {}  # camera -> (u, v, radius) in pixels
+
+
 class ReconstructSettings(BaseModel):
     """The settings of a reconstruction (kind "reconstruct")."""
 
@@ -128,6 +139,7 @@ class ReconstructSettings(BaseModel):
     physics: dict[str, Any] = {"mode": "scalarflow"}  # mode and how it was found; before --physics: the preset
     symmetry: dict[str, Any] | None = None
     source_hint: dict[str, Any] | None = None
+    source_estimate: SourceEstimateRecord | None = None  # None: the user gave the whole source, or an older run
     views: tuple[ViewRecord, ...] = ()
 
     @property
@@ -150,6 +162,7 @@ class ContinuationSettings(BaseModel):
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
     ball: BallParams | None = None
+    air_cells: int = 0  # the air grid the rollout simulates (fluidcore.physics.air.AirGrid); 0 = still air
 
 
 Settings = ReconstructSettings | ContinuationSettings

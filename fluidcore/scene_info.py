@@ -33,7 +33,8 @@ def describe(
         "box": None if box is None else {"min": [float(v) for v in box[0]], "max": [float(v) for v in box[1]]},
         "up": [float(v) for v in up],
         "source": None if source is None else {
-            "center": [float(v) for v in source["center"]], "radius": float(source["radius"])
+            "center": [float(v) for v in source["center"]], "radius": float(source["radius"]),
+            **({"depth": source["depth"]} if "depth" in source else {}),
         },
         "cameras": {
             name: {"center": camera.center().tolist(), "forward": camera.forward().tolist()}
@@ -55,7 +56,14 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 
 def from_run(run: RunRecord) -> dict[str, Any]:
-    """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source, cameras."""
+    """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source,
+    cameras; for a reconstruction whose source was estimated, how its depth was found and, from
+    one view, the stretch of the input ray the centre could lie on (`source.depth`)."""
     scene = run.scene
     box = (np.asarray(scene.box_lo), np.asarray(scene.box_hi))
-    return describe(run.cameras(), box, up=scene.up, source={"center": scene.source.center, "radius": scene.source.radius})
+    source: dict[str, Any] = {"center": scene.source.center, "radius": scene.source.radius}
+    estimate = getattr(run.settings, "source_estimate", None)
+    if estimate is not None:
+        source["depth"] = {"cue": estimate.depth_cue,
+                           "range": None if estimate.depth_range is None else [list(p) for p in estimate.depth_range]}
+    return describe(run.cameras(), box, up=scene.up, source=source)

@@ -36,8 +36,10 @@ def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
     return SmokeState(state.clone(), g.means.clone(), appearance).to_frame()
 
 
-def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC) -> Path:
-    """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps."""
+def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC,
+              quality: dict | None = None) -> Path:
+    """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
+    (`quality`: what its settings record as the quality, e.g. the fields a test needs)."""
     simulator = simulator_of(spec)
     state = simulator.new_state()
     simulator.stabilize(state, 20)
@@ -53,7 +55,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         channels=1,
         background_color=[1.0],
         scene=scene_of(spec),
-        settings=ReconstructSettings(quality={}, visual=VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)),
+        settings=ReconstructSettings(quality=quality or {}, visual=VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)),
     )
     for t in range(frames):
         if t > 0:

@@ -186,3 +186,21 @@ def test_prepare_fits_the_views_it_is_given_and_the_reconstruction_is_frozen(sce
     assert plain.symmetry == generated.symmetry == alone.symmetry  # the prior's record stays in the manifest
     with pytest.raises(FrozenInstanceError):
         plain.views = ()
+
+
+def test_the_source_estimate_and_the_depth_range_of_one_view_are_in_the_manifest_and_scene_info(run):
+    """One view: the manifest says how the source's depth was found, and scene info gives the
+    stretch of the input ray inside the box on which the estimated centre lies."""
+    from fluidcore import scene_info
+
+    reopened = Run.open(run.path)
+    estimate = reopened.settings.source_estimate
+    assert estimate is not None and estimate.depth_cue in ("floor", "box axis")
+    assert set(estimate.pixels) == {INPUT}
+    depth = scene_info.from_run(reopened)["source"]["depth"]
+    near, far = (np.asarray(p) for p in depth["range"])
+    lo, hi = np.asarray(reopened.scene.box_lo), np.asarray(reopened.scene.box_hi)
+    assert np.all(near >= lo - 1e-9) and np.all(far <= hi + 1e-9) and np.linalg.norm(far - near) > 0.1
+    camera = reopened.cameras()[INPUT]
+    ray = (far - near) / np.linalg.norm(far - near)
+    assert np.allclose(ray, (near - camera.center()) / np.linalg.norm(near - camera.center()), atol=1e-6)  # the input ray

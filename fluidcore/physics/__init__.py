@@ -8,6 +8,10 @@ residual reported everywhere (StepStats, the benchmark) is max(0, rho/rho0 - 1).
 Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
 `density_residual`, `incompressibility_loss`) and a fused C++/OpenMP CPU kernel
 (`fluidcore/kernels/pbf.cpp`) that `Simulator` uses on CPU when no gradient is needed.
+
+The air around the smoke is still unless the simulator is given one: a prescribed field
+(`AirField`, e.g. `wind_air`) or an `AirGrid` (`air`), incompressible air that the smoke's
+buoyancy and the wind drive and that the particles drag towards.
 """
 
 from fluidcore.lazy import lazy_exports
@@ -17,6 +21,8 @@ from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError,
 # preset or a scene) can import this package and `fluidcore.physics.config`.
 _LAZY = {
     "AirField": "forces",
+    "AirGrid": "air",
+    "AirState": "air",
     "ForceField": "forces",
     "wind_air": "forces",
     "wind_force": "forces",
@@ -35,7 +41,7 @@ _LAZY = {
 __getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
-    "PRESETS", "AirField", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
     "sim_step", "wind_air", "wind_force",
 ]

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from fluidcore.physics import checks, source as seeding
+from fluidcore.physics.air import AirGrid, AirState, floor_face
 from fluidcore.physics.config import Box, PBFConfig, PhysicsInputError, Source, Sphere
 from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
@@ -34,10 +35,16 @@ class Simulator:
     backend: "auto" (the fused C++ kernel on CPU when it builds, torch otherwise), "torch"
     (reference, any device) or "fused" (CPU only). Spheres, the force field and the air it
     moves (`force`, `air`: fluidcore.physics.forces), XSPH and vorticity cost nothing when absent.
+
+    air: None (still air, apart from `env_velocity`), an `AirField` (a prescribed air velocity,
+    e.g. `wind_air`), or an `AirGrid` (fluidcore.physics.air): air that evolves with the smoke.
+    With a grid, each step first advances the state's air (`ParticleState.air`, still air when
+    it has none) from the particles, then the particles drag towards it; drag is computed in
+    torch on both backends, so the fused kernel path needs nothing else.
     """
 
     def __init__(self, config: PBFConfig, box: Box, source: Source | None = None, spheres: Sequence[Sphere] = (),
-                 force: ForceField | None = None, air: AirField | None = None, device: torch.device | str = "cpu",
+                 force: ForceField | None = None, air: AirField | AirGrid | None = None, device: torch.device | str = "cpu",
                  backend: str = "auto") -> None:
         for value, kind, name in ((config, PBFConfig, "config"), (box, Box, "box")):
             if not isinstance(value, kind):
@@ -46,9 +53,13 @@ class Simulator:
             raise PhysicsInputError(f"source must be a Source or None, got {type(source).__name__}")
         if not all(isinstance(s, Sphere) for s in spheres):
             raise PhysicsInputError("spheres must be Sphere instances")
-        for field, name in ((force, "force"), (air, "air")):
-            if field is not None and not callable(field):
-                raise PhysicsInputError(f"{name} must be a callable (positions, time) -> (N, 3) tensor, or None")
+        if force is not None and not callable(force):
+            raise PhysicsInputError("force must be a callable (positions, time) -> (N, 3) tensor, or None")
+        if air is not None and not callable(air) and not isinstance(air, AirGrid):
+            raise PhysicsInputError("air must be an AirGrid, a callable (positions, time) -> (N, 3) tensor, or None")
+        if isinstance(air, AirGrid) and air.floor != floor_face(config.gravity):
+            raise PhysicsInputError(f"air.down must point through the box face gravity {list(config.gravity)} points "
+                                    f"through (axis {floor_face(config.gravity)[0]})")
         if backend not in BACKENDS:
             raise PhysicsInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
         self.config, self.box, self.source = config, box, source
@@ -66,7 +77,8 @@ class Simulator:
         x = checks.points(state.positions[slots], "state.positions")
         v = checks.points(state.velocities[slots], "state.velocities")
         with torch.no_grad():
-            out = advance(x, v, self.config, time=state.time, force=self.force, air=self.air, spheres=self.spheres,
+            air = self._advance_air(state, x) if isinstance(self.air, AirGrid) else self.air
+            out = advance(x, v, self.config, time=state.time, force=self.force, air=air, spheres=self.spheres,
                           fast=use_fused(self.backend, x))
         checks.finite_result(out.positions, "particle positions")
         checks.finite_result(out.velocities, "particle velocities")
@@ -95,6 +107,17 @@ class Simulator:
         for _ in range(steps):
             self.step(state)
         state.time = 0.0
+
+    def _advance_air(self, state: ParticleState, smoke: torch.Tensor) -> AirField:
+        """Step the state's air grid from the smoke (N, 3) at state.time (still air if it has none
+        yet); the particles then drag towards it: its velocity at their positions."""
+        grid = self.air
+        assert isinstance(grid, AirGrid)
+        if state.air is None:
+            state.air = grid.still(state.device)
+        air: AirState = state.air
+        grid.step(air, smoke, self.config, state.time, self.spheres)
+        return lambda positions, _time: grid.velocity_at(air, positions)
 
     def _seed(self, state: ParticleState) -> int:
         if self.source is None or self.source.rate == 0:

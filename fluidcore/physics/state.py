@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 
 from fluidcore.physics import checks
+
+if TYPE_CHECKING:
+    from fluidcore.physics.air import AirState
 
 MIN_CAPACITY = 1024
 
@@ -25,6 +29,7 @@ class ParticleState:
     alive: Tensor  # (C,) bool
     time: float = 0.0  # seconds; 0 is the first frame after stabilisation
     step: int = 0  # steps taken (drives the source's deterministic seeding)
+    air: AirState | None = None  # the air around the particles, when a Simulator with an AirGrid steps them
 
     @classmethod
     def empty(cls, capacity: int = MIN_CAPACITY, device: torch.device | str = "cpu") -> ParticleState:
@@ -58,17 +63,20 @@ class ParticleState:
         return self.positions.device
 
     def clone(self) -> ParticleState:
-        return ParticleState(self.positions.clone(), self.velocities.clone(), self.alive.clone(), self.time, self.step)
+        air = None if self.air is None else self.air.clone()
+        return ParticleState(self.positions.clone(), self.velocities.clone(), self.alive.clone(), self.time, self.step, air)
 
     def padded(self, capacity: int) -> ParticleState:
         """This state with empty slots appended up to `capacity`: a state from before a step, laid
         out slot for slot like the state after it (a step may have grown the capacity)."""
         grow = lambda t: pad_slots(t, capacity)  # noqa: E731
-        return ParticleState(grow(self.positions), grow(self.velocities), grow(self.alive), self.time, self.step)
+        return ParticleState(grow(self.positions), grow(self.velocities), grow(self.alive), self.time, self.step,
+                             None if self.air is None else self.air.clone())
 
     def to(self, device: torch.device | str) -> ParticleState:
+        air = None if self.air is None else self.air.to(device)
         return ParticleState(self.positions.to(device), self.velocities.to(device), self.alive.to(device),
-                             self.time, self.step)
+                             self.time, self.step, air)
 
     def free_slots(self, count: int) -> Tensor:
         """Indices of `count` dead slots (lowest first), doubling the capacity when too few are free."""

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
-from fluidcore.physics import Simulator
+from fluidcore.physics import AirGrid, Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
@@ -182,6 +182,7 @@ def _write(
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
+    air_cells = _air_cells(parent)
     run = Run.create(
         out_dir,
         kind=request.kind,
@@ -203,11 +204,12 @@ def _write(
             priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
             wind=params.wind,
             ball=params.ball,
+            air_cells=air_cells,
         ),
         parent=parent.path,
     )
     run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
-    rollout = _rollout(scene, start, params, visual_settings, device, profile)
+    rollout = _rollout(scene, start, params, visual_settings, device, profile, air_cells)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
     for t in range(run.next_frame(), frame_range[1]):
         if context.should_cancel():
@@ -231,16 +233,20 @@ def _rollout(
     visual: VisualSettings,
     device: str,
     profile: HeightProfile | None,
+    air_cells: int = 0,
 ) -> Rollout:
     """The simulator of the parent's scene with the interventions, ready to continue `start`.
 
     New frame 0 is the step that begins at the start state's time; the interventions' frame
-    numbers are counted from there.
+    numbers are counted from there. With `air_cells` the air is an `AirGrid` that the wind
+    pushes (instead of the wind's uniformly accelerated air); it starts still at `start` (saved
+    frames do not hold the air yet).
     """
     config, box, source = scene.simulator_parts()
     applied = interventions(params, config, source, scene.up, start.particles.time)
+    air = AirGrid(box, air_cells, down=config.gravity, force=applied.force) if air_cells else applied.air
     return Rollout(
-        Simulator(config, box, source, force=applied.force, air=applied.air, device=device),
+        Simulator(config, box, source, force=applied.force, air=air, device=device),
         source_template(start, source.center),
         velocity_radius=visual.velocity_radius * config.h,
         per_physical=visual.per_physical,
@@ -248,6 +254,15 @@ def _rollout(
         ball=applied.ball,
         profile=profile,
     )
+
+
+def _air_cells(parent: Run) -> int:
+    """The air grid's cells a continuation of `parent` simulates with (0: still air): a
+    reconstruction's quality says it, a continuation passes it on; older runs have none."""
+    settings = parent.settings
+    if isinstance(settings, ReconstructSettings):
+        return int(settings.quality.get("air_cells", 0))
+    return settings.air_cells
 
 
 def _visual_settings(parent: Run) -> VisualSettings:

@@ -50,7 +50,7 @@ from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene
+from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
 from fluidcore.smoke import SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
@@ -96,6 +96,7 @@ class Reconstruction:
     stabilization_steps: int
     symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
+    source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     def scene(self) -> Scene:
@@ -114,6 +115,7 @@ class Reconstruction:
             physics=self.physics,
             symmetry=self.symmetry,
             source_hint=self.source_hint,
+            source_estimate=self.source_estimate,
             views=tuple({"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views),
         )
 
@@ -188,9 +190,15 @@ def prepare(
 
     if source is not None:
         source.check_in_box(*box)
+    estimate_record = None
     if source is None or source.radius is None:
         estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center)
         center, radius = estimate.center, estimate.radius
+        estimate_record = SourceEstimateRecord(
+            depth_cue=estimate.depth_cue,
+            depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
+            pixels={name: tuple(map(float, px)) for name, px in estimate.pixels.items()},
+        )
     else:
         center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
@@ -227,6 +235,7 @@ def prepare(
         symmetry=symmetry,
         flow=flow,
         source_hint=None if source is None else source.model_dump(mode="json"),
+        source_estimate=estimate_record,
     )
 
 
