@@ -14,11 +14,13 @@ PYTEST_ARGS ?= -n 2 -m "not slow and not gpu"
 
 venv: $(STAMP)
 
+# PYTHONWARNINGS below: setuptools' "Editable installation ... be careful with folders" notice
+# says nothing a user can act on, and pip would print it on every first `make run`.
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -c constraints.txt -e '.[test]'
+	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install -q -c constraints.txt -e '.[test]'
 	touch $(STAMP)
 
 # Fused CPU kernels (C++/OpenMP, loaded through ctypes); rebuilt when a source changes.

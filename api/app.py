@@ -15,6 +15,7 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
+from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, particles, scenes, webhooks
@@ -44,14 +45,17 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         app.state.validators.close()
         app.state.engine.dispose()
 
-    # FastAPIOffline: /docs and /redoc load Swagger UI / ReDoc from the installed package, not a CDN,
-    # so the reference renders on a machine without internet.
+    # FastAPIOffline: /docs loads Swagger UI from the installed package, not a CDN, so the reference
+    # renders on a machine without internet; /redoc likewise, with its logo made local (api.docs_pages).
     app = FastAPIOffline(
         title="FluidNexus",
         summary="Reconstruct smoke from video, predict it, and ask what-if questions.",
         version="0.1.0",
         lifespan=lifespan,
+        redoc_url=None,
+        favicon_url="/favicon.ico",
     )
+    add_redoc(app, app.title)
     app.state.settings = settings
     app.state.engine = make_engine(url, pool_size=admitted + 1)  # + the reaper's
     app.state.sessionmaker = make_sessionmaker(app.state.engine)

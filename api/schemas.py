@@ -92,6 +92,7 @@ class SceneOut(BaseModel):
     n_frames: int
     fps: float
     geometry: SceneGeometry | None = Field(default=None, description="GET /v1/scenes/{id} only (not in listings)")
+    reconstruct_job_id: str | None = Field(default=None, description="POST with `reconstruct` only: the queued reconstruction")
 
 
 class JobTimings(BaseModel):
@@ -159,6 +160,7 @@ class RunScene(BaseModel):
     box_hi: list[float] = Field(description="scene box, highest corner (world units)")
     up: list[float]
     source: dict[str, Any] = Field(description="the smoke source as the run recorded it (fluidcore.physics.Source)")
+    dt: float | None = Field(default=None, description="the simulation's time step, seconds (one video frame)")
 
 
 class ParticlesOut(BaseModel):

@@ -72,18 +72,33 @@ def _draw_wind(image: np.ndarray, camera: Camera, wind: WindParams, anchor: Sequ
         cv2.circle(image, a, max(3, image.shape[1] // 60), WIND_COLOR, 2, cv2.LINE_AA)
     else:
         cv2.arrowedLine(image, a, b, WIND_COLOR, max(2, image.shape[1] // 120), cv2.LINE_AA, tipLength=0.25)
-    _label(image, f"wind ({wind.profile})", (a[0] + 4, a[1] - 6))
+    _label(image, f"wind ({wind.profile})", (a[0] + 4, a[1] + 4))
 
 
-def _label(image: np.ndarray, text: str, origin: tuple[int, int]) -> None:
-    """White text on a dark box (readable on smoke and on background alike)."""
+LABEL_HEIGHT = 0.03  # text cap height as a fraction of the image's long side: 35 px on ScalarFlow's 1160 px views
+LABEL_MIN_SCALE = 0.35  # OpenCV font scale below which its strokes merge (about 8 px letters)
+LABEL_PAD = 2  # pixels of dark box around the text
+
+
+def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | None = None) -> None:
+    """White text on a dark box (readable on smoke and on background alike), sized with the image
+    and kept inside it: its top-left corner goes at `origin` or as near as fits, and it is shrunk
+    to fit `width` pixels (default: the image's width) so a small video shows it whole."""
     import cv2
 
-    scale = max(0.35, image.shape[1] / 900)
-    (width, height), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-    x, y = origin
-    cv2.rectangle(image, (x - 2, y - height - 2), (x + width + 2, y + baseline), (0, 0, 0), thickness=-1)
-    cv2.putText(image, text, origin, cv2.FONT_HERSHEY_SIMPLEX, scale, LABEL_COLOR, 1, cv2.LINE_AA)
+    height_px, width_px = image.shape[:2]
+    width = width_px if width is None else width
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    (unit_w, unit_h), _ = cv2.getTextSize(text, font, 1.0, 1)
+    wanted = LABEL_HEIGHT * max(height_px, width_px) / unit_h
+    fits = (min(width, width_px) - 2 * LABEL_PAD - 2) / unit_w
+    scale = min(max(LABEL_MIN_SCALE, wanted), fits)  # inside the image first, readable second
+    thickness = max(1, round(scale))
+    (text_w, text_h), baseline = cv2.getTextSize(text, font, scale, thickness)
+    x = min(max(origin[0], 2 * LABEL_PAD), max(2 * LABEL_PAD, width_px - text_w - 2 * LABEL_PAD))
+    y = min(max(origin[1], 2 * LABEL_PAD) + text_h, height_px - baseline - 2 * LABEL_PAD)
+    cv2.rectangle(image, (x - LABEL_PAD, y - text_h - LABEL_PAD), (x + text_w + LABEL_PAD, y + baseline), (0, 0, 0), thickness=-1)
+    cv2.putText(image, text, (x, y), font, scale, LABEL_COLOR, thickness, cv2.LINE_AA)
 
 
 def side_by_side(left: np.ndarray, right: np.ndarray, labels: tuple[str, str] = ("factual", "what-if")) -> np.ndarray:
@@ -93,9 +108,10 @@ def side_by_side(left: np.ndarray, right: np.ndarray, labels: tuple[str, str] = 
     gap = np.full((*left.shape[:2], max(2, left.shape[2] // 100), 3), 255, np.uint8)
     both = np.concatenate([np.array(left, copy=True), gap, np.array(right, copy=True)], axis=2)
     offset = left.shape[2] + gap.shape[2]
+    margin = max(LABEL_PAD, left.shape[2] // 100)
     for image in both:
-        _label(image, labels[0], (6, 18))
-        _label(image, labels[1], (offset + 6, 18))
+        _label(image, labels[0], (margin, margin), width=left.shape[2])
+        _label(image, labels[1], (offset + margin, margin), width=left.shape[2])
     return both
 
 

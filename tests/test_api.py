@@ -396,6 +396,45 @@ def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
         assert replayed.headers["idempotent-replayed"] == "true" and replayed.json()["id"] == retried.json()["id"]
 
 
+@pytest.mark.parametrize(
+    ("reconstruct_field", "status", "message"),
+    [
+        ('{"frames": [0, 500]}', 422, "reconstruct.frames: end 500 is past the scene's"),
+        ('{"quality": "ultra"}', 422, "reconstruct.quality"),
+        ('{"frames": [0', 422, "reconstruct: not JSON"),
+        ("[" * 2000 + "]" * 2000, 422, "reconstruct: not JSON (JSON nested too deeply)"),
+        ('{"frames": [0, NaN]}', 422, "reconstruct: not JSON"),
+        ('{"frames": [0, 2]}', 503, "broker"),  # accepted, but the queue is down: nothing is kept either
+    ],
+)
+def test_an_upload_whose_reconstruction_is_refused_stores_nothing(
+    tmp_path: Path, scene_dir: dict[str, Path], reconstruct_field: str, status: int, message: str
+) -> None:
+    for service in make_service(tmp_path, queue=RecordingQueue(fail=status == 503)):
+        alice = service.key("alice")
+        for attempt in range(2):  # a retry does not pile up copies either
+            response = service.client.post(
+                "/v1/scenes", files=upload_parts(scene_dir), data={"name": "test", "reconstruct": reconstruct_field}, headers=alice
+            )
+            assert response.status_code == status, response.text
+            assert message in response.json()["detail"]
+        assert service.storage.list("") == [] and service.count(Scene) == 0 and service.count(Job) == 0
+
+
+def test_an_upload_can_queue_its_reconstruction_in_the_same_request(service: Service, scene_dir: dict[str, Path]) -> None:
+    alice = service.key("alice")
+    response = service.client.post(
+        "/v1/scenes", files=upload_parts(scene_dir), data={"name": "plume", "reconstruct": '{"frames": [0, 2], "quality": "preview"}'},
+        headers=alice,
+    )
+    assert response.status_code == 201, response.text
+    scene = response.json()
+    job = service.client.get(f"/v1/jobs/{scene['reconstruct_job_id']}", headers=alice).json()
+    assert job["scene_id"] == scene["id"] and job["type"] == "reconstruct" and job["params"]["frames"] == [0, 2]
+    assert service.queue.sent == [(job["id"], "reconstruct")]
+    assert upload(service, alice, scene_dir).json()["reconstruct_job_id"] is None  # without the field: a scene only
+
+
 # -- artifacts and isolation ----------------------------------------------------------------------------
 
 def add_artifact(service: Service, job_id: str, name: str, data: bytes, kind: str = "video") -> None:

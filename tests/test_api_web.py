@@ -33,6 +33,15 @@ def test_pages_load_nothing_from_other_hosts(sqlite_service: Service, page: str)
         assert response.status_code == 200 and len(response.content) > 0, asset
 
 
+def test_redoc_draws_no_image_from_a_cdn_and_the_favicon_is_served(sqlite_service: Service) -> None:
+    html = sqlite_service.client.get("/redoc").text
+    bundle = sqlite_service.client.get(LOCAL_REF.search(html.split("<body>")[1]).group(1))
+    assert bundle.status_code == 200 and b"Redoc" in bundle.content
+    assert not re.findall(rb"https?://[^\"' ]+\.(?:svg|png|gif|jpe?g)", bundle.content)  # offline: no broken image
+    icon = sqlite_service.client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.content[:4] == b"\x00\x00\x01\x00"  # an ICO file
+
+
 def test_swagger_page_loads_the_bundle_and_the_schema(sqlite_service: Service) -> None:
     html = sqlite_service.client.get("/docs").text
     assert "swagger-ui-bundle.js" in html and "/openapi.json" in html

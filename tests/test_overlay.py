@@ -58,3 +58,37 @@ def test_side_by_side_keeps_both_videos() -> None:
     assert np.all(both[:, 30:, :50] == 0) and np.all(both[:, 30:, -50:] == 200)
     with pytest.raises(ValueError, match="differ in shape"):
         side_by_side(left, right[:, :20])
+
+
+def _dark_box(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the label's black box (the frames here are grey, the arrow blue)."""
+    return np.nonzero(np.all(image == 0, axis=-1))
+
+
+@pytest.mark.parametrize("size", [(96, 96), (1160, 648), (480, 270)])
+def test_wind_label_stays_inside_the_frame_and_grows_with_it(size: tuple[int, int]) -> None:
+    height, width = size
+    camera = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 1.2 * width, 1.2 * width, width / 2, height / 2, width, height, np.eye(4)), "c")
+    wind = parse_interaction({"direction": [1, 0, 0], "strength": 1.0}, None)  # the longest label: "wind (exponential)"
+    frame = np.full((1, height, width, 3), 128, np.uint8)
+    out = draw_interventions(frame, camera, [1], wind, first_new_frame=1, dt=DT, anchor=[0.1, 0.8, 0], arrow_length=0.3)[0]
+    rows, cols = _dark_box(out)
+    assert rows.size, "no label drawn"
+    assert rows.min() > 0 and cols.min() > 0 and rows.max() < height - 1 and cols.max() < width - 1
+    white = np.all(out > 200, axis=-1)  # the text (anti-aliased); the grey frame is 128, the arrow blue
+    text_rows = np.nonzero(white.any(axis=1))[0]
+    assert text_rows.size and (text_rows.max() - text_rows.min()) >= 0.015 * max(size)  # readable in a player
+
+
+@pytest.mark.parametrize("size", [(32, 48), (1160, 648)])
+def test_side_by_side_titles_are_whole_and_scale_with_the_frames(size: tuple[int, int]) -> None:
+    height, width = size
+    grey = np.full((1, height, width, 3), 128, np.uint8)
+    both = side_by_side(grey, grey)[0]
+    half = both.shape[1] // 2
+    for part in (both[:, :half], both[:, half:]):
+        rows, cols = _dark_box(part)
+        assert rows.size and rows.min() > 0  # the box (and so the title in it) is not cut at the top
+        assert np.all(part > 200, axis=-1).any()  # some text is drawn in it
+    rows, _ = _dark_box(both)
+    assert rows.max() - rows.min() >= 0.025 * max(size) or max(size) < 100  # a title a viewer can read at that size

@@ -29,3 +29,18 @@ def test_bench_render_rejects_bad_choices() -> None:
     for args in (["--channels", "2"], ["--backend", "opengl"], ["--size", "48by64"]):
         result = CliRunner().invoke(app, ["bench", "render", *args, "--gaussians", "10"])
         assert result.exit_code == 2, args
+
+
+def test_bench_whatif_render_times_simulating_and_rendering_a_what_if(tmp_path) -> None:  # noqa: ANN001
+    from predict_scenes import plume_run
+
+    parent = plume_run(tmp_path / "parent", frames=3, warmup=10)
+    result = CliRunner().invoke(
+        app, ["bench", "whatif_render", "--run", str(parent), "--frames", "2", "--repeats", "1", "--threads", "1", "--json"]
+    )
+    assert result.exit_code == 0, result.output
+    report = json.loads(result.stdout)
+    assert report["simulate_s"] > 0 and report["render_s"] > 0 and 0 < report["render_share"] < 1
+    assert 0 < report["render_cpu_share"] < 1
+    assert report["videos"] == report["video_frames"] // 2  # every video as long as the 2-frame what-if
+    assert len(report["rows"]) == 1

@@ -67,3 +67,29 @@ def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, 
     np.testing.assert_array_equal(both[:, 30:, -96:], artifacts.render_frames(run, large, interventions=True)[:, 30:])
     if from_frame == 2:  # the parent holds frames 3..5: they are the factual side
         np.testing.assert_array_equal(both[:, 30:, :96], artifacts.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
+
+
+def test_what_if_artifacts_report_progress_per_frame_and_share_one_length(what_if: Run, tmp_path: Path) -> None:
+    seen: list[tuple[float, str]] = []
+    files = artifacts.render_artifacts(what_if.path, tmp_path / "videos", progress=lambda f, s: seen.append((f, s)))
+    inputs = what_if.manifest["input_views"]
+    assert sorted(f.name for f in files) == sorted([*(f"{n}.mp4" for n in inputs), "orbit.mp4", "side_by_side.mp4"])
+    n = len(what_if.frames())
+    assert len(seen) == n * (len(inputs) + 2)  # every input view, the orbit, the factual side
+    assert [f for f, _ in seen] == sorted(f for f, _ in seen) and seen[-1] == (1.0, "render") and seen[0][0] < 0.5
+    assert {video.probe(f).n_frames for f in files} == {n}  # one length: the players stay in step
+
+
+def test_orbit_of_a_what_if_draws_the_ball(what_if: Run) -> None:
+    drawn = artifacts.render_orbit(what_if, interventions=True)
+    plain = artifacts.render_orbit(what_if)
+    assert drawn.shape == plain.shape and drawn.shape[0] == len(what_if.frames())
+    assert np.all(np.any(drawn != plain, axis=(1, 2, 3)))  # on every frame of the turn
+
+
+def test_published_videos_are_scaled_to_the_fit_size(what_if: Run, tmp_path: Path) -> None:
+    camera = what_if.cameras()[what_if.manifest["input_views"][0]]
+    long_side = max(camera.width, camera.height) // 2
+    artifacts.render_artifacts(what_if.path, tmp_path / "videos", long_side=long_side)
+    info = video.probe(tmp_path / "videos" / "orbit.mp4")
+    assert max(info.width, info.height) in (long_side, long_side + 1)  # + 1: MP4 pads odd sizes

@@ -1,8 +1,9 @@
 """The browser UI in headless Chromium (Debian's `chromium`, driven by the `playwright` package)
 against a real `fluidnexus serve` with its embedded worker running fluidcore's pipeline on a
-tiny synthetic scene: sign in (a wrong key first), upload (a bad upload first), reconstruct,
-chain a prediction onto the running reconstruction, play the results, refuse a ball outside
-the box, run a wind and a ball what-if and play each next to the factual prediction.
+tiny synthetic scene: sign in (a wrong key first), upload (a bad upload first, and a frame range
+past the clip, refused with nothing stored), reconstruct, chain a prediction onto the running
+reconstruction, play the results in sync and list their MP4s, refuse a ball outside the box,
+run a wind what-if branched at a chosen frame and a ball what-if, and play each.
 
 One journey in one test: the reconstruction it waits for is what every later step needs.
 Screenshots of every screen go to docs/screens/ (README shows them) when
@@ -111,6 +112,23 @@ def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
                            timeout=30_000)
 
 
+def players_in_sync(page) -> None:  # type: ignore[no-untyped-def]
+    """Every player's video has the leader's length, and over a second of playing none drifts from it."""
+    page.wait_for_function("() => [...document.querySelectorAll('#players video')].every(v => v.readyState >= 1)")
+    durations = page.evaluate("() => [...document.querySelectorAll('#players video')].map(v => v.duration)")
+    assert max(durations) - min(durations) < 0.05, durations  # one length: none stops or loops early
+    drift = page.evaluate("""() => new Promise(done => {
+        const videos = [...document.querySelectorAll('#players video')], end = performance.now() + 1000;
+        let worst = 0;
+        const look = () => {
+            const lead = videos[0].currentTime;
+            for (const v of videos.slice(1)) worst = Math.max(worst, Math.abs(v.currentTime - lead));
+            if (performance.now() < end) requestAnimationFrame(look); else done(worst);
+        };
+        requestAnimationFrame(look); })""")
+    assert drift < 0.2, drift  # the sync loop nudges followers past 0.08 s; a frame of rAF delay on top
+
+
 def test_browser_journey(server: Server, browser, scene: dict, screens: Path) -> None:  # type: ignore[no-untyped-def]
     page = browser.new_page(viewport={"width": 1366, "height": 900})
     page.set_default_timeout(30_000)
@@ -148,12 +166,18 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     if (scalarflow / "transforms.json").is_file():
         page.get_by_role("button", name="Clear").click()
         page.locator("#upload-files").set_input_files([scalarflow / "transforms.json", scalarflow / "videos" / "input_view_02.mp4"])
-        sync_api.expect(page.locator("#video-list")).to_contain_text("648x1160, 4.00 s → camera view_02")
+        sync_api.expect(page.locator("#video-list")).to_contain_text("648x1160, 4.00 s, 120 frames → camera view_02")
         sync_api.expect(page.locator("#camera-summary")).to_contain_text("5 cameras")
         sync_api.expect(page.locator("#upload-problems")).to_be_empty()
+        page.get_by_label("End frame").fill("500")  # the issue's case: refused before anything is sent
+        sync_api.expect(page.locator("#upload-problems")).to_contain_text(
+            "End frame 500 is past the video: input_view_02.mp4 has 120 frames (4.00 s at 30 fps)")
+        sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+        page.get_by_label("End frame").fill("")
         page.screenshot(path=screens / "upload-scalarflow.png", full_page=True)
 
-    page.get_by_role("button", name="Clear").click()
+    # from the keyboard: a pointer click here can miss while the problem list above it shrinks
+    page.get_by_role("button", name="Clear").press("Enter")
     drop(page, scene["cameras"])
     sync_api.expect(page.locator("#camera-summary")).to_contain_text("nerfstudio transforms.json")
     page.locator("#upload-files").set_input_files(scene["videos"])
@@ -166,7 +190,13 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    page.get_by_label("End frame").fill("3")  # a range past the 2-frame clip: refused, nothing stored
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("End frame 3 is past the video")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    page.get_by_label("Scene name").press("Enter")  # the keyboard cannot send it either
+    assert server.client.get("/v1/scenes").json()["total"] == 0
     page.get_by_label("End frame").fill("2")
+    page.get_by_label("Scene name").fill("plume")
     page.screenshot(path=screens / "upload.png", full_page=True)
     # Sent from the keyboard: a pointer click here missed in a checkout without ../shared (its
     # mousedown and mouseup met different elements, so the click went to the form itself).
@@ -175,6 +205,8 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05} and sent["physics"] == "auto"
+    assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
+    sync_api.expect(row(page, "reconstruct").locator(".job-origin")).to_contain_text("scene plume")
 
     # chaining: a prediction started on the unfinished reconstruction waits for it; one is
     # cancelled while it waits and sent again with Retry
@@ -187,13 +219,23 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#jobs-table tbody tr")).to_have_count(3)
     sync_api.expect(row(page, "predict").locator(".job-state")).to_have_text("queued")
     page.screenshot(path=screens / "jobs.png", full_page=True)
+    page.set_viewport_size({"width": 600, "height": 900})  # a narrow window keeps the Actions column in view
+    box = row(page, "reconstruct").get_by_role("button", name="Predict").bounding_box()
+    assert box is not None and box["x"] + box["width"] <= 600, box
+    page.set_viewport_size({"width": 1366, "height": 900})
     wait_succeeded(page, 2)
 
-    # results: players in sync, plots from the manifest, downloads
+    # results: players of one length in sync, plots from the manifest, downloads of the MP4s too
     row(page, "reconstruct").get_by_role("button", name="Results").click()
     play_first_video(page)
+    players_in_sync(page)
     sync_api.expect(page.locator("#plots figure")).to_have_count(4)
+    # forecast PSNR (tens of dB) is drawn with the input view's PSNR, not on the loss axis
+    sync_api.expect(page.locator("#plots figure[aria-label='Loss per frame']")).not_to_contain_text("forecast")
+    sync_api.expect(page.locator("#plots figure[aria-label='PSNR of the input view']")).to_contain_text("forecast")
     sync_api.expect(page.locator("#downloads a", has_text="manifest.json")).to_have_count(1)
+    sync_api.expect(page.locator("#downloads a", has_text="orbit.mp4")).to_have_count(1)
+    sync_api.expect(page.locator("#downloads a", has_text=".mp4")).to_have_count(len(scene["videos"]) + 1)
     page.screenshot(path=screens / "results.png", full_page=True)
 
     # what-if: the ball outside the box is refused with the box's limits; wind, then ball, are sent
@@ -206,16 +248,26 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#whatif-problems")).to_contain_text("Ball centre x = 1000 is outside the scene box: x must be from")
     page.screenshot(path=screens / "whatif-refused.png", full_page=True)
     page.get_by_label("Ball", exact=True).uncheck()
+    # the default wind comes from the scene: a quarter of the box's width in 15 frames from rest
+    rec_id = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["id"]
+    run_scene = server.client.get(f"/v1/jobs/{rec_id}/particles").json()["scene"]
+    width, seconds = run_scene["box_hi"][0] - run_scene["box_lo"][0], 15 * run_scene["dt"]
+    assert float(page.get_by_label("Strength").input_value()) == pytest.approx(2 * 0.25 * width / seconds**2, rel=1e-2)
     page.get_by_label("Strength").fill("1000")  # allowed in general, too strong for this scene: the server says so
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#whatif-error")).to_contain_text("Refused: params: wind.strength 1000", timeout=SERVER_MS)
     page.get_by_label("Strength").fill("2")
+    page.get_by_label("Branch at frame").fill("5")  # not a frame of the 2-frame run
+    sync_api.expect(page.locator("#whatif-problems")).to_contain_text("Branch frame 5 is not a finished frame of the run")
+    page.get_by_label("Branch at frame").fill("0")  # what if it had blown from the first frame on
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
+    sync_api.expect(row(page, "interact").locator(".job-params")).to_contain_text("from frame 0, wind 2")
 
     row(page, "reconstruct").get_by_role("button", name="What-if").click()
     sync_api.expect(page.locator("#box-limits")).to_contain_text("Scene box")
     page.get_by_label("New frames to simulate").fill(str(NEW_FRAMES))
+    page.get_by_label("Branch at frame").fill("")  # from the run's last frame
     page.get_by_label("Wind", exact=True).uncheck()
     page.get_by_label("Ball", exact=True).check()
     page.get_by_label("ball centre x").fill("0")  # the synthetic scene's box is centred on x = 0
@@ -225,16 +277,20 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")
     wait_succeeded(page, 4)  # reconstruct, the factual prediction, two what-ifs: no second factual
 
-    for nth, shot in ((0, "whatif-results.png"), (1, None)):
+    for nth, shot in ((0, "whatif-results.png"), (1, "whatif-branch-results.png")):
         page.get_by_role("button", name="Jobs").click()
         short_id = row(page, "interact", nth).locator(".job-id").text_content()
         row(page, "interact", nth).get_by_role("button", name="Results").click()
         sync_api.expect(page.locator("#results-title")).to_have_text(f"Results of interact {short_id}")
-        sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
-        sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")
+        if nth == 0:  # the ball, from the run's last frame: next to the factual prediction
+            sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
+            sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")
+        else:  # the wind branched at frame 0: its side-by-side shows the run without the wind
+            sync_api.expect(page.locator("#results-summary")).to_contain_text("branched at frame 0")
+            sync_api.expect(page.locator("#players select").nth(1).locator("option:checked")).to_have_text("what-if: side by side")
         play_first_video(page)
-        if shot:
-            page.screenshot(path=screens / shot, full_page=True)
+        players_in_sync(page)
+        page.screenshot(path=screens / shot, full_page=True)
 
     # a key revoked while signed in: the next poll sends the page back to sign-in, saying why
     key_id = server.client.headers["Authorization"].split("_")[1]
@@ -307,6 +363,30 @@ def test_browser_camera_reader_agrees_with_fluidcore(static_web: str, browser, t
         lo, hi = scene_box(path)
         np.testing.assert_allclose(parsed["box"]["lo"], lo, atol=1e-9)
         np.testing.assert_allclose(parsed["box"]["hi"], hi, atol=1e-9)
+    page.close()
+
+
+def test_browser_frame_count_agrees_with_the_server(static_web: str, browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """web/js/mp4.js (the upload form's frame-range check) counts the frames fluidcore.video.probe
+    (the server's check) counts, at their rate; a file that is not an MP4 gives null."""
+    import base64
+
+    from fluidcore.video import probe
+    from service_support import write_video
+
+    videos = [write_video(tmp_path / "a.mp4", n_frames=2), write_video(tmp_path / "b.mp4", n_frames=40, fps=10.0)]
+    scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "videos" / "input_view_02.mp4"
+    videos += [scalarflow] if scalarflow.is_file() else []
+    page = browser.new_page()
+    page.goto(static_web + "vendor/README.md")
+    count = """async ([name, data]) => (await import('/js/mp4.js')).mp4Frames(
+        new File([Uint8Array.from(atob(data), c => c.charCodeAt(0))], name))"""
+    for path in videos:
+        counted = page.evaluate(count, [path.name, base64.b64encode(path.read_bytes()).decode()])
+        info = probe(path)
+        assert counted["frames"] == info.n_frames, path
+        assert abs(counted["fps"] - info.fps) < 1e-3 * info.fps, path
+    assert page.evaluate(count, ["x.mp4", base64.b64encode(b"not a video at all" * 10).decode()]) is None
     page.close()
 
 

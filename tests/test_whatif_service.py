@@ -62,3 +62,18 @@ def test_interact_runner_branches_and_returns_side_by_side_and_exports(tmp_path:
     assert published["orbit.mp4"] == ("videos", "orbit")
     exports = {name for name, (folder, kind) in published.items() if (folder, kind) == ("exports", "export")}
     assert len(exports) == len(EXPORTERS) + 1 and {"splats_000003.ply", "smoke_000002.vdb", "smoke_000003.vdb"} <= exports
+
+
+def test_interact_runner_moves_progress_through_the_render_stage(tmp_path: Path) -> None:
+    parent = plume_run(tmp_path / "parent", frames=4)
+    seen: list[tuple[float, str]] = []
+    inputs = RunInputs(
+        job_id="j", job_type=JobType.INTERACT, run_dir=tmp_path / "run", render_dir=tmp_path / "out", device="cpu",
+        params={"frames": 2, "wind": {"direction": [1, 0, 0], "strength": 0.3}},
+        progress=lambda fraction, stage: seen.append((fraction, stage)), should_cancel=lambda: False, parent_run=parent,
+    )
+    interact(inputs)
+    fractions = [f for f, _ in seen]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0  # never backwards, full at the end
+    rendering = [f for f, stage in seen if stage == "render"]
+    assert len(set(rendering)) > 4 and rendering[0] < 0.9  # moves per rendered frame, not stuck near the end

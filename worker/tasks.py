@@ -10,9 +10,11 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 from functools import lru_cache
 
 from celery import Task
+from celery.exceptions import SecurityWarning
 from celery.signals import worker_process_init, worker_process_shutdown
 
 from fluidcore.errors import internal_error
@@ -30,6 +32,11 @@ from worker.runners import load_runners
 log = logging.getLogger(__name__)
 settings = get_settings()
 app = make_celery(settings)
+EMBEDDED = "FLUIDNEXUS_EMBEDDED_WORKER"  # set by `fluidnexus serve` for the worker it starts
+if os.environ.get(EMBEDDED) == "1":
+    # The embedded worker runs as whoever ran the server (root in a container); Celery's
+    # running-as-root warning tells them nothing they did not choose. A standalone worker keeps it.
+    warnings.filterwarnings("ignore", category=SecurityWarning)
 
 
 @worker_process_init.connect

@@ -15,13 +15,12 @@ from sqlalchemy.orm import Session
 from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.errors import StrictJSONRoute, error_responses
 from api.idempotency import replay
-from api.routers.scenes import capture_geometry_of, owned_scene
+from api.routers.scenes import capture_geometry_of, check_reconstruct_params, owned_scene
 from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
 from service import webhooks
 from service.chaining import release_children, waiting_stage
-from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError
 from service.job_types import InteractParams, JobType
-from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.models import Artifact, Job, JobState, utcnow
 from service.queue import QueueUnavailable
 from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, job_prefix, log_key, run_prefix
@@ -196,14 +195,8 @@ def _check_references(
     Returns the parent's id when the new job has to wait for it (queued or running)."""
     if JobType(request.type).starts_from == "scene":
         scene = owned_scene(session, request.scene_id, owner)
-        frames = request.params.frames
-        if frames is not None and frames[1] > scene.n_frames:
-            raise HTTPException(
-                status.HTTP_422_UNPROCESSABLE_CONTENT,
-                f"params.frames: end {frames[1]} is past the scene's {scene.n_frames} frames",
-            )
-        if getattr(request.params, "source", None) is not None:
-            _check_source_in_box(storage, scene, request.params.source)
+        box = capture_geometry_of(storage, scene)["box"] if request.params.source is not None else None
+        check_reconstruct_params(request.params, scene.n_frames, box, "params")
         return None
     # Any job can be continued: every job type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
@@ -222,17 +215,6 @@ def _check_references(
     if isinstance(request.params, InteractParams):
         _check_in_run_scene(storage, parent.id, request.params)
     return None
-
-
-def _check_source_in_box(storage: Storage, scene: Scene, source: SourceHint) -> None:
-    """A source hint outside the capture's scene box is refused before anything is queued."""
-    box = capture_geometry_of(storage, scene)["box"]
-    if box is None:
-        return  # the reconstruction refuses such a capture itself, with its own reason
-    try:
-        source.check_in_box(box["min"], box["max"])
-    except SourceHintError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.{exc}") from None
 
 
 def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams) -> None:

@@ -58,7 +58,7 @@ def get_particles(
         frames=frames,
         total=len(positions),
         positions=np.round(positions[keep], 5).astype(float).ravel().tolist(),
-        scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"]),
+        scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"], dt=scene.physics.dt),
     )
 
 

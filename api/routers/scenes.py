@@ -9,18 +9,21 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
+from pydantic import ValidationError
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, SessionDep, SettingsDep, StorageDep, ValidatorsDep
-from api.errors import error_responses
+from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
+from api.errors import error_responses, strict_json
 from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
-from service.job_types import JobType
+from fluidcore.reconstruct.source_hint import SourceHintError
+from service.job_types import JobType, ReconstructParams
 from service.models import Job, JobState, Scene, new_id
+from service.queue import QueueUnavailable
 from service.storage import Storage, run_prefix, scene_prefix
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
@@ -46,6 +49,7 @@ def create_scene(
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
+    queue: QueueDep,
     validators: ValidatorsDep,
     response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
@@ -58,6 +62,10 @@ def create_scene(
     distance: Annotated[float, Form(description="with fov: camera distance from the scene centre, world units")] = 1.0,
     up: Annotated[str, Form(description="with fov: where world up points in the image: up, down, left, right")] = "up",
     name: Annotated[str, Form(max_length=256)] = "",
+    reconstruct: Annotated[
+        str | None,
+        Form(max_length=4096, description="queue a reconstruction of the scene: its params as JSON, as in POST /v1/jobs"),
+    ] = None,
     idempotency_key: Annotated[str | None, Header(max_length=256)] = None,
 ) -> SceneOut:
     """Validate the whole upload (cameras parse, videos decode, names and sizes match, limits), then store it.
@@ -65,10 +73,15 @@ def create_scene(
     Without a cameras file, `fov` (and `distance`, `up`) declare the one video's camera and scene
     box as `fluidnexus cameras single` does. A repeated upload with the same `Idempotency-Key`
     returns the first scene (a client that timed out can retry without making a second one);
-    the same key with different files or fields is 422. The scene is stored whole or not at all."""
+    the same key with different files or fields is 422. The scene is stored whole or not at all.
+    With `reconstruct`, its params are checked against the upload (frames within the videos,
+    source inside the box) before anything is stored, and the scene and its queued
+    reconstruction are stored together: a refused reconstruction (422) or an unreachable queue
+    (503) leaves no scene behind, so a retry never piles up copies."""
     idempotency_key = idempotency_key or None  # an empty header is no key
     if (cameras is None) == (fov is None):
         raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
+    params = None if reconstruct is None else parse_reconstruct(reconstruct)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)
         cameras_name = None
@@ -83,19 +96,26 @@ def create_scene(
             sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
         request_hash = None
         if idempotency_key is not None:
-            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name])
+            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name, reconstruct])
             if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
                 response.headers["Idempotent-Replayed"] = "true"
-                return scene_out(existing, scene_geometry(session, storage, existing))
+                return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
         single = None if fov is None else (fov, distance, up)
         validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
+        if params is not None:
+            check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
+        job = None
         try:
             scene = _scene_row(scene_id, owner, name, validated, keys)
             scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
             session.add(scene)
+            if params is not None:
+                session.flush()  # the scene row first: the job refers to it
+                job = Job(owner=owner, type=JobType.RECONSTRUCT, scene_id=scene_id, params=params.model_dump(mode="json"))
+                session.add(job)
             session.commit()
         except BaseException as exc:
             session.rollback()
@@ -106,9 +126,46 @@ def create_scene(
                 existing = replay(session, Scene, owner, idempotency_key, request_hash)
                 if existing is not None:
                     response.headers["Idempotent-Replayed"] = "true"
-                    return scene_out(existing, scene_geometry(session, storage, existing))
+                    return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
             raise
-    return scene_out(scene, SceneGeometry.model_validate(geometry))
+        if job is not None:
+            try:
+                job.task_id = queue.enqueue(job.id, job.type)
+                session.commit()
+            except QueueUnavailable as exc:  # nothing was queued: take the upload back
+                session.delete(job)
+                session.delete(scene)
+                session.commit()
+                for key in keys.values():
+                    storage.delete(key)
+                raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+    return scene_out(scene, SceneGeometry.model_validate(geometry), job)
+
+
+def parse_reconstruct(text: str) -> ReconstructParams:
+    """The `reconstruct` form field: a reconstruction's params as JSON; 422 naming the field."""
+    try:
+        return ReconstructParams.model_validate(strict_json(text.encode()))  # no NaN, no deep nesting
+    except json.JSONDecodeError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"reconstruct: not JSON ({exc.msg})") from None
+    except ValidationError as exc:
+        where = "; ".join(f"reconstruct.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, where) from None
+
+
+def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict[str, Any] | None, field: str) -> None:
+    """A reconstruction against its scene: frames within the videos, the source hint inside the
+    scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
+    One check for POST /v1/jobs and for an upload that asks for a reconstruction."""
+    if params.frames is not None and params.frames[1] > n_frames:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.frames: end {params.frames[1]} is past the scene's {n_frames} frames"
+        )
+    if params.source is not None and box is not None:
+        try:
+            params.source.check_in_box(box["min"], box["max"])
+        except SourceHintError as exc:
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.{exc}") from None
 
 
 def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
@@ -119,6 +176,16 @@ def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fiel
         with safe_join(folder, filename).open("rb") as handle:
             digest.update(hashlib.file_digest(handle, "sha256").digest())
     return digest.hexdigest()
+
+
+def _queued_with(session: Session, scene: Scene, reconstruct: str | None) -> Job | None:
+    """The reconstruction an upload with a `reconstruct` field queued with its scene (a replayed
+    upload answers with it); None for an upload without one."""
+    if reconstruct is None:
+        return None
+    return session.scalars(
+        select(Job).where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT).order_by(Job.created_at).limit(1)
+    ).first()
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -222,7 +289,7 @@ def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, 
     )
 
 
-def scene_out(scene: Scene, geometry: SceneGeometry | None = None) -> SceneOut:
+def scene_out(scene: Scene, geometry: SceneGeometry | None = None, job: Job | None = None) -> SceneOut:
     return SceneOut(
         id=scene.id,
         name=scene.name,
@@ -232,4 +299,5 @@ def scene_out(scene: Scene, geometry: SceneGeometry | None = None) -> SceneOut:
         n_frames=scene.n_frames,
         fps=scene.fps,
         geometry=geometry,
+        reconstruct_job_id=None if job is None else job.id,
     )

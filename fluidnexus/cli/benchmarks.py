@@ -9,6 +9,7 @@ import typer
 
 BENCHMARKS: tuple[str, ...] = (
     "reconstruct", "predict", "generalise", "source", "metrics", "physics", "render", "generative", "load", "upload_attacks",
+    "whatif_render",
 )
 
 

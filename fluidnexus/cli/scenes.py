@@ -116,10 +116,8 @@ def render(
     as_json: bool = JSON_OPT,
 ) -> None:
     """Render a run's frames from one of its cameras, a camera of another file, or an orbit around the scene."""
-    import numpy as np
-
     from fluidcore import cameras as camera_io
-    from fluidcore.artifacts import orbit_cameras, render_frames
+    from fluidcore.artifacts import render_frames, render_orbit
     from fluidcore.jobs import parse_frames
     from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4
@@ -134,9 +132,7 @@ def render(
         draw = the_run.kind is RunKind.INTERACT if interventions is None else interventions
         selected = _select_frames(the_run.frames(), parse_frames(frames))
         if camera == "orbit" and cameras is None:
-            video = np.concatenate(
-                [render_frames(the_run, cam, [t], device, draw) for cam, t in zip(orbit_cameras(the_run, len(selected)), selected)]
-            )
+            video = render_orbit(the_run, selected, device, draw)
         else:
             available = camera_io.load(cameras) if cameras is not None else the_run.cameras()
             if camera not in available:

@@ -153,7 +153,7 @@ class WorkerSupervisor:
 def _start_worker(data_dir: Path) -> subprocess.Popen[bytes]:
     """One Celery worker on the `gpu` queue, concurrency 1 (one job at a time on this machine),
     at a lower CPU priority than the API (`WORKER_NICE`)."""
-    env = {**os.environ, "FLUIDNEXUS_DATA_DIR": str(data_dir)}
+    env = {**os.environ, "FLUIDNEXUS_DATA_DIR": str(data_dir), "FLUIDNEXUS_EMBEDDED_WORKER": "1"}  # worker.tasks.EMBEDDED
     command = [
         sys.executable, "-m", "celery", "-A", "worker.tasks", "worker", "--queues", "gpu", "--concurrency", "1",
         "--pool", "prefork", "--loglevel", "INFO", "--without-gossip", "--without-mingle", "--without-heartbeat",

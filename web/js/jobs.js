@@ -8,6 +8,7 @@ const POLL_MS = 2000;
 const FINISHED = new Set(["succeeded", "failed", "cancelled"]);
 
 export const jobs = new Map(); // id -> the latest JobOut
+const sceneNames = new Map(); // scene id -> the name given at upload
 const rows = new Map(); // id -> {tr, state}
 let actions = {};
 let timer = null;
@@ -16,11 +17,28 @@ const isFinished = (job) => FINISHED.has(job.state);
 export const shortId = (id) => id.slice(0, 8);
 export const describeJob = (job) => `${job.type} ${shortId(job.id)}`;
 
-/** What a job continues: its scene, or its parent job. */
+/** What a job continues: its scene (by the name given at upload), or its parent job. */
 function origin(job) {
-  if (job.scene_id) return `scene ${shortId(job.scene_id)}`;
+  if (job.scene_id) return `scene ${sceneNames.get(job.scene_id) || shortId(job.scene_id)}`;
   const parent = jobs.get(job.parent_job_id);
   return `after ${parent ? describeJob(parent) : shortId(job.parent_job_id)}`;
+}
+
+const num = (x) => Number(x.toFixed(3)).toString();
+const vector = (v) => `(${v.map(num).join(", ")})`;
+
+/** A job's parameters in a few words, so rows of the same type tell apart. */
+function paramSummary(job) {
+  const p = job.params || {};
+  const parts = [];
+  if (job.type === "reconstruct") {
+    parts.push(p.quality);
+    if (p.frames) parts.push(`frames ${p.frames[0]}–${p.frames[1] - 1}`);
+  } else if (p.frames) parts.push(`${p.frames} new frames`);
+  if (p.from_frame != null) parts.push(`from frame ${p.from_frame}`);
+  if (p.wind) parts.push(`wind ${num(p.wind.strength)} ${p.wind.profile || ""} toward ${vector(p.wind.direction)}`.replace("  ", " "));
+  if (p.ball) parts.push(`ball r ${num(p.ball.radius)} at ${vector(p.ball.center)}`);
+  return parts.filter(Boolean).join(", ");
 }
 
 /** The request that created a job, to send again (Retry). */
@@ -33,6 +51,9 @@ export function requestOf(job) {
 export async function refreshJobs() {
   const page = await api("/v1/jobs?limit=100");
   for (const job of page.items) jobs.set(job.id, job);
+  if (page.items.some((job) => job.scene_id && !sceneNames.has(job.scene_id))) {
+    for (const scene of (await api("/v1/scenes?limit=100")).items) sceneNames.set(scene.id, scene.name || shortId(scene.id));
+  }
   return page.items;
 }
 
@@ -66,6 +87,7 @@ function newRow(job) {
   const tr = document.createElement("tr");
   tr.dataset.jobId = job.id;
   tr.innerHTML = `<td><span class="job-title"></span> <span class="job-id"></span><br><span class="help job-origin"></span>
+    <br><span class="help job-params"></span>
     <p class="error job-error"></p></td><td class="job-state"></td><td class="job-stage"></td>
     <td><progress max="1"></progress> <span class="job-percent"></span></td><td class="job-actions"></td>`;
   tr.querySelector(".job-title").id = `job-${job.id}`;
@@ -82,6 +104,7 @@ function updateRow(job) {
   tr.querySelector(".job-title").textContent = job.type;
   tr.querySelector(".job-id").textContent = shortId(job.id);
   tr.querySelector(".job-origin").textContent = `${origin(job)}, ${new Date(job.timings.created_at).toLocaleString()}`;
+  tr.querySelector(".job-params").textContent = paramSummary(job);
   const stateCell = tr.querySelector(".job-state");
   stateCell.textContent = job.cancel_requested && !isFinished(job) ? `${job.state} (cancelling)` : job.state;
   stateCell.className = `job-state state-${job.state}`;

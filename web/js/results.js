@@ -1,6 +1,6 @@
 // Results view: MP4 players side by side and in sync (input view, any camera, the orbit; for a
 // what-if, next to the factual prediction from the same frame), per-frame plots from the run
-// manifest, and downloads of the particle states and the manifest.
+// manifest, and downloads of everything the job published (videos, exports, states, manifest).
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
@@ -12,7 +12,7 @@ let plots = [];
 
 /** Video choices of one job: [{label, url, camera}] with the orbit last. */
 function videoChoices(artifacts, prefix) {
-  const name = (a) => (a.kind === "video" ? `camera ${a.camera}` : a.kind.replace("_", " "));
+  const name = (a) => (a.kind === "video" ? `camera ${a.camera}` : a.kind.replaceAll("_", " "));
   return artifacts.filter((a) => a.kind === "video" || a.kind === "orbit" || a.kind === "side_by_side")
     .map((a) => ({ label: `${prefix}${name(a)}`, url: a.presigned_url, camera: a.kind === "video" ? a.camera : null, kind: a.kind }))
     .sort((a, b) => (a.camera === null) - (b.camera === null));
@@ -34,9 +34,11 @@ function playerPlan(job, manifest, own, factual) {
     ];
   }
   const other = mine.findIndex((c) => c.camera !== null && c.camera !== input);
+  const sideBySide = mine.findIndex((c) => c.kind === "side_by_side"); // a what-if without its factual twin
   return [
     { title: "Input view", choices: mine, initial: pick(mine, input) },
-    { title: "Another camera", choices: mine, initial: other >= 0 ? other : pick(mine, input) },
+    { title: sideBySide >= 0 ? "Factual | what-if" : "Another camera", choices: mine,
+      initial: sideBySide >= 0 ? sideBySide : other >= 0 ? other : pick(mine, input) },
     { title: "Orbit", choices: mine, initial: orbit(mine) },
   ];
 }
@@ -53,12 +55,16 @@ function player({ title, choices, initial }, index) {
   choices.forEach((choice, i) => select.append(new Option(choice.label, String(i))));
   select.value = String(initial);
   const label = Object.assign(document.createElement("label"), { htmlFor: select.id, textContent: title });
+  video.loop = true; // a shorter video starts again rather than stopping while the others play
   const show = () => {
     const leader = document.querySelector("#players video");
     const time = leader && leader !== video ? leader.currentTime : 0;
     video.src = choices[Number(select.value)].url;
     video.currentTime = time;
   };
+  video.addEventListener("loadedmetadata", () => { // portrait videos get a taller frame than landscape ones
+    figure.classList.toggle("portrait", video.videoHeight > video.videoWidth);
+  });
   select.addEventListener("change", show);
   if (choices.length) show();
   const caption = document.createElement("figcaption");
@@ -77,9 +83,8 @@ function startSync() {
     const [leader, ...followers] = videos();
     if (leader) {
       for (const video of followers) {
-        if (Math.abs(video.currentTime - leader.currentTime) > SYNC_TOLERANCE_S && video.readyState >= 1) {
-          video.currentTime = Math.min(leader.currentTime, video.duration || leader.currentTime);
-        }
+        const target = video.duration ? leader.currentTime % video.duration : leader.currentTime; // shorter ones loop
+        if (Math.abs(video.currentTime - target) > SYNC_TOLERANCE_S && video.readyState >= 1) video.currentTime = target;
         if (leader.paused !== video.paused) leader.paused ? video.pause() : video.play().catch(() => {});
       }
       if (leader.duration) seek.value = String(leader.currentTime / leader.duration);
@@ -112,7 +117,8 @@ function plot(title, frames, series, unit) {
 
 const FRAME_STEPS = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]; // whole frames on the x axis
 const PALETTE = ["#1d5fa8", "#c0392b", "#17692a", "#8e44ad", "#d35400", "#2c3e50"];
-const NOT_LOSSES = new Set(["input_psnr", "particles", "gaussians"]);
+const PSNRS = ["input_psnr", "forecast_psnr"]; // dB, tens: on the loss axis they would flatten the losses to zero
+const NOT_LOSSES = new Set([...PSNRS, "particles", "gaussians"]);
 
 /** Loss terms, PSNR of the input view, seconds per frame, from the manifest's frame log. */
 function drawPlots(manifest) {
@@ -129,14 +135,15 @@ function drawPlots(manifest) {
   const column = (key) => frames.map((f) => (f.losses && key in f.losses ? f.losses[key] : null));
   const losses = keys.filter((k) => !NOT_LOSSES.has(k));
   if (losses.length) plot("Loss per frame", t, losses.map((k) => [k, column(k)]), "loss");
-  if (keys.includes("input_psnr")) plot("PSNR of the input view", t, [["PSNR", column("input_psnr")]], "dB");
+  const psnrs = PSNRS.filter((k) => keys.includes(k));
+  if (psnrs.length) plot("PSNR of the input view", t, psnrs.map((k) => [k.replace("_psnr", ""), column(k)]), "dB");
   plot("Time per frame", t, [["seconds", frames.map((f) => f.seconds)]], "s");
   if (keys.includes("particles")) plot("Particles", t, [["particles", column("particles")], ["gaussians", column("gaussians")]], "count");
 }
 
+/** Every file the artifacts API lists, in its order: videos, exports, states, the manifest. */
 function downloads(artifacts) {
-  const wanted = artifacts.filter((a) => ["manifest", "state", "export", "file"].includes(a.kind));
-  $("downloads").replaceChildren(...wanted.map((a) => {
+  $("downloads").replaceChildren(...artifacts.map((a) => {
     const li = document.createElement("li");
     const link = Object.assign(document.createElement("a"), { href: a.presigned_url, textContent: a.name });
     link.download = a.name.split("/").pop();
@@ -149,6 +156,7 @@ function downloads(artifacts) {
 async function factualFor(job) {
   if (job.type !== "interact") return null;
   await refreshJobs();
+  if (job.params.from_frame != null) return null; // branched inside the run: its side-by-side shows the factual
   const twin = [...jobs.values()].find((j) => j.type === "predict" && j.parent_job_id === job.parent_job_id
     && j.params.frames === job.params.frames && j.state === "succeeded");
   return twin || null;
@@ -169,8 +177,10 @@ export async function showResults(jobId) {
     $("results-title").textContent = `Results of ${describeJob(job)}`;
     const range = manifest.frame_range ? `frames ${manifest.frame_range[0]}–${manifest.frame_range[1] - 1}` : "";
     $("results-summary").textContent = `${job.state}; ${range}; input views ${(manifest.input_views || []).join(", ")}`
-      + (job.type === "interact" ? (twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
-        : "; no succeeded factual prediction with the same frames yet.") : ".");
+      + (job.type !== "interact" ? "."
+        : job.params.from_frame != null ? `; branched at frame ${job.params.from_frame}: the factual | what-if player shows the run without the intervention.`
+          : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
+            : "; no succeeded factual prediction with the same frames yet.");
     $("players").replaceChildren(...playerPlan(job, manifest, own, factual).map(player));
     drawPlots(manifest);
     downloads(own);

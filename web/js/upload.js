@@ -2,14 +2,15 @@
 // above), read what is wrong before sending, then send with a progress bar.
 
 import { $, showList } from "./dom.js";
-import { api, uploadForm } from "./api.js";
+import { uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
+import { mp4Frames } from "./mp4.js";
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
 
 const state = { camerasFile: null, parsed: null, cameraError: null, videos: [] };
 
-/** The first frame of a video, decoded by the browser: {width, height, duration} and a canvas. */
+/** The first frame of a video, decoded by the browser: {width, height, duration, frames} and a canvas. */
 function firstFrame(file) {
   return new Promise((resolve) => {
     const video = document.createElement("video");
@@ -17,22 +18,28 @@ function firstFrame(file) {
     const done = (result) => { URL.revokeObjectURL(url); resolve(result); };
     video.muted = true;
     video.preload = "auto";
-    video.addEventListener("loadeddata", () => {
+    video.addEventListener("loadeddata", async () => {
       const canvas = document.createElement("canvas");
       canvas.width = video.videoWidth; canvas.height = video.videoHeight;
       canvas.getContext("2d").drawImage(video, 0, 0);
-      done({ width: video.videoWidth, height: video.videoHeight, duration: video.duration, canvas });
+      const counted = await mp4Frames(file); // null for other containers: the server counts them
+      done({ width: video.videoWidth, height: video.videoHeight, duration: video.duration, canvas,
+        frames: counted && counted.frames, fps: counted && counted.fps });
     }, { once: true });
     video.addEventListener("error", () => done({ error: "this browser cannot decode it (the server will still check it)" }), { once: true });
     video.src = url;
   });
 }
 
+let generation = 0; // bumped by Clear: files still being read for an earlier selection are dropped
+
 async function addFiles(files) {
+  const mine = generation;
   for (const file of files) {
     if (VIDEO_NAME.test(file.name) || file.type.startsWith("video/")) {
-      state.videos = state.videos.filter((v) => v.file.name !== file.name);
-      state.videos.push({ file, ...(await firstFrame(file)) });
+      const video = { file, ...(await firstFrame(file)) };
+      if (mine !== generation) return;
+      state.videos = [...state.videos.filter((v) => v.file.name !== file.name), video];
     } else {
       state.camerasFile = file;
       try {
@@ -77,7 +84,22 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
         + `${camera.width}x${camera.height}; the video must have its camera's exact frame size.`);
     }
   }
-  return problems;
+  return [...problems, ...frameRangeProblems(videos)];
+}
+
+/** The frame range against the shortest video's frame count, where the browser could count it. */
+function frameRangeProblems(videos) {
+  const start = Number($("frame-start").value || 0), endText = $("frame-end").value;
+  const end = endText ? Number(endText) : null;
+  if (!Number.isInteger(start) || start < 0) return [`First frame must be a whole number of at least 0, got ${$("frame-start").value}.`];
+  if (end !== null && (!Number.isInteger(end) || end <= start)) return [`End frame must be a whole number above the first frame (${start}), got ${endText}.`];
+  const counted = videos.filter((v) => v.frames);
+  if (!counted.length) return start > 0 && end === null && videos.length ? ["Give an end frame too: this browser could not count the video's frames."] : [];
+  const shortest = counted.reduce((a, b) => (b.frames < a.frames ? b : a));
+  const limit = `${shortest.file.name} has ${shortest.frames} frames (${shortest.duration.toFixed(2)} s at ${Math.round(shortest.fps)} fps)`;
+  if (end !== null && end > shortest.frames) return [`End frame ${end} is past the video: ${limit}.`];
+  if (start >= shortest.frames) return [`First frame ${start} is past the video: ${limit}.`];
+  return [];
 }
 
 /** "x, y, z[, r]" -> {value: {center, radius?}} (empty text: {value: null}) or {error}; the API's SourceHint. */
@@ -128,6 +150,7 @@ function videoCard(video) {
   const text = document.createElement("p");
   text.textContent = video.error ? `${video.file.name}: ${video.error}`
     : `${video.file.name}: ${video.width}x${video.height}, ${video.duration.toFixed(2)} s`
+      + (video.frames ? `, ${video.frames} frames` : "")
       + (camera ? ` → camera ${camera.name}` : "");
   if (video.error) text.className = "bad";
   li.append(text);
@@ -143,6 +166,8 @@ async function submit(event, onDone) {
   form.append("cameras", state.camerasFile, state.camerasFile.name);
   for (const video of state.videos) form.append("video", video.file, video.file.name);
   form.append("name", $("scene-name").value);
+  // sent with the upload, so the server checks it first and a refusal stores nothing
+  if ($("auto-reconstruct").checked) form.append("reconstruct", JSON.stringify(reconstructParams()));
   const progress = $("upload-progress"), percent = $("upload-percent"), error = $("upload-error");
   error.textContent = "";
   progress.hidden = false;
@@ -153,10 +178,8 @@ async function submit(event, onDone) {
       percent.textContent = fraction < 1 ? `${Math.round(fraction * 100)} % sent` : "sent; the server checks the videos…";
     });
     percent.textContent = `Scene ${scene.name || scene.id} stored: ${scene.n_frames} frames at ${scene.fps} fps.`;
-    let job = null;
-    if ($("auto-reconstruct").checked) job = await api("/v1/jobs", { method: "POST", body: reconstructRequest(scene) });
     reset();
-    onDone(scene, job);
+    onDone(scene, scene.reconstruct_job_id ? { id: scene.reconstruct_job_id } : null);
   } catch (failure) {
     error.textContent = `Upload refused: ${failure.message}`;
     percent.textContent = "";
@@ -165,16 +188,19 @@ async function submit(event, onDone) {
   }
 }
 
-function reconstructRequest(scene) {
+/** The reconstruction's params (the API's ReconstructParams); no end frame: to the clip's end. */
+function reconstructParams() {
   const params = { quality: $("quality").value, physics: $("physics").value };
   const source = parseSource($("source").value).value;
   if (source) params.source = source;
   const start = Number($("frame-start").value || 0), end = $("frame-end").value;
-  if (start > 0 || end) params.frames = [start, end ? Number(end) : scene.n_frames];
-  return { type: "reconstruct", scene_id: scene.id, params };
+  if (end) params.frames = [start, Number(end)];
+  else if (start > 0) params.frames = [start, Math.min(...state.videos.map((v) => v.frames || Infinity))];
+  return params;
 }
 
 function reset() {
+  generation += 1;
   Object.assign(state, { camerasFile: null, parsed: null, cameraError: null, videos: [] });
   $("upload-files").value = "";
   $("scene-name").value = "";
@@ -196,6 +222,6 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
-  $("source").addEventListener("input", render);
+  for (const id of ["source", "frame-start", "frame-end"]) $(id).addEventListener("input", render);
   render();
 }

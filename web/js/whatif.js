@@ -13,16 +13,22 @@ import {
 const num = (id) => Number($(id).value);
 const vec = (...ids) => ids.map(num);
 const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
+// The default wind moves smoke at rest a quarter of the box's width (along the wind) in
+// WIND_HORIZON frames: clearly visible, and inside the box (a constant 2 units/s² blew ScalarFlow's
+// smoke, 0.49 units wide at 30 fps, out of the box within 15 frames).
+const WIND_HORIZON = 15;
+const WIND_SHIFT = 0.25;
 const RETRY_MS = 3000;
 
 let view = null; // {renderer, scene, camera, controls, overlay}
-let run = null; // {jobId, box: {lo, hi}, up, source}
+let run = null; // {jobId, box: {lo, hi}, up, source, frames, dt}
 let retry = null;
 let onSubmitted = () => {};
 
 /** The values in the form, as the API's interact params. */
 function formParams() {
   const params = { frames: num("wi-frames") };
+  if ($("wi-from").value.trim() !== "") params.from_frame = num("wi-from");
   if ($("wind-on").checked) {
     params.wind = { direction: vec("wind-dx", "wind-dy", "wind-dz"), strength: num("wind-strength"),
       growth: num("wind-growth"), profile: $("wind-profile").value, start_frame: num("wind-start") };
@@ -34,13 +40,19 @@ function formParams() {
   return params;
 }
 
-/** What the server would refuse, in words; box limits come from the parent run. */
-function whatifProblems(params, box) {
+/** What the server would refuse, in words; box limits and finished frames come from the parent run. */
+function whatifProblems(params, box, frames) {
   const problems = [];
   const whole = (value, name, min) => {
     if (!Number.isInteger(value) || value < min) problems.push(`${name} must be a whole number of at least ${min}.`);
   };
   whole(params.frames, "New frames", 1);
+  if (params.from_frame !== undefined) {
+    whole(params.from_frame, "Branch frame", 0);
+    if (frames && frames.length && Number.isInteger(params.from_frame) && !frames.includes(params.from_frame)) {
+      problems.push(`Branch frame ${params.from_frame} is not a finished frame of the run (frames ${frames[0]} to ${frames[frames.length - 1]}).`);
+    }
+  }
   if (!params.wind && !params.ball) problems.push("Turn on the wind, the ball, or both.");
   if (params.wind) {
     const { direction, strength, growth, start_frame: start } = params.wind;
@@ -102,7 +114,8 @@ function showParticles(data) {
   geometry.setAttribute("position", new BufferAttribute(new Float32Array(data.positions), 3));
   const lo = new Vector3(...data.scene.box_lo), hi = new Vector3(...data.scene.box_hi);
   const size = hi.clone().sub(lo).length();
-  view.points = new Points(geometry, new PointsMaterial({ color: 0xcfd6e0, size: size / 200, transparent: true, opacity: 0.7 }));
+  // a few hundred particles fill a plume only drawn large: 1/60 of the box diagonal each
+  view.points = new Points(geometry, new PointsMaterial({ color: 0xe8edf3, size: size / 60, transparent: true, opacity: 0.85, depthWrite: false }));
   view.box = new Box3Helper(new Box3(lo, hi), 0x4f9bea);
   scene.add(view.points, view.box);
   const centre = lo.clone().add(hi).multiplyScalar(0.5);
@@ -147,8 +160,8 @@ function drawOverlay() {
     const peak = Math.max(...force, 1e-12);
     heights.forEach((h, i) => {
       const at = centre.clone().addScaledVector(up, h - centre.dot(up)).addScaledVector(dir, -0.25 * size);
-      const length = Math.max(0.02 * size, (0.5 * size * force[i]) / peak);
-      overlay.add(new ArrowHelper(dir, at, length, 0x3498db, 0.25 * length, 0.12 * length));
+      const length = Math.max(0.02 * size, (0.25 * size * force[i]) / peak); // short: the smoke stays in view
+      overlay.add(new ArrowHelper(dir, at, length, 0x3498db, 0.2 * length, 0.08 * length));
     });
   }
   renderer.render(scene, camera);
@@ -162,12 +175,25 @@ function showLimits(box) {
   if ($("ball-cx").dataset.placedFor !== run.jobId) { // a new run: start with the ball in the middle of its box
     ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).value = fmt(centre[i]); });
     $("ball-radius").value = fmt(0.15 * Math.min(...box.hi.map((h, i) => h - box.lo[i])));
+    const strength = defaultWindStrength(box, vec("wind-dx", "wind-dy", "wind-dz"), run.dt);
+    if (strength !== null) $("wind-strength").value = fmt(strength);
+    $("wi-from").placeholder = `last: ${run.frames[run.frames.length - 1]}`;
     $("ball-cx").dataset.placedFor = run.jobId;
   }
 }
 
+/** Wind acceleration (units/s²) that moves smoke at rest WIND_SHIFT of the box's width along
+ * `direction` in WIND_HORIZON frames: ½ a t² = shift. null without a direction or time step. */
+function defaultWindStrength(box, direction, dt) {
+  const norm = Math.hypot(...direction);
+  if (!(norm > 0) || !(dt > 0)) return null;
+  const width = box.hi.reduce((sum, h, i) => sum + Math.abs((h - box.lo[i]) * direction[i]) / norm, 0);
+  const seconds = WIND_HORIZON * dt;
+  return (2 * WIND_SHIFT * width) / (seconds * seconds);
+}
+
 function validate() {
-  const problems = whatifProblems(formParams(), run && run.box);
+  const problems = whatifProblems(formParams(), run && run.box, run && run.frames);
   showList("whatif-problems", problems);
   for (const id of ["ball-cx", "ball-cy", "ball-cz", "ball-radius"]) {
     $(id).setAttribute("aria-invalid", String(problems.some((p) => p.includes(`centre ${id.slice(-1)} `) || (id === "ball-radius" && p.startsWith("Ball radius")))));
@@ -179,11 +205,12 @@ async function loadParticles(jobId) {
   clearTimeout(retry);
   try {
     const data = await api(`/v1/jobs/${jobId}/particles?max_points=20000`);
-    run = { jobId, box: { lo: data.scene.box_lo, hi: data.scene.box_hi }, up: data.scene.up, source: data.scene.source };
+    run = { jobId, box: { lo: data.scene.box_lo, hi: data.scene.box_hi }, up: data.scene.up, source: data.scene.source,
+      frames: data.frames, dt: data.scene.dt };
     showLimits(run.box);
     if (view) showParticles(data);
     $("whatif-summary").textContent += ` Showing ${data.positions.length / 3} of ${data.total} particles at frame ${data.frame}; `
-      + "the what-if continues after the run's last frame.";
+      + "the what-if continues after the run's last frame, or after the branch frame you choose.";
     validate();
     drawOverlay();
   } catch (error) {
@@ -223,8 +250,9 @@ async function submit(event) {
   try {
     const interact = await api("/v1/jobs", { method: "POST", body: { type: "interact", parent_job_id: run.jobId, params } });
     await refreshJobs();
-    const factual = [...jobs.values()].some((j) => j.type === "predict" && j.parent_job_id === run.jobId
-      && j.params.frames === params.frames && j.state !== "failed" && j.state !== "cancelled");
+    // a branch inside the run is shown next to the run itself (its side-by-side video)
+    const factual = params.from_frame !== undefined || [...jobs.values()].some((j) => j.type === "predict"
+      && j.parent_job_id === run.jobId && j.params.frames === params.frames && j.state !== "failed" && j.state !== "cancelled");
     if (!factual) {
       await api("/v1/jobs", { method: "POST", body: { type: "predict", parent_job_id: run.jobId, params: { frames: params.frames } } });
     }
