@@ -126,5 +126,5 @@ def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path):
         assert report["density"]["active"] == np.count_nonzero(density)
         np.testing.assert_allclose(report["density"]["voxel_size"], [spacing] * 3)
         np.testing.assert_allclose(report["density"]["origin"], origin)
-        h = Run.open(run_dir).scene.physics["h"]
+        h = Run.open(run_dir).scene.physics.h
         assert spacing == pytest.approx(h / 2)  # world units: the scene's kernel radius sets the voxel
