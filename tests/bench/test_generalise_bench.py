@@ -22,7 +22,7 @@ from bench.generalise import Protocol
 from bench.gt_scenes import PhiFlowScene, ScalarFlowScene, SynthScene, open_scene
 from fluidcore import synth, video
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -10,92 +10,12 @@ process wiring: the worker starts with the server and stops with it.
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
-import httpx
 import pytest
 
-from service_support import free_port
-
-ROOT = Path(__file__).resolve().parents[1]
-CLI = [sys.executable, "-c", "from fluidnexus.cli import main; main()"]
-
-
-class Server:
-    def __init__(self, data_dir: Path) -> None:
-        self.data_dir = data_dir
-        self.port = free_port()
-        env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1"}
-        env.pop("FLUIDNEXUS_DATA_DIR", None)
-        self.log = (data_dir.parent / "serve.log").open("wb")
-        self.process = subprocess.Popen(
-            [*CLI, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--data-dir", str(data_dir)],
-            cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True,
-        )
-        self.client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=30)
-        self._wait_ready()
-        key = subprocess.run([*CLI, "keys", "create", "--owner", "e2e", "--data-dir", str(data_dir)],
-                             cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
-        self.client.headers["Authorization"] = f"Bearer {key}"
-
-    def _wait_ready(self) -> None:
-        deadline = time.monotonic() + 60
-        while time.monotonic() < deadline:
-            assert self.process.poll() is None, self.output()
-            try:
-                if self.client.get("/readyz").status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.3)
-        raise AssertionError(f"server not ready in 60 s:\n{self.output()}")
-
-    def output(self) -> str:
-        self.log.flush()
-        return (self.data_dir.parent / "serve.log").read_text(errors="replace")[-4000:]
-
-    def wait_job(self, job_id: str, timeout: float) -> dict:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            job = self.client.get(f"/v1/jobs/{job_id}").json()
-            if job["state"] in ("succeeded", "failed", "cancelled"):
-                return job
-            time.sleep(0.5)
-        raise AssertionError(f"job {job_id} not finished in {timeout} s: {job}\n{self.output()}")
-
-    def worker_pids(self) -> list[int]:
-        """The embedded worker: the server's child processes and their process groups (pool children)."""
-        processes = {}
-        for entry in Path("/proc").iterdir():
-            if not entry.name.isdigit():
-                continue
-            try:
-                stat = (entry / "stat").read_text()
-            except (FileNotFoundError, ProcessLookupError, PermissionError):  # the process just ended
-                continue
-            fields = stat.rsplit(")", 1)[1].split()  # after "pid (name)": state, ppid, pgrp, ...
-            processes[int(entry.name)] = (int(fields[1]), int(fields[2]))
-        children = {pid for pid, (ppid, _) in processes.items() if ppid == self.process.pid}
-        return sorted(pid for pid, (_, group) in processes.items() if pid in children or group in children)
-
-    def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGTERM)  # what systemd and docker send
-            try:
-                self.process.wait(40)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.process.pid, signal.SIGKILL)
-                self.process.wait()
-        self.client.close()
-        self.log.close()
-
-
+from service_support import Server
 @pytest.fixture
 def server(tmp_path: Path) -> Iterator[Server]:
     server = Server(tmp_path / "data")

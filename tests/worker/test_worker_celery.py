@@ -5,106 +5,19 @@ tests/test_service_e2e.py."""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
-import time
-import uuid
-from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
-from service.database import make_engine, make_sessionmaker, migrate, session_scope
-from service.models import Job, JobState, Scene
+from service.database import session_scope
+from service.models import Job, JobState
 from service.queue import CeleryQueue, requeue_orphans
 from service.settings import Settings
-from service.storage import LocalStorage
-from service_support import REDIS_URL, database_url, port_open, scene_files
-
-TESTS = Path(__file__).resolve().parent
-
-
-def start_worker(settings: Settings, frame_seconds: float = 0.0) -> subprocess.Popen[bytes]:
-    env = {
-        **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-        "FLUIDNEXUS_RUNNERS": "service_support:FAKE_RUNNERS",
-        "FAKE_FRAME_SECONDS": str(frame_seconds),
-        "FLUIDNEXUS_DATA_DIR": str(settings.data_dir),
-        "FLUIDNEXUS_DATABASE_URL": settings.resolved_database_url(),
-        "FLUIDNEXUS_WORKER_TORCH_THREADS": "1",
-        "FLUIDNEXUS_BROKER_KEY_PREFIX": settings.broker_key_prefix,
-    }
-    if settings.broker_url:
-        env["FLUIDNEXUS_BROKER_URL"] = settings.broker_url
-    command = [sys.executable, "-m", "celery", "-A", "worker.tasks", "worker", "-Q", "gpu", "--concurrency", "1",
-               "--loglevel", "WARNING", "--without-gossip", "--without-mingle", "--without-heartbeat"]
-    return subprocess.Popen(command, env=env, start_new_session=True)
-
-
-def stop(process: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> None:
-    if process.poll() is None:
-        os.killpg(process.pid, sig)
-        process.wait(30)
-
-
-def wait_for(predicate: Callable[[], bool], timeout: float, what: str) -> None:
-    deadline = time.monotonic() + timeout
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-        time.sleep(0.2)
-
-
-class Deployment:
-    def __init__(self, tmp_path: Path, url: str, broker_url: str | None) -> None:
-        self.settings = Settings(
-            data_dir=tmp_path / "data", database_url=url, broker_url=broker_url,
-            broker_key_prefix=f"fnx-test-{uuid.uuid4().hex[:8]}:" if broker_url else "",
-        )
-        migrate(url)
-        self.engine = make_engine(url)
-        self.sessions = make_sessionmaker(self.engine)
-        self.storage = LocalStorage(self.settings.resolved_storage_dir())
-        self.queue = CeleryQueue(self.settings)
-        files = scene_files(tmp_path / "scene")
-        with session_scope(self.sessions) as session:
-            for path in files.values():
-                self.storage.put_file(f"scenes/s1/input/{path.name}", path)
-            session.add(Scene(id="s1", owner="alice", cameras_key="scenes/s1/input/transforms.json",
-                              cameras=["cam0", "cam1"], n_frames=6, fps=30.0,
-                              videos={c: {"key": f"scenes/s1/input/{c}.mp4"} for c in ("cam0", "cam1")}))
-
-    def submit(self, frames: int) -> str:
-        with session_scope(self.sessions) as session:
-            job = Job(owner="alice", type="reconstruct", scene_id="s1", params={"frames": [0, frames]})
-            session.add(job)
-        task_id = self.queue.enqueue(job.id, job.type)
-        with session_scope(self.sessions) as session:  # as the API records it (a job with none waits on a parent)
-            session.get(Job, job.id).task_id = task_id
-        return job.id
-
-    def job(self, job_id: str) -> Job:
-        with session_scope(self.sessions) as session:
-            return session.get(Job, job_id)
-
-
-@pytest.fixture
-def redis_postgres(tmp_path: Path) -> Iterator[Deployment]:
-    if not port_open("127.0.0.1", 6379):
-        pytest.skip("Redis is not running on 127.0.0.1:6379 (.ci/run starts it)")
-    with database_url("postgres", tmp_path) as url:
-        deployment = Deployment(tmp_path, url, REDIS_URL.format(db=0))
-        yield deployment
-        deployment.engine.dispose()
-    import redis
-
-    client = redis.Redis.from_url(REDIS_URL.format(db=0))
-    for key in client.scan_iter(f"{deployment.settings.broker_key_prefix}*"):
-        client.delete(key)
-
+from service_support import database_url
+from worker_support import Deployment, start_worker, stop, wait_for
 
 def test_job_through_redis_to_a_worker_process_and_cancel(redis_postgres: Deployment) -> None:
     worker = start_worker(redis_postgres.settings, frame_seconds=0.3)

@@ -251,7 +251,7 @@ def test_metrics_bench_prints_one_json_object() -> None:
     import subprocess
     import sys
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     result = subprocess.run(
         [sys.executable, str(root / "bench" / "metrics.py"), "--repeats", "1", "--threads", "1", "--json"],
         capture_output=True, text=True, check=True, cwd=root,

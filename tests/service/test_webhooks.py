@@ -18,8 +18,7 @@ import pytest
 
 from service import webhooks
 from service_support import scene_files, upload_parts
-from test_api import Service, make_service
-from test_chaining import executor
+from api_support import Service, executor, make_service
 
 
 class Receiver:

@@ -12,7 +12,7 @@ import pytest
 from service.models import Job, Scene
 from fluidcore.interaction import WindParams
 from service_support import camera_entry, upload_parts, write_video
-from test_api import Service, make_service, scene_dir  # noqa: F401  scene_dir: a fixture
+from api_support import Service, make_service
 
 
 @pytest.fixture

@@ -10,11 +10,9 @@ import numpy as np
 import pytest
 from service_support import store_run
 
-from test_api import (  # noqa: F401  (fixtures used by name)
-    Service, postgres_url, reconstruct, scene_dir, scene_id, service, sqlite_service,
-)
+from api_support import Service, reconstruct
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 WEB = ROOT / "web"
 EXTERNAL = re.compile(r"""(?:src|href)\s*=\s*["']?(?:https?:)?//""", re.IGNORECASE)
 LOCAL_REF = re.compile(r"""(?:src|href)\s*=\s*["'](/[^"']*)["']""", re.IGNORECASE)

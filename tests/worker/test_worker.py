@@ -14,53 +14,13 @@ import pytest
 from sqlalchemy.exc import IntegrityError
 
 from fluidcore.errors import InputError
-from service.database import make_engine, make_sessionmaker, migrate, session_scope
-from service.models import Artifact, Job, JobState, Scene, utcnow
-from service.settings import Settings
-from service.storage import LocalStorage, Storage, StorageError, log_key, run_prefix
-from worker.execution import RUN_SHARE, JobBusy, JobExecutor
+from service.database import session_scope
+from service.models import Job, JobState, utcnow
+from service.storage import LocalStorage, StorageError, log_key, run_prefix
+from worker.execution import RUN_SHARE, JobBusy
 from worker.runners import RunInputs
-from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, scene_files, sqlite_url
-
-
-class World:
-    """A database, a storage and a way to make executors that each have their own local cache."""
-
-    def __init__(self, tmp_path: Path, url: str, storage: Storage) -> None:
-        migrate(url)
-        self.tmp_path, self.storage = tmp_path, storage
-        self.engine = make_engine(url)
-        self.sessions = make_sessionmaker(self.engine)
-        self.settings = Settings(data_dir=tmp_path / "data", database_url=url, job_lease_seconds=60)
-
-    def executor(self, name: str = "w1", runners: dict | None = None) -> JobExecutor:
-        settings = self.settings.model_copy(update={"work_dir": self.tmp_path / f"cache-{name}"})
-        return JobExecutor(settings, self.sessions, self.storage, runners or FAKE_RUNNERS, worker_name=name)
-
-    def scene(self) -> str:
-        files = scene_files(self.tmp_path / "scene")
-        keys = {}
-        for path in files.values():
-            keys[path.name] = f"scenes/s1/input/{path.name}"
-            self.storage.put_file(keys[path.name], path)
-        with session_scope(self.sessions) as session:
-            session.add(Scene(id="s1", owner="alice", cameras_key=keys["transforms.json"], cameras=["cam0", "cam1"],
-                              videos={c: {"key": keys[f"{c}.mp4"]} for c in ("cam0", "cam1")}, n_frames=6, fps=30.0))
-        return "s1"
-
-    def job(self, job_type: str = "reconstruct", **fields: object) -> str:
-        with session_scope(self.sessions) as session:
-            job = Job(owner="alice", type=job_type, params=fields.pop("params", {}), **fields)
-            session.add(job)
-        return job.id
-
-    def get(self, job_id: str) -> Job:
-        with session_scope(self.sessions) as session:
-            return session.get(Job, job_id)
-
-    def artifacts(self, job_id: str) -> dict[str, Artifact]:
-        with session_scope(self.sessions) as session:
-            return {a.name: a for a in session.query(Artifact).filter_by(job_id=job_id)}
+from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, sqlite_url
+from worker_support import World
 
 
 @pytest.fixture(scope="module")

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import pytest
 
-from test_service_e2e import CLI, Server
+from service_support import CLI, Server
 
 pytestmark = pytest.mark.browser
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 JOB_TIMEOUT_MS = 240_000
 SERVER_MS = 30_000  # an upload is probed by the server; on a loaded 2-core machine that takes seconds
 NEW_FRAMES = 2

@@ -21,9 +21,9 @@ from fluidcore.cameras import CameraError, load
 from fluidcore.video import VideoError, verify
 from service.models import Job, Scene
 from service_support import upload_parts, write_transforms, write_video
-from test_api import Service, make_service, scene_dir  # noqa: F401  scene_dir: a fixture
+from api_support import Service, make_service
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ import pytest
 import fluidnexus.cli  # noqa: F401  registers the benchmarks, bench.load among them, before it is imported here
 import service.database
 from bench.load import live_server, run_load
-from test_api import Service, make_service
+from api_support import Service, make_service
 
 
 @pytest.fixture

@@ -142,7 +142,7 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
     second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
     from service_support import scene_files, upload_parts
 
-    tests = str(Path(__file__).resolve().parent)
+    tests = str(Path(__file__).resolve().parents[1])
     key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
                          capture_output=True, text=True, check=True).stdout.strip()
     process, base = start_serve(tmp_path / "data", env={

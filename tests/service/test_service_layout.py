@@ -19,7 +19,7 @@ import pytest
 from service.celery_app import task_name
 from service.job_types import JobType
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 IMPORT_ALL = """
 import importlib, json, pkgutil, sys

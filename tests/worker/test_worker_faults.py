@@ -28,8 +28,7 @@ from worker.execution import JobBusy
 from worker.runners import RunInputs
 from service.queue import reap_stale
 from service_support import FAKE_RUNNERS, fake_job, free_port, sqlite_url
-from test_worker import World
-from test_worker_celery import Deployment, redis_postgres, start_worker, stop, wait_for  # noqa: F401  fixture
+from worker_support import Deployment, World, start_worker, stop, wait_for
 
 
 @pytest.fixture

@@ -13,19 +13,13 @@ import pytest
 
 from service.chaining import release_children
 from service.models import JobState
-from worker.execution import JobExecutor
 from service_support import FAKE_RUNNERS, scene_files, upload_parts
-from test_api import Service, make_service
+from api_support import Service, executor, make_service
 
 
 @pytest.fixture
 def service(tmp_path: Path) -> Iterator[Service]:
     yield from make_service(tmp_path)
-
-
-def executor(service: Service, tmp_path: Path) -> JobExecutor:
-    settings = service.app.state.settings.model_copy(update={"work_dir": tmp_path / "work"})
-    return JobExecutor(settings, service.sessions, service.storage, FAKE_RUNNERS, queue=service.queue)
 
 
 def submit(service: Service, headers: dict[str, str], body: dict) -> dict:
