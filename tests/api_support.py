@@ -18,7 +18,7 @@ from api.auth import create_key
 from service.database import session_scope
 from service.models import Job
 from service.settings import Settings
-from service_support import FAKE_RUNNERS, RecordingQueue, empty_tables, migrated_postgres, scene_files, sqlite_url, upload_parts
+from service_support import FAKE_RUNNERS, RecordingQueue, empty_tables, scene_files, sqlite_url, upload_parts
 from worker.execution import JobExecutor
 
 
@@ -55,12 +55,6 @@ def make_service(
     with TestClient(create_app(settings, queue=queue)) as client:
         yield Service(client, queue)
         client.app.state.engine.dispose()
-
-
-@pytest.fixture(scope="module")
-def postgres_url() -> Iterator[str]:
-    with migrated_postgres() as url:
-        yield url
 
 
 @pytest.fixture(params=["sqlite", "postgres"])

@@ -84,6 +84,13 @@ def migrated_postgres() -> Iterator[str]:
         yield url
 
 
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """`migrated_postgres` as a fixture, for the API and worker tests that run on both databases."""
+    with migrated_postgres() as url:
+        yield url
+
+
 def empty_tables(url: str) -> str:
     """Delete every row, children first, so tests sharing a migrated database start clean."""
     from sqlalchemy import create_engine

@@ -8,7 +8,7 @@ wind direction, parameters checked against the scene or the parent run), and the
 answer is a 422 naming the field.
 
 `/readyz` is left out: the fuzzed server runs without a worker, so it answers 503 by design (it
-needs a worker's heartbeat; tests/test_api.py covers both answers).
+needs a worker's heartbeat; tests/api/test_api.py covers both answers).
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """fluidcore.exports and `fluidnexus export --format`: the 3DGS PLY read back with plyfile,
 density volumes (npz, NRRD) whose mass is the particles' mass, the default (last) frame, and
-numbered sequences with `--frames` (tests/test_vdb.py reads the OpenVDB files back)."""
+numbered sequences with `--frames` (tests/fluidcore/test_vdb.py reads the OpenVDB files back)."""
 
 from __future__ import annotations
 

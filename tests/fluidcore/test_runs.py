@@ -105,7 +105,7 @@ def test_open_rejects_folders_that_are_not_runs(tmp_path):
 
 
 def test_runs_written_before_the_typed_record_are_read_migrated(tmp_path):
-    """Version-1 folders from main (kept in tests/fixtures/runs_v1) read as typed records of their
+    """Version-1 folders from main (kept in tests/fluidcore/fixtures/runs_v1) read as typed records of their
     kind; reading never rewrites them."""
     rec = Run.open(OLD_RUNS / "reconstruct")
     assert rec.kind is RunKind.RECONSTRUCT and rec.manifest["format_version"] == 2

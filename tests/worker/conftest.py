@@ -1,4 +1,5 @@
-"""Fixtures of the worker tests."""
+"""Fixtures of the worker tests: PostgreSQL for the executor tests, Redis and PostgreSQL for the
+Celery ones."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from service_support import REDIS_URL, database_url, port_open
+from service_support import REDIS_URL, database_url, port_open, postgres_url  # noqa: F401  postgres_url: a fixture
 from worker_support import Deployment
 
 

@@ -19,14 +19,8 @@ from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, log_key, run_prefix
 from worker.execution import RUN_SHARE, JobBusy
 from worker.runners import RunInputs
-from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, migrated_postgres, sqlite_url
+from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, sqlite_url
 from worker_support import World
-
-
-@pytest.fixture(scope="module")
-def postgres_url() -> Iterator[str]:
-    with migrated_postgres() as url:
-        yield url
 
 
 @pytest.fixture(params=["sqlite", "postgres"])

@@ -1,7 +1,7 @@
 """Real Celery worker processes: jobs travel through a real broker (Redis, or the embedded
 filesystem transport) to `celery -A worker.tasks worker`, with test-double runners loaded
 through the FLUIDNEXUS_RUNNERS seam. The end-to-end test with fluidcore itself is
-tests/test_service_e2e.py."""
+tests/service/test_service_e2e.py."""
 
 from __future__ import annotations
 
