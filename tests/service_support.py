@@ -8,18 +8,25 @@ database per test (so parallel xdist workers never share tables).
 from __future__ import annotations
 
 import json
+import os
+import signal
 import socket
+import subprocess
+import sys
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 PG_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/{name}"
 REDIS_URL = "redis://127.0.0.1:6379/{db}"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def port_open(host: str, port: int) -> bool:
@@ -74,6 +81,13 @@ def migrated_postgres() -> Iterator[str]:
 
     with postgres_database() as url:
         migrate(url)
+        yield url
+
+
+@pytest.fixture(scope="module")
+def postgres_url() -> Iterator[str]:
+    """`migrated_postgres` as a fixture, for the API and worker tests that run on both databases."""
+    with migrated_postgres() as url:
         yield url
 
 
@@ -274,3 +288,77 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
         for path in sorted(run.path.rglob("*")):
             if path.is_file():
                 storage.put_bytes(f"jobs/{job_id}/run/{path.relative_to(run.path).as_posix()}", path.read_bytes())
+
+
+# -- `fluidnexus serve` as a real process (end to end and browser tests) ------------------------------
+
+CLI = [sys.executable, "-c", "from fluidnexus.cli import main; main()"]
+
+
+class Server:
+    def __init__(self, data_dir: Path) -> None:
+        self.data_dir = data_dir
+        self.port = free_port()
+        env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", "OMP_NUM_THREADS": "1"}
+        env.pop("FLUIDNEXUS_DATA_DIR", None)
+        self.log = (data_dir.parent / "serve.log").open("wb")
+        self.process = subprocess.Popen(
+            [*CLI, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--data-dir", str(data_dir)],
+            cwd=ROOT, env=env, stdout=self.log, stderr=subprocess.STDOUT, start_new_session=True,
+        )
+        self.client = httpx.Client(base_url=f"http://127.0.0.1:{self.port}", timeout=30)
+        self._wait_ready()
+        key = subprocess.run([*CLI, "keys", "create", "--owner", "e2e", "--data-dir", str(data_dir)],
+                             cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+        self.client.headers["Authorization"] = f"Bearer {key}"
+
+    def _wait_ready(self) -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            assert self.process.poll() is None, self.output()
+            try:
+                if self.client.get("/readyz").status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.3)
+        raise AssertionError(f"server not ready in 60 s:\n{self.output()}")
+
+    def output(self) -> str:
+        self.log.flush()
+        return (self.data_dir.parent / "serve.log").read_text(errors="replace")[-4000:]
+
+    def wait_job(self, job_id: str, timeout: float) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            job = self.client.get(f"/v1/jobs/{job_id}").json()
+            if job["state"] in ("succeeded", "failed", "cancelled"):
+                return job
+            time.sleep(0.5)
+        raise AssertionError(f"job {job_id} not finished in {timeout} s: {job}\n{self.output()}")
+
+    def worker_pids(self) -> list[int]:
+        """The embedded worker: the server's child processes and their process groups (pool children)."""
+        processes = {}
+        for entry in Path("/proc").iterdir():
+            if not entry.name.isdigit():
+                continue
+            try:
+                stat = (entry / "stat").read_text()
+            except (FileNotFoundError, ProcessLookupError, PermissionError):  # the process just ended
+                continue
+            fields = stat.rsplit(")", 1)[1].split()  # after "pid (name)": state, ppid, pgrp, ...
+            processes[int(entry.name)] = (int(fields[1]), int(fields[2]))
+        children = {pid for pid, (ppid, _) in processes.items() if ppid == self.process.pid}
+        return sorted(pid for pid, (_, group) in processes.items() if pid in children or group in children)
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)  # what systemd and docker send
+            try:
+                self.process.wait(40)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.process.pid, signal.SIGKILL)
+                self.process.wait()
+        self.client.close()
+        self.log.close()

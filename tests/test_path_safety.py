@@ -24,7 +24,7 @@ from fluidcore.names import UnsafeName, UnsafePath, check_name, check_relative, 
 from fluidnexus.cli import app
 from service.models import Scene
 from service_support import camera_entry, scene_files, write_video
-from test_api import Service, make_service
+from api_support import Service, make_service
 
 HOSTILE = [
     "../x",
@@ -272,7 +272,7 @@ def test_render_artifacts_never_writes_outside_its_folder(tmp_path: Path) -> Non
     """A run made before the naming rule (or any caller that skips it): the MP4 named after a
     camera is refused by the join, not written next to the output folder."""
     from fluidcore.artifacts import render_artifacts
-    from test_runs import _camera, _create, _state
+    from run_support import _camera, _create, _state
 
     run = _create(tmp_path / "run", frame_range=(0, 1))
     run.write_frame(0, _state(0), {}, 0.0)

@@ -1,0 +1,70 @@
+"""The API under load (issue 16): health answers without the database pool, a pool that is
+somehow exhausted answers 503 instead of hanging, and a short burst of 200 pollers and listers
+plus uploads against a live server gets no 5xx, no timeouts and prompt health answers.
+The 60 s figures come from `bench/load.py`; this is its bounded smoke test."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack
+from pathlib import Path
+
+import pytest
+
+import fluidnexus.cli  # noqa: F401  registers the benchmarks, bench.load among them, before it is imported here
+import service.database
+from bench.load import live_server, run_load
+from api_support import Service, make_service
+
+
+@pytest.fixture
+def small_pool(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Service]:
+    monkeypatch.setattr(service.database, "POOL_TIMEOUT_S", 0.5)
+    yield from make_service(tmp_path, max_concurrent_requests=2, max_concurrent_uploads=1)
+
+
+def test_health_answers_while_every_pooled_connection_is_taken(small_pool: Service) -> None:
+    client, engine = small_pool.client, small_pool.app.state.engine
+    alice = small_pool.key("alice")
+    with ExitStack() as held:
+        for _ in range(engine.pool.size()):
+            held.enter_context(engine.connect())
+        assert engine.pool.checkedout() == engine.pool.size() == 4  # 2 requests + 1 upload admitted at once + the reaper
+        start = time.monotonic()
+        assert client.get("/healthz").status_code == 200
+        ready = client.get("/readyz")  # 503 only for want of a worker heartbeat (none runs here)
+        assert ready.json()["checks"]["database"] == "ok" and ready.json()["checks"]["storage"] == "ok"
+        assert time.monotonic() - start < 1.0
+        busy = client.get("/v1/jobs", headers=alice)  # the key check needs a pooled connection
+        assert busy.status_code == 503 and busy.headers["Retry-After"] == "1"
+        assert busy.json() == {"detail": "database busy; retry shortly"}
+    assert client.get("/v1/jobs", headers=alice).status_code == 200  # and recovers at once
+
+
+def test_the_key_check_holds_no_connection_while_the_route_runs(small_pool: Service) -> None:
+    """The route's own session is the only connection a request holds (issue 16's diagnosis:
+    the key check's connection stayed checked out while the request waited for a thread)."""
+    engine = small_pool.app.state.engine
+    seen: list[int] = []
+    original = small_pool.app.state.sessionmaker
+
+    def counting_sessionmaker():  # type: ignore[no-untyped-def]
+        seen.append(engine.pool.checkedout())
+        return original()
+
+    small_pool.app.state.sessionmaker = counting_sessionmaker
+    alice = small_pool.key("alice")
+    assert small_pool.client.get("/v1/jobs", headers=alice).status_code == 200
+    assert seen == [0, 0]  # the route's session and the key check's: nothing held when either opens
+    assert engine.pool.checkedout() == 0
+
+
+def test_a_short_burst_of_200_clients_gets_no_server_error(tmp_path: Path) -> None:
+    with live_server("sqlite", log=tmp_path / "server.log") as server:
+        result = run_load(server, seconds=6, clients=200, uploads=4, timeout=30)
+    routes = result["routes"]
+    assert all(routes[r]["2xx"] > 0 for r in ("GET /v1/jobs/{id}", "GET /v1/jobs/{id}/artifacts", "POST /v1/scenes"))
+    assert result["total_5xx"] == 0 and result["total_timeouts"] == 0 and result["total_errors"] == 0, routes
+    assert sum(r["4xx"] for r in routes.values()) == 0, routes
+    assert result["health_max_s"] < 1.0, routes

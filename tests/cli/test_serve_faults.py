@@ -1,0 +1,195 @@
+"""`fluidnexus serve` killed or stopped (issue 16): SIGKILL leaves no worker process behind, and
+SIGTERM stops it cleanly even after a COLMAP upload made pycolmap install glog's signal handler.
+Each test runs real processes on loopback and stops them itself."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import httpx
+import pytest
+
+from service_support import free_port
+
+FLUIDNEXUS = Path(sys.executable).with_name("fluidnexus")
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+
+
+def descendants(pid: int) -> set[int]:
+    """Live (not zombie) processes below `pid`, from /proc."""
+    parents: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if fields[0] != "Z":
+                parents.setdefault(int(fields[1]), []).append(int(entry.name))
+    found, todo = set(), [pid]
+    while todo:
+        for child in parents.get(todo.pop(), []):
+            found.add(child)
+            todo.append(child)
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]) != "Z"
+    except OSError:
+        return False
+
+
+def start_serve(data_dir: Path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen[str], str]:
+    port = free_port()
+    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", **(env or {})}
+    process = subprocess.Popen(
+        [FLUIDNEXUS, "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data_dir), *extra],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
+                return process, base
+        except httpx.TransportError:
+            time.sleep(0.3)
+    process.kill()
+    raise AssertionError(f"serve did not come up: {process.communicate()[0][-3000:]}")
+
+
+def colmap_zip() -> bytes:
+    """A one-camera COLMAP text model, zipped: enough for the upload check to load it with pycolmap."""
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr("sparse/0/cameras.txt", "1 PINHOLE 32 24 38.4 38.4 16 12\n")
+        archive.writestr("sparse/0/images.txt", "1 1 0 0 0 0 0 4 1 cam0.png\n\n")
+        archive.writestr("sparse/0/points3D.txt", "")
+    return buffer.getvalue()
+
+
+def test_sigterm_stops_serve_cleanly_after_a_colmap_upload(tmp_path: Path) -> None:
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path)],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    process, base = start_serve(tmp_path, "--no-worker")
+    try:
+        files = [("cameras", ("model.zip", colmap_zip(), "application/zip")), ("video", ("other.mp4", b"x", "video/mp4"))]
+        answer = httpx.post(f"{base}/v1/scenes", files=files, headers={"Authorization": f"Bearer {key}"}, timeout=60)
+        assert answer.status_code == 422 and "cam0" in answer.json()["detail"]  # the model was read by pycolmap
+        process.send_signal(signal.SIGTERM)
+        output = process.communicate(timeout=30)[0]
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 0, output[-3000:]
+    assert "SIGTERM received" not in output and "Application shutdown complete" in output
+
+
+def test_sigkill_of_serve_leaves_no_worker_behind(tmp_path: Path) -> None:
+    process, _ = start_serve(tmp_path)
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers := descendants(process.pid)) < 2 and time.monotonic() < deadline:  # Celery + its pool child
+            time.sleep(0.5)
+        assert len(workers) >= 2, "the embedded worker and its pool child did not start"
+        process.send_signal(signal.SIGKILL)
+        process.wait(10)
+        deadline = time.monotonic() + 15
+        while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [pid for pid in workers if alive(pid)]
+    finally:  # whatever this test started and is still there
+        for pid in [process.pid, *workers, *descendants(process.pid)]:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def direct_children(pid: int) -> set[int]:
+    """serve's worker processes: its children but the fork server and resource tracker of the
+    upload validators (api.uploads.Validators), which an upload starts."""
+    return {child for child in descendants(pid) if _parent(child) == pid and not _is_multiprocessing_helper(child)}
+
+
+def _is_multiprocessing_helper(pid: int) -> bool:
+    try:
+        return b"from multiprocessing." in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def _parent(pid: int) -> int | None:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except OSError:
+        return None
+
+
+def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -> None:
+    """Issue 20 item 3: SIGKILL of the embedded Celery main process while one job runs and one is
+    queued. serve starts a new worker, /readyz answers 503 until it beats, and both jobs succeed,
+    the running one resumed from its checkpoints (attempt 2). Test-double runners (one frame a
+    second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
+    from service_support import scene_files, upload_parts
+
+    tests = str(Path(__file__).resolve().parents[1])
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    process, base = start_serve(tmp_path / "data", env={
+        "FLUIDNEXUS_RUNNERS": "service_support:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
+        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
+    })
+    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    workers: set[int] = set()
+    try:
+        wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
+        files = scene_files(tmp_path / "scene")
+        scene = client.post("/v1/scenes", files=upload_parts(files), data={"name": "s"}).json()["id"]
+        jobs = [client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene, "params": {"frames": [0, 6]}}).json()["id"]
+                for _ in range(2)]
+        wait_until(lambda: client.get(f"/v1/jobs/{jobs[0]}").json()["progress"] > 0.3, 60, "the first job's checkpoints")
+        workers = descendants(process.pid)
+        (celery,) = direct_children(process.pid)
+        os.kill(celery, signal.SIGKILL)
+        killed = time.monotonic()
+        wait_until(lambda: client.get("/readyz").status_code == 503, 20, "/readyz to answer 503")
+        not_ready = time.monotonic() - killed
+        wait_until(lambda: client.get(f"/v1/jobs/{jobs[0]}").json()["attempts"] == 2, 60, "the first job to resume")
+        resumed = time.monotonic() - killed
+        wait_until(lambda: all(client.get(f"/v1/jobs/{j}").json()["state"] == "succeeded" for j in jobs), 90,
+                   "both jobs to succeed")
+        done = time.monotonic() - killed
+        assert client.get("/readyz").status_code == 200
+        new_celery = direct_children(process.pid)
+        assert new_celery and celery not in new_celery
+        timings = {"readyz_503_after_s": round(not_ready, 1), "running_job_resumed_after_s": round(resumed, 1),
+                   "both_jobs_succeeded_after_s": round(done, 1)}
+        print(timings)
+        if os.environ.get("RELIABILITY_JSON"):
+            Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
+    finally:
+        client.close()
+        process.terminate()
+        try:
+            process.wait(40)
+        finally:
+            for pid in [process.pid, *workers, *descendants(process.pid)]:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def wait_until(predicate, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
+        time.sleep(0.2)

@@ -1,0 +1,163 @@
+"""fluidcore.exports and `fluidnexus export --format`: the 3DGS PLY read back with plyfile,
+density volumes (npz, NRRD) whose mass is the particles' mass, the default (last) frame, and
+numbered sequences with `--frames` (tests/fluidcore/test_vdb.py reads the OpenVDB files back)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+from typer.testing import CliRunner
+
+from fluidcore.exports import EXPORTERS, MAX_SEQUENCE_FRAMES, SH_C0, ExportError, density_grid
+from fluidcore.runs import Run
+from fluidnexus.cli import app
+
+runner = CliRunner()
+TOO_MANY = MAX_SEQUENCE_FRAMES + 1
+
+
+def _ok(args: list[str]) -> str:
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    return result.stdout
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("scene")
+    _ok(["synth", "--out", str(folder), "--frames", "2", "--width", "32", "--height", "48", "--views", "2"])
+    out = tmp_path_factory.mktemp("runs") / "run"
+    _ok(["reconstruct", "--cameras", str(folder / "transforms.json"), "--video", f"view_00={folder / 'videos' / 'view_00.mp4'}",
+         "--frames", "0:2", "--out", str(out), "--threads", "1"])
+    return out
+
+
+def test_ply_is_the_gaussian_splatting_layout(run_dir, tmp_path):
+    report = json.loads(_ok(["export", str(run_dir), "--frame", "1", "--format", "ply", "--out", str(tmp_path / "f.ply"), "--json"]))
+    assert report["format"] == "ply" and report["out"] == str(tmp_path / "f.ply")
+    vertex = PlyData.read(str(tmp_path / "f.ply"))["vertex"]
+    names = [p.name for p in vertex.properties]
+    assert names == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    g = Run.open(run_dir).read_frame(1).gaussians
+    assert vertex.count == len(g["means"]) > 0
+    np.testing.assert_allclose(np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), g["means"], atol=1e-6)
+    colors = np.stack([vertex[f"f_dc_{i}"] for i in range(3)], 1) * SH_C0 + 0.5
+    np.testing.assert_allclose(colors, np.broadcast_to(g["colors"], colors.shape), atol=1e-5)
+    np.testing.assert_allclose(vertex["opacity"], g["opacity_logits"], atol=1e-6)
+    np.testing.assert_allclose(np.stack([vertex[f"scale_{i}"] for i in range(3)], 1), g["log_scales"], atol=1e-6)
+    quats = np.stack([vertex[f"rot_{i}"] for i in range(4)], 1)
+    np.testing.assert_allclose(np.linalg.norm(quats, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.abs(np.sum(quats * g["quats"], 1)) / np.linalg.norm(g["quats"], axis=1), 1.0, atol=1e-5)
+
+
+def test_density_volume_holds_the_particles_mass(run_dir, tmp_path):
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
+    run = Run.open(run_dir)
+    state = run.read_frame(1)
+    positions = state.positions[state.alive]
+    h = run.scene.physics.h
+    with np.load(tmp_path / "d.npz") as data:
+        density, origin, spacing = data["density"], data["origin"], float(data["spacing"])
+        assert float(data["particle_mass"]) == pytest.approx((h / 2) ** 3)
+    mass = density.sum(dtype=np.float64) * spacing**3
+    assert mass == pytest.approx(len(positions) * (h / 2) ** 3, rel=1e-5)
+    # the mass sits where the particles are: same centre of mass within a voxel
+    axes = [origin[i] + spacing * np.arange(density.shape[i]) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+    centre = (grid * density[..., None]).sum(axis=(0, 1, 2)) / density.sum()
+    np.testing.assert_allclose(centre, positions.mean(axis=0), atol=spacing)
+    # a particle at the rest spacing of the simulator sees density ~ its own kernel's share: finite, >= 0
+    assert np.all(np.isfinite(density)) and density.min() >= 0
+
+
+def test_nrrd_holds_the_same_grid(run_dir, tmp_path):
+    _ok(["export", str(run_dir), "--frame", "0", "--format", "density", "--out", str(tmp_path / "d.npz")])
+    _ok(["export", str(run_dir), "--frame", "0", "--format", "nrrd", "--out", str(tmp_path / "d.nrrd")])
+    raw = (tmp_path / "d.nrrd").read_bytes()
+    header, body = raw.split(b"\n\n", 1)
+    fields = dict(line.split(": ", 1) for line in header.decode().splitlines()[1:])
+    sizes = tuple(int(v) for v in fields["sizes"].split())
+    volume = np.frombuffer(body, dtype="<f4").reshape(sizes, order="F")
+    with np.load(tmp_path / "d.npz") as data:
+        np.testing.assert_array_equal(volume, data["density"])
+        origin = [float(v) for v in fields["space origin"].strip("()").split(",")]
+        np.testing.assert_allclose(origin, data["origin"])
+
+
+def test_density_grid_is_mass_conserving_anywhere_in_a_voxel(monkeypatch):
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0.0, 1.0, (200, 3))
+    grid = density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.05)
+    assert grid.total_mass() == pytest.approx(200 * 0.05**3, rel=1e-9)
+    monkeypatch.setattr("fluidcore.exports.PARTICLE_CHUNK", 7)  # splatted 7 particles at a time: the same grid
+    np.testing.assert_allclose(density_grid(points, 0.1, np.zeros(3), np.ones(3), 0.05).density, grid.density, rtol=1e-6)
+    with pytest.raises(ExportError, match="spacing"):
+        density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.2)
+
+
+def test_bad_format_and_frame_are_one_line_errors(run_dir, tmp_path):
+    result = runner.invoke(app, ["export", str(run_dir), "--frame", "1", "--format", "obj", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and f"format must be one of {', '.join(EXPORTERS)}" in result.output
+    result = runner.invoke(app, ["export", str(run_dir), "--frame", "9", "--format", "ply", "--out", str(tmp_path / "x.ply")])
+    assert result.exit_code == 2 and "frame 9 is not a finished frame" in result.output
+    assert not (tmp_path / "x.ply").exists()
+
+
+def test_export_artifacts_hold_the_last_frame_in_every_format_and_every_frame_as_vdb(run_dir, tmp_path):
+    from fluidcore.exports import export_artifacts
+
+    files = export_artifacts(run_dir, tmp_path / "exports")
+    assert sorted(p.name for p in files) == sorted(
+        ["state_000001.npz", "splats_000001.ply", "density_000001.npz", "density_000001.nrrd",
+         "smoke_000000.vdb", "smoke_000001.vdb"]
+    )
+    assert all(p.stat().st_size > 0 for p in files)
+
+
+def test_export_writes_the_last_frame_unless_told(run_dir, tmp_path):
+    report = json.loads(_ok(["export", str(run_dir), "--format", "npz", "--out", str(tmp_path / "last.npz"), "--json"]))
+    assert report["frame"] == 1 == Run.open(run_dir).frames()[-1]
+    with np.load(tmp_path / "last.npz") as data:
+        np.testing.assert_array_equal(data["positions"], Run.open(run_dir).read_frame(1).export()["positions"])
+
+
+@pytest.mark.parametrize(("fmt", "names"), [
+    ("ply", ["splats_000000.ply", "splats_000001.ply"]),
+    ("nrrd", ["density_000000.nrrd", "density_000001.nrrd"]),
+    ("density", ["density_000000.npz", "density_000001.npz"]),
+])
+def test_frames_write_a_numbered_sequence(run_dir, tmp_path, fmt, names):
+    out = tmp_path / "seq"
+    report = json.loads(_ok(["export", str(run_dir), "--frames", "0:2", "--format", fmt, "--out", str(out), "--json"]))
+    assert report["files"] == names and sorted(p.name for p in out.iterdir()) == names
+    one = tmp_path / f"one{EXPORTERS[fmt].suffix}"
+    _ok(["export", str(run_dir), "--frame", "1", "--format", fmt, "--out", str(one)])
+    if fmt == "density":  # a zip archive: its members carry the time they were written
+        with np.load(out / names[1]) as seq, np.load(one) as single:
+            assert seq["density"].any() and np.array_equal(seq["density"], single["density"])
+    else:
+        assert (out / names[1]).read_bytes() == one.read_bytes()  # the sequence's frame 1 is frame 1
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--frames", "0:3"], "frames 0:3: frame 2 is not a finished frame"),
+    (["--frames", "1:1"], "frames must satisfy 0 <= START < END"),
+    (["--frames", "a:b"], "frames must look like START:END"),
+    (["--frames", f"0:{TOO_MANY}"], f"frames 0:{TOO_MANY} is {TOO_MANY} frames; a sequence holds at most {MAX_SEQUENCE_FRAMES}"),
+    (["--frames", "0:1", "--frame", "0"], "give --frame (one file) or --frames START:END (a sequence), not both"),
+])
+def test_bad_frame_ranges_are_refused_before_writing(run_dir, tmp_path, args, message):
+    result = runner.invoke(app, ["export", str(run_dir), "--format", "ply", "--out", str(tmp_path / "seq"), *args])
+    assert result.exit_code == 2 and f"error: {message}" in result.output, result.output
+    assert not (tmp_path / "seq").exists()
+
+
+def test_a_sequence_into_a_file_is_refused(run_dir, tmp_path):
+    (tmp_path / "taken").write_text("mine")
+    result = runner.invoke(app, ["export", str(run_dir), "--frames", "0:1", "--format", "ply", "--out", str(tmp_path / "taken")])
+    assert result.exit_code == 2 and "is a file; a sequence goes into a folder" in result.output
+    assert (tmp_path / "taken").read_text() == "mine"

@@ -1,0 +1,96 @@
+"""What the browser UI needs from the API: its files and the API reference served with no
+internet, and particle positions for the 3D what-if view."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_support import store_run
+
+from api_support import Service, reconstruct
+
+ROOT = Path(__file__).resolve().parents[2]
+WEB = ROOT / "web"
+EXTERNAL = re.compile(r"""(?:src|href)\s*=\s*["']?(?:https?:)?//""", re.IGNORECASE)
+LOCAL_REF = re.compile(r"""(?:src|href)\s*=\s*["'](/[^"']*)["']""", re.IGNORECASE)
+
+
+@pytest.mark.parametrize("page", ["/docs", "/redoc", "/"])
+def test_pages_load_nothing_from_other_hosts(sqlite_service: Service, page: str) -> None:
+    """/docs (Swagger UI), /redoc and the UI reference only files this server answers with 200."""
+    html = sqlite_service.client.get(page)
+    assert html.status_code == 200
+    assert not EXTERNAL.search(html.text), EXTERNAL.search(html.text)
+    assets = set(LOCAL_REF.findall(html.text))
+    assert assets, "the page references no local asset"
+    for asset in assets:
+        response = sqlite_service.client.get(asset)
+        assert response.status_code == 200 and len(response.content) > 0, asset
+
+
+def test_redoc_draws_no_image_from_a_cdn_and_the_favicon_is_served(sqlite_service: Service) -> None:
+    html = sqlite_service.client.get("/redoc").text
+    bundle = sqlite_service.client.get(LOCAL_REF.search(html.split("<body>")[1]).group(1))
+    assert bundle.status_code == 200 and b"Redoc" in bundle.content
+    assert not re.findall(rb"https?://[^\"' ]+\.(?:svg|png|gif|jpe?g)", bundle.content)  # offline: no broken image
+    icon = sqlite_service.client.get("/favicon.ico")
+    assert icon.status_code == 200 and icon.content[:4] == b"\x00\x00\x01\x00"  # an ICO file
+
+
+def test_swagger_page_loads_the_bundle_and_the_schema(sqlite_service: Service) -> None:
+    html = sqlite_service.client.get("/docs").text
+    assert "swagger-ui-bundle.js" in html and "/openapi.json" in html
+    assert sqlite_service.client.get("/openapi.json").json()["paths"]["/v1/jobs/{job_id}/particles"]
+
+
+def test_ui_scripts_import_only_local_modules() -> None:
+    """Every ES module import in web/js names a file that exists (no CDN, no bare package names)."""
+    imports = []
+    for script in sorted((WEB / "js").glob("*.js")):
+        for target in re.findall(r"""from\s+["']([^"']+)["']""", script.read_text()):
+            imports.append(target)
+            assert target.startswith("./") or target.startswith("../"), (script.name, target)
+            assert (script.parent / target).resolve().is_file(), (script.name, target)
+    assert "../vendor/three.min.js" in imports
+    for licence in ("LICENSE-three", "LICENSE-uplot"):
+        assert "MIT License" in (WEB / "vendor" / licence).read_text()
+
+
+# -- particles -------------------------------------------------------------------------------------
+
+def write_states(service: Service, job_id: str, counts: dict[int, int]) -> dict[int, np.ndarray]:
+    """A run in storage with one state per frame: `counts[t]` particles, the last one dead."""
+    rng = np.random.default_rng(0)
+    positions = {t: rng.uniform(-0.5, 0.5, size=(n, 3)).astype(np.float32) for t, n in counts.items()}
+    store_run(service.storage, job_id, positions)
+    return positions
+
+
+def test_particles_of_a_frame_with_the_scene_box(service: Service, scene_id: str) -> None:
+    alice = service.key("alice")
+    job = reconstruct(service, alice, scene_id).json()["id"]
+    url = f"/v1/jobs/{job}/particles"
+    early = service.client.get(url, headers=alice)
+    assert early.status_code == 409 and "no run" in early.json()["detail"]
+
+    positions = write_states(service, job, {3: 50, 4: 40})
+    last = service.client.get(url, headers=alice).json()
+    assert last["frame"] == 4 and last["frames"] == [3, 4] and last["total"] == 39  # the dead particle left out
+    np.testing.assert_allclose(np.reshape(last["positions"], (-1, 3)), positions[4][:39], atol=1e-5)
+    assert last["scene"]["box_lo"] == [-0.5, 0.0, -0.5] and last["scene"]["box_hi"] == [0.5, 1.0, 0.5]
+    assert last["scene"]["up"] == [0.0, 1.0, 0.0] and last["scene"]["source"]["center"] == [0.0, 0.1, 0.0]
+
+    capped = service.client.get(url, params={"frame": 3, "max_points": 10}, headers=alice).json()
+    sample = np.reshape(capped["positions"], (-1, 3))
+    assert capped["frame"] == 3 and capped["total"] == 49 and len(sample) == 10
+    expected = positions[3][np.linspace(0, 48, 10).round().astype(int)]  # evenly spaced, first and last kept
+    np.testing.assert_allclose(sample, expected, atol=1e-5)
+
+    missing = service.client.get(url, params={"frame": 7}, headers=alice)
+    assert missing.status_code == 404 and "3..4" in missing.json()["detail"]
+    assert service.client.get(url, params={"max_points": 10**6}, headers=alice).status_code == 422
+    assert service.client.get(url, headers=service.key("bob")).status_code == 404
+    assert service.client.get(url).status_code == 401
