@@ -153,7 +153,8 @@ function drawOverlay() {
   if (params.wind && Math.hypot(...params.wind.direction) > 0) {
     const dir = new Vector3(...params.wind.direction).normalize();
     const up = new Vector3(...run.up).normalize();
-    const base = up.dot(new Vector3(...(run.source.center || [0, 0, 0])));
+    // WindParams.reference_height: the wind's own base height when it names one, else the source's.
+    const base = params.wind.base_height ?? up.dot(new Vector3(...(run.source.center || [0, 0, 0])));
     const centre = lo.clone().add(hi).multiplyScalar(0.5);
     const heights = [...Array(WIND_ARROWS).keys()].map((i) => lo.dot(up) + ((i + 0.5) / WIND_ARROWS) * hi.clone().sub(lo).dot(up));
     const force = heights.map((h) => params.wind.strength * windGain(params.wind, h - base));
