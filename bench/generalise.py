@@ -229,7 +229,7 @@ class Protocol:
         """Each frame from the first of `runs` that holds it (a continuation, then its parent)."""
         import numpy as np
 
-        from fluidcore.artifacts import render_frames
+        from fluidcore.run_frames import render_frames
 
         def predict(camera: Any, frames: list[int], size: tuple[int, int]) -> np.ndarray:
             scaled = camera.scaled(*size)
@@ -263,7 +263,7 @@ class Protocol:
     def _blank(self, run: Any) -> Predictor:
         import numpy as np
 
-        from fluidcore.artifacts import to_uint8_rgb
+        from fluidcore.run_frames import to_uint8_rgb
 
         colour = to_uint8_rgb(np.asarray(run.background_color, np.float32)[None, None])
 

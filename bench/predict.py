@@ -151,7 +151,7 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
     import numpy as np
 
     from fluidcore import video
-    from fluidcore.artifacts import render_frames, to_uint8_rgb
+    from fluidcore.run_frames import render_frames, to_uint8_rgb
     from fluidcore.reconstruct.init import resize_image
     from fluidcore.runs import Run
 

@@ -103,7 +103,7 @@ def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[s
     import torch
 
     from fluidcore import metrics, video
-    from fluidcore.artifacts import render_frames, to_uint8_rgb
+    from fluidcore.run_frames import render_frames, to_uint8_rgb
     from fluidcore.runs import Run
 
     run = Run.open(run_dir)

@@ -1,7 +1,7 @@
 """Rendering a run's artifacts: any run folder (reconstruct, predict, interact, resimulate) to
-images and videos. The CLI's `render`, the worker's runners and the benchmarks all render here.
+videos. The CLI's `render`, the worker's runners and the benchmarks all render here; single
+frames come from `fluidcore.run_frames` (which Algorithm S2's refinement uses too).
 
-    render_frames     uint8 frames of a run from one camera (the run's own, or any other)
     render_orbit      one turn around the scene while the run plays
     render_artifacts  one MP4 per camera plus `orbit.mp4` (and for a what-if `side_by_side.mp4`,
                       factual | what-if): what a finished job publishes, at the size its
@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from fluidcore.jobs import JobContext, JobInputError, Progress, no_progress
+from fluidcore.run_frames import FrameDone, render_frames
 
-FrameDone = Callable[[], None]  # called after each rendered frame
 SCENE_VIDEOS = ("orbit", "side_by_side")  # render_artifacts' videos that belong to no camera
 REFINED_PREFIX = "refined_"
 
@@ -34,58 +34,6 @@ def check_camera_names(names: Sequence[str]) -> None:
                 f"camera {name!r}: its video would have the name of another video of the job "
                 f"({', '.join(SCENE_VIDEOS)}, {REFINED_PREFIX}<camera>); rename the camera"
             )
-
-
-def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
-    """What empty space looks like from `camera` in `run`: the static background image of that
-    camera when the run (or its parent) estimated one, otherwise the background colour."""
-    from fluidcore.reconstruct.init import resize_image
-
-    current = run
-    while current is not None:
-        images = current.background_images()
-        if camera.name in images:
-            return resize_image(images[camera.name], camera.width, camera.height)
-        current = current.parent
-    return run.background_color
-
-
-def render_frames(
-    run, camera, frames: Sequence[int] | None = None, device: str = "cpu", interventions: bool = False,  # noqa: ANN001
-    on_frame: FrameDone | None = None,
-) -> np.ndarray:
-    """uint8 (T, H, W, 3) renders of `frames` (default: all) of a run from `camera`.
-
-    `interventions` draws the run's ball and wind over the smoke (fluidcore.overlay): on in the
-    videos made for people (`render_artifacts`, `fluidnexus render` of an interact run), off
-    where renders are scored against footage, in which the ball is invisible."""
-    import torch
-
-    from fluidcore.overlay import draw_run_interventions
-
-    from fluidcore.render import render
-    from fluidcore.smoke import visual_layer
-
-    frames = run.frames() if frames is None else list(frames)
-    background = torch.as_tensor(np.asarray(run_background(run, camera), dtype=np.float32), device=device)
-    out = []
-    for t in frames:
-        means, appearance = visual_layer(run.read_frame(t), device)
-        with torch.no_grad():
-            image = render(appearance.gaussians(means), camera, background, depth=False).image
-        out.append(to_uint8_rgb(image.cpu().numpy()))
-        if on_frame is not None:
-            on_frame()
-    video = np.stack(out) if out else np.zeros((0, camera.height, camera.width, 3), np.uint8)
-    if interventions:
-        video = draw_run_interventions(run, camera, frames, video)
-    return video
-
-
-def to_uint8_rgb(image: np.ndarray) -> np.ndarray:
-    """(..., C) float in [0, 1], C = 1 or 3 -> (..., 3) uint8."""
-    image = np.repeat(image, 3, axis=-1) if image.shape[-1] == 1 else image
-    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 def orbit_cameras(run, n: int) -> list:  # noqa: ANN001

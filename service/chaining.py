@@ -17,12 +17,10 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from service.job_types import JobType
-from service.models import Job, JobState, utcnow
+from service.models import SENDING, Job, JobState, utcnow
 from service.queue import JobQueue, QueueUnavailable
 
 log = logging.getLogger(__name__)
-
-SENDING = "sending"  # task_id while a released job is handed to the broker
 
 
 def waiting_stage(parent_id: str) -> str:

@@ -91,6 +91,9 @@ class Scene(Base):
     request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
 
 
+SENDING = "sending"  # Job.task_id while a released job is handed to the broker (service.chaining)
+
+
 class Job(Base):
     """One reconstruct / predict / interact / resimulate run and everything the API reports about it."""
 
@@ -117,7 +120,7 @@ class Job(Base):
 
     idempotency_key: Mapped[str | None] = mapped_column(String(256), default=None)
     request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
-    task_id: Mapped[str | None] = mapped_column(String(64), default=None)
+    task_id: Mapped[str | None] = mapped_column(String(64), default=None)  # the broker's task id, or SENDING
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     # Fencing token: raised by every claim; a runner writes to the job only while it still holds

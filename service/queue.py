@@ -12,7 +12,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from service.celery_app import make_celery, task_name
 from service.database import session_scope
 from service.job_types import JobType
-from service.models import Job, JobState, utcnow
+from service.models import SENDING, Job, JobState, utcnow
 from service.settings import GPU_QUEUE, Settings
 
 
@@ -86,7 +86,6 @@ def _resend_lost(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds
     prefetched message). Sending twice is safe: the claim's fencing token lets one runner run the
     job, and a message for a job already running or finished is dropped. Each job is sent at most
     once a lease, taken by a conditional UPDATE on `resent_at` so concurrent reapers send it once."""
-    from service.chaining import SENDING  # service.chaining imports this module
     from service.worker_beats import idle_for_a_lease
 
     cutoff = utcnow() - timedelta(seconds=lease_seconds)

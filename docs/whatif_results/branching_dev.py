@@ -10,7 +10,7 @@ import json, math, sys, time
 from pathlib import Path
 import numpy as np, torch
 torch.set_num_threads(1)
-from fluidcore import artifacts, video
+from fluidcore import run_frames, video
 from fluidcore.metrics import psnr, ssim
 from fluidcore.predict import run_interact, run_predict
 from fluidcore.interaction import parse_interaction
@@ -45,7 +45,7 @@ for variant in sys.argv[3:]:
         gt = torch.from_numpy(video.read_frames(DEV / variant / "videos" / f"{name}.mp4", late[0], late[1])).float() / 255
         row = {}
         for label, run in (("whatif", wi), ("own_factual", fa)):
-            pred = torch.from_numpy(artifacts.render_frames(run, cam, frames)).float() / 255
+            pred = torch.from_numpy(run_frames.render_frames(run, cam, frames)).float() / 255
             row[label] = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt, window="uniform")}
         rows[name] = row
     mean = {k: {m: float(np.mean([rows[v][k][m] for v in rows])) for m in ("psnr", "ssim")} for k in ("whatif", "own_factual")}

@@ -119,7 +119,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     prediction started from, seeing only the input camera(s), and starts from the prediction's
     first frame. Stages: "refine futures" (per window batch), "reconstruct refined" (per frame).
     """
-    from fluidcore.artifacts import render_frames
+    from fluidcore.run_frames import render_frames
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
     from fluidcore.reconstruct.job import fit

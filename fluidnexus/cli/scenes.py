@@ -117,7 +117,8 @@ def render(
 ) -> None:
     """Render a run's frames from one of its cameras, a camera of another file, or an orbit around the scene."""
     from fluidcore import cameras as camera_io
-    from fluidcore.artifacts import render_frames, render_orbit
+    from fluidcore.artifacts import render_orbit
+    from fluidcore.run_frames import render_frames
     from fluidcore.jobs import parse_frames
     from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4

@@ -132,7 +132,7 @@ def test_the_absurd_wind_limit_is_the_simulators_speed_limit(parent: Path) -> No
 
 def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     """The whole chain on a run written by the reconstruction itself (fluidcore.synth scene)."""
-    from fluidcore import artifacts, synth
+    from fluidcore import run_frames, synth
     from fluidcore.reconstruct import job as reconstruct_job
     from fluidcore.reconstruct import get
 
@@ -149,7 +149,7 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     free = 0.5 * (1 / 30) ** 2 * 8 * 9 / 2  # wind alone, no drag, 8 semi-implicit Euler steps: a dt^2 n(n+1)/2
     # Drag and particles born later (pushed for less time) take some of it away; nothing adds to it.
     assert 0.3 * free < shift < free
-    video = artifacts.render_frames(windy, windy.cameras()["view_01"])
+    video = run_frames.render_frames(windy, windy.cameras()["view_01"])
     assert video.shape[0] == 8
 
 

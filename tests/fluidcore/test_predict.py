@@ -15,7 +15,7 @@ import torch
 from predict_scenes import SPEC, horizontal_distance, live, plume_run
 from typer.testing import CliRunner
 
-from fluidcore import artifacts
+from fluidcore import run_frames
 from fluidcore.interaction import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
@@ -69,7 +69,7 @@ def test_prediction_continues_after_the_last_frame_and_records_its_parent(
 def test_rendering_a_prediction_gives_its_new_frames(parent: Path, tmp_path: Path) -> None:
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     camera = run.cameras()["view_01"]
-    video = artifacts.render_frames(run, camera)
+    video = run_frames.render_frames(run, camera)
     assert video.shape == (FRAMES, camera.height, camera.width, 3)
     assert video.min() < 200  # smoke is visible on the white background
 
@@ -98,7 +98,7 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert calls == {"step": once + FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
     for camera in run.cameras().values():
-        artifacts.render_frames(run, camera)
+        run_frames.render_frames(run, camera)
     assert calls == {"step": once + FRAMES, "render": FRAMES * len(run.cameras())}
 
 
@@ -342,7 +342,7 @@ def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: P
     job.run_predict(moved / "p1", moved / "p2", frames=3)  # resumes: same run, its parent found again
     grown = Run.open(job.run_predict(moved / "p2", moved / "p3", frames=2))
     assert grown.parent.parent.parent.path.resolve() == (moved / "reconstruct").resolve()
-    assert len(artifacts.render_frames(grown, grown.cameras()["view_00"])) == 2
+    assert len(run_frames.render_frames(grown, grown.cameras()["view_00"])) == 2
     uninterrupted = tmp_path / "whole"
     job.run_predict(parent, uninterrupted / "p1", frames=2)
     job.run_predict(uninterrupted / "p1", uninterrupted / "p2", frames=3)

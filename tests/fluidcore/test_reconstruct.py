@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from fluidcore import artifacts, metrics, synth
+from fluidcore import metrics, run_frames, synth
 from fluidcore.physics import interpolate_velocity
 from fluidcore.reconstruct import Reconstructor, ReconstructionError, get, prepare, read_inputs
 from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError, parse_source
@@ -61,7 +61,7 @@ def run(scene, tmp_path_factory) -> Run:
 def test_input_view_is_reproduced_and_novel_views_beat_blank(scene, run):
     assert run.frames() == list(range(FRAMES))
     for name, camera in scene.cameras.items():
-        pred = _as_float(artifacts.render_frames(run, camera))
+        pred = _as_float(run_frames.render_frames(run, camera))
         truth = _as_float(scene.videos[name])
         blank = metrics.psnr(torch.ones_like(truth), truth)
         if name == INPUT:

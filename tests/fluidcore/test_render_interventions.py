@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from fluidcore import artifacts
+from fluidcore import artifacts, run_frames
 from fluidcore import video
 from fluidcore.interaction import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact
@@ -33,8 +33,8 @@ def what_if(parent: Path, tmp_path_factory: pytest.TempPathFactory) -> Run:
 
 def test_ball_is_drawn_in_a_render_where_it_projects(what_if: Run) -> None:
     camera = next(iter(what_if.cameras().values()))
-    plain = artifacts.render_frames(what_if, camera, interventions=False)
-    drawn = artifacts.render_frames(what_if, camera, interventions=True)
+    plain = run_frames.render_frames(what_if, camera, interventions=False)
+    drawn = run_frames.render_frames(what_if, camera, interventions=True)
     (u, v), = camera.project_numpy(np.array(BALL["center"]))[0]
     changed = np.any(plain != drawn, axis=-1)
     assert changed[:, int(v), int(u)].all()  # at the ball's centre, on every frame (it is there from new frame 0)
@@ -64,9 +64,9 @@ def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, 
     large = camera.scaled(96, 128)  # the content, without video coding at the test's tiny size
     both = artifacts.render_side_by_side(run, large)
     assert both.shape[:2] == (3, 128) and both.shape[2] > 2 * 96
-    np.testing.assert_array_equal(both[:, 30:, -96:], artifacts.render_frames(run, large, interventions=True)[:, 30:])
+    np.testing.assert_array_equal(both[:, 30:, -96:], run_frames.render_frames(run, large, interventions=True)[:, 30:])
     if from_frame == 2:  # the parent holds frames 3..5: they are the factual side
-        np.testing.assert_array_equal(both[:, 30:, :96], artifacts.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
+        np.testing.assert_array_equal(both[:, 30:, :96], run_frames.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
 
 
 def test_what_if_artifacts_report_progress_per_frame_and_share_one_length(what_if: Run, tmp_path: Path) -> None:
