@@ -560,6 +560,15 @@ class Run(RunRecord):
         parent = self.manifest.get("parent")
         return None if parent is None else Run.open(self.path / parent)  # an absolute path stays itself
 
+    def reconstruction(self) -> Run | None:
+        """The reconstruction this run is or descends from (its nearest reconstruct ancestor),
+        whose quality, physics and views every continuation of it keeps; None for a run with no
+        reconstruction behind it (one made by hand or by a test)."""
+        run: Run | None = self
+        while run is not None and run.kind is not RunKind.RECONSTRUCT:
+            run = run.parent
+        return run
+
     def state_path(self, t: int) -> Path:
         return self.path / state_file(t)
 

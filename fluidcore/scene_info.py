@@ -59,10 +59,12 @@ def from_run(run: RunRecord) -> dict[str, Any]:
     """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source,
     cameras; for a reconstruction whose source was estimated, how its depth was found and, from
     one view, the stretch of the input ray the centre could lie on (`source.depth`)."""
+    from fluidcore.runs import RunKind
+
     scene = run.scene
     box = (np.asarray(scene.box_lo), np.asarray(scene.box_hi))
     source: dict[str, Any] = {"center": scene.source.center, "radius": scene.source.radius}
-    estimate = getattr(run.settings, "source_estimate", None)
+    estimate = run.settings.source_estimate if run.kind is RunKind.RECONSTRUCT else None
     if estimate is not None:
         source["depth"] = {"cue": estimate.depth_cue,
                            "range": None if estimate.depth_range is None else [list(p) for p in estimate.depth_range]}

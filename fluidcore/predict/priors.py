@@ -22,7 +22,7 @@ import torch
 
 from fluidcore.jobs import JobContext, JobInputError
 from fluidcore.reconstruct.source_hint import SourceHint
-from fluidcore.runs import REFINED_RUN, ReconstructSettings, Run
+from fluidcore.runs import REFINED_RUN, Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
@@ -131,9 +131,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
     if skipped is not None:
         return skipped
-    origin = run.parent
-    while origin is not None and not isinstance(origin.settings, ReconstructSettings):
-        origin = origin.parent
+    origin = run.reconstruction()
     if origin is None:
         return "skipped: no reconstruction among the run's parents to take the quality and physics from"
     origin_settings = origin.settings

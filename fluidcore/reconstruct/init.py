@@ -252,8 +252,9 @@ def estimate_source(
     the input ray where it passes closest to the box's vertical axis (the box is where the smoke
     is), unless the source would then sink below the box's floor, which a camera looking down
     onto the floor steeply enough can tell (`ray_point_on_floor`): then it rests on the floor.
-    `depth_range` says how far along the ray the centre could be. A known `center` (the user's) is kept, and only the radius is
-    measured, at its depth. Masks may be at any resolution; cameras are scaled to match them.
+    `depth_range` says how far along the ray the centre could be. A known `center` (the
+    user's) is kept, and only the radius is measured, at its depth. Masks may be at any
+    resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)

@@ -178,10 +178,6 @@ def get(name: str) -> Quality:
 def reconstruction_quality(run) -> Quality | None:  # noqa: ANN001 - fluidcore.runs.Run
     """The quality of the reconstruction `run` is or descends from (its nearest reconstruct
     ancestor); None when there is none or it records none (a run made by hand or by a test)."""
-    from fluidcore.runs import RunKind
-
-    origin = run
-    while origin is not None and origin.kind is not RunKind.RECONSTRUCT:
-        origin = origin.parent
+    origin = run.reconstruction()
     recorded = None if origin is None else origin.settings.quality
     return Quality.from_json(recorded) if recorded else None
