@@ -4,8 +4,9 @@ frames come from `fluidcore.run_frames` (which Algorithm S2's refinement uses to
 
     video_names       the videos a run can have: one per camera, `orbit`, a what-if's
                       `side_by_side` (factual | what-if), a refined prediction's `refined_CAMERA`
-    eager_videos      those a finished job renders before it ends (its input views); the worker
-                      renders any other on request (`JobType.RENDER`) and storage keeps it
+    eager_videos      those a finished job renders before it ends (a reconstruction's input
+                      views); the worker renders any other on request (`JobType.RENDER`) and
+                      storage keeps it
     render_artifacts  named videos as MP4s, at the size the run's reconstruction was fit at,
                       reporting progress per rendered frame
     render_orbit      one turn around the scene while the run plays
@@ -109,12 +110,18 @@ def video_names(run: RunRecord) -> list[str]:
 
 
 def eager_videos(run: RunRecord) -> list[str]:
-    """The videos a finished job renders before it ends: its input views, which the results
-    page's first player shows, and a refined prediction's `refined_CAMERA` videos (what
-    Algorithm S2's refinement made). Every other name of `video_names` is rendered when asked for
-    (`POST /v1/jobs/{id}/videos/{name}`, `fluidnexus render`): a what-if that rendered them all
-    spent 0.81 of its CPU time rendering (docs/bench_render.md, "What-if artifacts")."""
-    return [*run.input_views, *(name for name in video_names(run) if name.startswith(REFINED_PREFIX))]
+    """The videos a finished job renders before it ends: a reconstruction's input views, and a
+    refined prediction's `refined_CAMERA` videos (what Algorithm S2's refinement made). A
+    continuation (predict, what-if, resimulate) renders none: its simulation costs about what one
+    view's video does (a 30-frame preview what-if of ScalarFlow: 0.25 s CPU simulating, 0.27 s
+    rendering the input view), so even that one would be over a third of its time
+    (docs/bench_render.md, "What-if artifacts"). Every other name of `video_names` is rendered
+    when asked for (`POST /v1/jobs/{id}/videos/{name}`, which the results page calls for the
+    videos it shows; `fluidnexus render`)."""
+    from fluidcore.runs import RunKind
+
+    views = run.input_views if run.kind is RunKind.RECONSTRUCT else []
+    return [*views, *(name for name in video_names(run) if name.startswith(REFINED_PREFIX))]
 
 
 def check_video_names(run: RunRecord, names: Sequence[str]) -> None:

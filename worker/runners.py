@@ -4,7 +4,7 @@ Celery app, the API and the tests of the service logic load without them; only t
 `fluidcore.jobs` (the progress, cancellation and context types) is imported here.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
-files to publish besides the run folder itself (the MP4s of its input views, the last frame in
+files to publish besides the run folder itself (a reconstruction's input-view MP4s, the last frame in
 every `fluidcore.exports` format, every frame as VDB; a render job: the one video asked for).
 Each reads its parameters through its type's model in `service.job_types`, so defaults live
 there only.
@@ -49,8 +49,8 @@ RENDER_SHARE = 0.25  # of a job's progress bar: a 62 s ScalarFlow reconstruction
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    """The videos a finished job renders before it ends (its input views, `eager_videos`; any
-    other is a render job away) at the size the run's reconstruction was fit at, the last frame
+    """The videos a finished job renders before it ends (a reconstruction's input views,
+    `eager_videos`; any other is a render job away) at the size the run's reconstruction was fit at, the last frame
     in every export format and the run's frames as a VDB sequence
     (fluidcore.exports.export_artifacts); progress moves per rendered frame."""
     from fluidcore.artifacts import eager_videos, fit_long_side, render_artifacts
@@ -63,6 +63,7 @@ def _render(inputs: RunInputs) -> list[Path]:
     progress(0.0, "render")  # the run itself is complete; rendering fills the rest
     videos = render_artifacts(inputs.run_dir, inputs.render_dir, eager_videos(Run.open(inputs.run_dir)), progress,
                               fit_long_side(inputs.run_dir), inputs.device)
+    progress(1.0, "export")  # a stage of its own, so the job's timings tell rendering from writing files
     return [*videos, *export_artifacts(inputs.run_dir, inputs.render_dir)]
 
 

@@ -1,8 +1,8 @@
 """`/v1/jobs/{id}/videos`: the videos a job can show, and rendering one on request.
 
-A finished job renders its input views before it ends (`fluidcore.artifacts.eager_videos`); any
-other video of its run (another camera, the orbit, a what-if's side-by-side) is rendered when a
-client asks for it: a `render` job (`service.job_types.JobType.RENDER`) on the workers, with
+A reconstruction renders its input views before it ends, a continuation (predict, what-if,
+resimulate) none (`fluidcore.artifacts.eager_videos`); any other video of a job's run (a camera,
+the orbit, a what-if's side-by-side) is rendered when a client asks for it: a `render` job (`service.job_types.JobType.RENDER`) on the workers, with
 progress per rendered frame, that stores the MP4 under the asking job's keys and lists it with
 its artifacts. A video already stored is answered from storage (200) and nothing renders; one
 being rendered is answered with the render job already on it (202), so asking twice never

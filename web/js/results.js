@@ -1,8 +1,9 @@
 // Results view: MP4 players side by side and in sync (input view, any camera, the orbit; for a
 // what-if, next to the factual prediction from the same frame), per-frame plots from the run
 // manifest, and downloads of everything the job published (videos, exports, states, manifest).
-// A job publishes its input views; any other video (another camera, the orbit, a what-if's
-// side-by-side) is rendered when a player or a download asks for it (POST /v1/jobs/{id}/videos/{name}):
+// A reconstruction publishes its input views, a prediction or what-if no video; any other video
+// (a camera, the orbit, a what-if's side-by-side) is rendered when a player or a download asks for
+// it (POST /v1/jobs/{id}/videos/{name}):
 // the player says "rendering… N %" until the server has stored it, then plays it in step.
 
 import { $ } from "./dom.js";
