@@ -37,12 +37,13 @@ from typing import Any
 
 import typer
 
-import fluidcore  # noqa: F401  first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
+import fluidcore  # first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
+import fluidcore.artifacts
 
 DEFAULT_WIND = '{"direction": [1, 0, 0], "strength": 0.5}'
 KEYS = (  # medians
     "simulate_s", "render_s", "render_share", "simulate_cpu_s", "render_cpu_s", "render_cpu_share",
-    "orbit_s", "orbit_cpu_s", "job_s", "job_render_s", "job_render_share", "job_export_s",
+    "orbit_s", "orbit_cpu_s", "input_view_s", "input_view_cpu_s", "job_s", "job_render_s", "job_render_share", "job_export_s",
     "first_request_s", "orbit_job_s", "orbit_job_render_s", "second_request_s", "second_request_cpu_s",
 )
 
@@ -83,13 +84,32 @@ def measure(parent: Path, frames: int, wind: str, folder: Path) -> dict[str, Any
         "simulate_cpu_s": simulate_cpu_s, "render_cpu_s": render_cpu_s,
         "render_cpu_share": render_cpu_s / (simulate_cpu_s + render_cpu_s),
         "videos": len(files), "video_frames": sum(i.n_frames for i in infos),
-        "pixels_per_frame": max(i.width * i.height for i in infos),
+        "pixels_per_frame": max((i.width * i.height for i in infos), default=0),
     }
-    if hasattr(artifacts, "eager_videos"):
-        start = clocks()
-        artifacts.render_artifacts(run_dir, folder / "orbit", ["orbit"], long_side=long_side)
-        row["orbit_s"], row["orbit_cpu_s"] = since(start)
+    if hasattr(artifacts, "eager_videos"):  # on request: the orbit, and the input view (what eager rendering would cost)
+        for name, video in (("orbit", "orbit"), ("input_view", Run.open(run_dir).input_views[0])):
+            start = clocks()
+            artifacts.render_artifacts(run_dir, folder / name, [video], long_side=long_side)
+            row[f"{name}_s"], row[f"{name}_cpu_s"] = since(start)
     return row
+
+
+def measure_reconstruction(run: Path, folder: Path) -> dict[str, Any]:
+    """The parent reconstruction's own videos: every one (what a reconstruct job rendered before
+    on-request rendering) against those it renders before it ends now, CPU seconds, beside the
+    seconds its frames took (the manifest's frame log, wall)."""
+    from fluidcore import artifacts
+    from fluidcore.runs import Run
+
+    record = Run.open(run)
+    long_side = artifacts.fit_long_side(run)
+    report = {"reconstruct_frames_s": sum(entry["seconds"] for entry in record.manifest["frames"])}
+    for key, names in (("all", artifacts.video_names(record)), ("eager", artifacts.eager_videos(record))):
+        start = clocks()
+        artifacts.render_artifacts(run, folder / key, names, long_side=long_side)
+        report[f"render_{key}_s"], report[f"render_{key}_cpu_s"] = since(start)
+        report[f"videos_{key}"] = names
+    return report
 
 
 class RecordingQueue:
@@ -184,12 +204,16 @@ def command(
             rows.append(row)
         print(f"what-if {i + 1}/{repeats}: {row['simulate_s']:.1f} s simulate, {row['render_s']:.1f} s render; "
               f"job {row['job_s']:.1f} s, {row['job_render_s']:.1f} s of it rendering", file=sys.stderr)
+    reconstruction = None
+    if hasattr(fluidcore.artifacts, "eager_videos"):
+        with tempfile.TemporaryDirectory(prefix="fluidnexus-bench-reconstruction-") as tmp:
+            reconstruction = measure_reconstruction(run, Path(tmp))
     report: dict[str, Any] = {
         "run": str(run), "frames": frames, "wind": json.loads(wind), "repeats": repeats,
         "threads": torch.get_num_threads(), "cpu_count": os.cpu_count(), "load_average": [round(x, 2) for x in os.getloadavg()],
         **{key: statistics.median(r[key] for r in rows) for key in KEYS if all(r.get(key) is not None for r in rows)},
         **{key: rows[0][key] for key in ("videos", "video_frames", "pixels_per_frame")},
-        "rows": rows,
+        "rows": rows, "reconstruction": reconstruction,
     }
     if json_output:
         from fluidnexus.cli.errors import echo_json
@@ -205,7 +229,8 @@ def table(report: dict[str, Any]) -> str:
     def cell(key: str, digits: int = 2) -> str:
         return "-" if report.get(key) is None else f"{report[key]:.{digits}f}"
 
-    functions = ["simulate_s", "render_s", "render_share", "simulate_cpu_s", "render_cpu_s", "render_cpu_share", "orbit_cpu_s"]
+    functions = ["simulate_s", "render_s", "render_share", "simulate_cpu_s", "render_cpu_s", "render_cpu_share",
+                 "input_view_cpu_s", "orbit_cpu_s"]
     job = ["job_s", "job_render_s", "job_render_share", "job_export_s", "first_request_s", "orbit_job_s", "second_request_s"]
     lines = []
     for keys in (functions, job):
