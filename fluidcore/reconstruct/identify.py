@@ -165,8 +165,7 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
     return int(min(max(round(config.inlet_capacity(radius, speed)), 1), budget))
 
 
-# (buoyancy, source lift along up in radii, source radius factor, source depth factor along the input ray)
-Candidate = tuple[float, float, float, float]
+Candidate = tuple[float, float, float]  # (buoyancy, source lift along up in radii, source radius factor)
 
 
 class _Search:
@@ -177,7 +176,6 @@ class _Search:
         self.observation, self.config, self.box, self.source = observation, config, box, source
         self.up, self.budget, self.device = up, budget, device
         self.frames = min(len(observation.cells), MAX_FRAMES)
-        self.limit = MAX_EVALUATIONS  # rollouts, raised by the depths tried
         self.scores: dict[Candidate, tuple[float, int]] = {}
 
     def misfit(self, candidate: Candidate) -> tuple[float, int]:
@@ -189,13 +187,11 @@ class _Search:
 
     def parts(self, candidate: Candidate) -> tuple[PBFConfig, Source]:
         """The simulator's config and source of a candidate (inflow at its terminal speed)."""
-        buoyancy, lift, radius_factor, depth = candidate
+        buoyancy, lift, radius_factor = candidate
         config = with_buoyancy(self.config, buoyancy, self.up)
         speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
-        origin = self.observation.camera.center()
-        scale = self.source.radius * depth  # the estimate's radius seen at this depth: the same image size
-        radius = scale * radius_factor
-        center = origin + depth * (np.asarray(self.source.center) - origin) + lift * scale * self.up
+        radius = self.source.radius * radius_factor
+        center = np.asarray(self.source.center) + lift * self.source.radius * self.up
         rate = inlet_rate(radius, speed, config, self.budget)
         return config, replace(self.source, center=tuple(float(c) for c in center), radius=radius, rate=rate,
                                velocity=tuple(float(c) for c in speed * self.up))
@@ -224,21 +220,6 @@ class _Search:
         return best, best_age
 
 
-def depth_factors(origin: np.ndarray, center: np.ndarray, radius: float, depth_range: tuple[np.ndarray, np.ndarray],
-                  count: int) -> tuple[float, ...]:
-    """`count` depths for a source at `center` seen from `origin`, as factors of its distance,
-    spread evenly over `depth_range` (the nearest and farthest centres on that ray inside the box,
-    `init.SourceEstimate.depth_range`) less one `radius` at either end, so the source stays inside."""
-    if count < 1:
-        return ()
-    distance = float(np.linalg.norm(np.asarray(center) - origin))
-    near, far = (float(np.linalg.norm(np.asarray(p) - origin)) for p in depth_range)
-    lo, hi = (near + radius) / distance, (far - radius) / distance
-    if count == 1 or hi <= lo:
-        return (0.5 * (lo + hi),) if hi > lo else (1.0,)
-    return tuple(float(k) for k in np.linspace(lo, hi, count))
-
-
 def with_buoyancy(config: PBFConfig, buoyancy: float, up: np.ndarray) -> PBFConfig:
     """`config` whose body acceleration is `buoyancy` along `up` (alpha in the config's units)."""
     gravity_along_up = -float(np.dot(config.gravity, up))  # 9.8 when gravity points down
@@ -254,7 +235,6 @@ def identify(
     budget: int,
     device: torch.device | str = "cpu",
     prior_name: str = "",
-    depths: Sequence[float] = (),
 ) -> Identified:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
 
@@ -272,39 +252,32 @@ def identify(
     floor = buoyancy_floor(speed_obs, config.drag)
     base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
     search = _Search(observation, config, box, source, up_v, budget, device)
-    search.limit += len(depths)
-    best = _best(search, [(base * f, 0.0, 1.0, 1.0) for f in BUOYANCY_FACTORS], floor)
+    best = _best(search, [(base * f, 0.0, 1.0) for f in BUOYANCY_FACTORS], floor)
     a = best[0]
-    # Another depth along the input ray, with the radius and every speed scaled with it, looks
-    # the same size and rises as many pixels a second: what is left to tell them apart is the
-    # physics that does not scale (kernel radius, box walls) and perspective.
-    best = _best(search, [(a * k, 0.0, 1.0, k) for k in depths], floor)
-    a, _, _, depth = best
     # A resized source keeps resting on the smoke's bottom edge (init.source_in_view): its centre
     # moves up by (size - 1) radii; only then is the height searched on its own.
-    best = _best(search, [(a, size - 1.0, size, depth) for size in SOURCE_SIZES], floor)
-    a, lift, size, depth = best
-    best = _best(search, [(a, lift + step, size, depth) for step in SOURCE_LIFTS], floor)
+    best = _best(search, [(a, size - 1.0, size) for size in SOURCE_SIZES], floor)
+    a, lift, size = best
+    best = _best(search, [(a, lift + step, size) for step in SOURCE_LIFTS], floor)
     for step in REFINE:
-        a, lift, size, depth = best
-        best = _best(search, [(a / step, lift, size, depth), (a * step, lift, size, depth)], floor)
+        a, lift, size = best
+        best = _best(search, [(a / step, lift, size), (a * step, lift, size)], floor)
     misfit, age = search.misfit(best)
     _, fitted = search.parts(best)
     prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
              "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
              "source": {"center": list(source.center), "radius": source.radius}}
-    depth = best[3]  # the observed rise speed and its floor scale with the depth it is read at
-    return Identified(max(best[0], floor * depth), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs * depth, floor * depth,
+    return Identified(max(best[0], floor), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
                       len(search.scores), list(fitted.center), fitted.radius, prior)
 
 
 def _best(search: _Search, grid: list[Candidate], floor: float) -> Candidate:
     """The candidate with the least misfit over everything scored so far, after scoring the grid
     (buoyancies clamped to the floor) while fewer than MAX_EVALUATIONS rollouts ran."""
-    for buoyancy, lift, size, depth in grid:
-        if len(search.scores) >= search.limit:
+    for buoyancy, lift, size in grid:
+        if len(search.scores) >= MAX_EVALUATIONS:
             break
-        search.misfit((max(buoyancy, floor * depth, 1e-6), lift, size, depth))
+        search.misfit((max(buoyancy, floor, 1e-6), lift, size))
     return min(search.scores, key=lambda k: search.scores[k][0])
 
 
@@ -348,8 +321,6 @@ def scene_physics(
     budget: int,
     seed: int,
     device: torch.device | str = "cpu",
-    depth_range: tuple[np.ndarray, np.ndarray] | None = None,
-    depth_candidates: int = 0,
 ) -> ScenePhysics:
     """Physics for a scene seen by `camera` in `frames` ((T, H, W, C) working-resolution input
     frames, `background` (H, W, C) or (C,)), with the source estimated at (center, radius).
@@ -373,8 +344,7 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        depths = () if depth_range is None else depth_factors(camera.center(), center, source.radius, depth_range, depth_candidates)
-        found = identify(observation, prior, box, source, up, budget, device, prior_name, depths)
+        found = identify(observation, prior, box, source, up, budget, device, prior_name)
         config = with_buoyancy(prior, found.buoyancy, up)
         source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps

@@ -190,11 +190,10 @@ def prepare(
 
     if source is not None:
         source.check_in_box(*box)
-    estimate_record, open_depth = None, None
+    estimate_record = None
     if source is None or source.radius is None:
         estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center)
         center, radius = estimate.center, estimate.radius
-        open_depth = estimate.depth_range if estimate.depth_cue == "box axis" else None  # no cue: the identification may try others
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,
             depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
@@ -205,8 +204,7 @@ def prepare(
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
     chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device,
-                           open_depth, quality.depth_candidates)
+                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
     pseudo, symmetry = [], None

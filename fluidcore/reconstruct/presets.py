@@ -77,11 +77,6 @@ class Quality:
     # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
     # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).
     air_cells: int = 0
-    # Depths along the input ray that the physics identification tries for a source one view left
-    # without a depth cue (fluidcore.reconstruct.identify.depth_factors); 0 = the box-axis guess.
-    # Off: the silhouette misfit is flat in depth within its seed noise on D, F and ScalarFlow
-    # (docs/bench_generalise.md, "Depth as a dimension of the identification").
-    depth_candidates: int = 0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02
