@@ -51,7 +51,7 @@ from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
