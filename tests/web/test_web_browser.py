@@ -407,7 +407,7 @@ def test_controls_are_labelled_and_reachable_by_keyboard(static_web: str, browse
 
 
 def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_source_hint(  # type: ignore[no-untyped-def]
-    static_web: str, browser, sqlite_service, scene_dir: dict,
+    static_web: str, browser, sqlite_service, scene_dir: dict, screens: Path,
 ) -> None:
     """A reconstruction from one view whose source depth was a guess: the what-if view reads the
     stretch of the input ray the video allows (GET /v1/scenes/{id}, the in-process API behind the
@@ -467,6 +467,8 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     sync_api.expect(hint).to_have_value("0, 0.1, -0.5")
     slider.fill("0.75")
     sync_api.expect(hint).to_have_value("0, 0.1, -0.25")
+    page.locator("#scene3d").scroll_into_view_if_needed()
+    page.screenshot(path=screens / "whatif-source-depth.png", full_page=True)
     page.get_by_role("button", name="Reconstruct with this source").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("queued with your source hint")
     sent = api.client.get("/v1/jobs", params={"type": "reconstruct"}, headers=auth).json()["items"]
