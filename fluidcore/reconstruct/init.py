@@ -36,6 +36,10 @@ SOURCE_PERSISTENCE = 0.8  # smoke in this fraction of those frames stays put: th
 # The floor cue needs a ray that descends steeply enough onto the floor: a base that sits dz above
 # the floor misplaces the source by dz / tan(descent) in depth, 5.7 dz at 10 degrees.
 FLOOR_MIN_DESCENT = math.sin(math.radians(10.0))
+# A generated view's ray tells the depth along the input ray only when it crosses it: an error dx
+# across the generated ray becomes dx / tan(angle) along the input ray, 5.7 dx at 10 degrees (the
+# floor cue's bound, for the same reason); a view nearly opposite or behind the input camera is left out.
+GENERATED_MIN_ANGLE = math.sin(math.radians(10.0))
 
 
 class EstimationError(InputError):
@@ -269,7 +273,9 @@ def estimate_source(
     least-squares triangulation ("generated views"), each counted with its own `weight` against
     the input view's 1. The input ray's distance does not change along that ray, so the depth
     comes from the generated views alone, while across it the input view outweighs them by the
-    ratio of the weights; a generated view that shows no smoke is left out. Without them, the
+    ratio of the weights; a generated view that shows no smoke, or whose ray runs within
+    GENERATED_MIN_ANGLE of the input ray, is left out (and all are with two or more input views,
+    which triangulate on their own). Without them, the
     centre is put on the input ray where it passes closest to the box's vertical axis (the box
     is where the smoke is), unless the source would then sink below the box's floor, which a
     camera looking down onto the floor steeply enough can tell (`ray_point_on_floor`): then it
@@ -291,13 +297,17 @@ def estimate_source(
         views.append((camera, found, up2d, 1.0))
         sx, sy = cameras[name].width / mask.shape[2], cameras[name].height / mask.shape[1]
         pixels[name] = (found[0] * sx, found[1] * sy, found[2] * sx)
-    real = len(views)
-    used = {}
-    for view in generated:
+    real, used = len(views), {}
+    if real == 1:
+        input_camera, (u, v, _), _, _ = views[0]
+        input_direction = pixel_ray(input_camera, u, v)[1]
+    for view in generated if real == 1 else ():
         camera = view.camera.scaled(view.masks.shape[2], view.masks.shape[1])
         try:
             found = source_in_view(view.masks, image_up(camera, box_center, up_v))
         except EstimationError:  # no smoke (or a view along the up axis): it says nothing of the source
+            continue
+        if np.linalg.norm(np.cross(pixel_ray(camera, found[0], found[1])[1], input_direction)) < GENERATED_MIN_ANGLE:
             continue
         views.append((camera, found, None, float(view.weight)))
         used[view.camera.name] = float(view.weight)

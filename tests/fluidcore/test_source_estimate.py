@@ -168,3 +168,13 @@ def test_the_weighted_median_is_the_median_for_equal_weights() -> None:
         assert init.weighted_median(values, [1.0] * len(values)) == pytest.approx(float(np.median(values)))
     assert init.weighted_median([1.0, 2.0, 3.0], [0.25, 1.0, 0.25]) == 2.0
     assert init.weighted_median([1.0, 2.0, 3.0], [1.0, 0.25, 0.25]) == 1.0
+
+
+def test_a_generated_view_along_the_input_ray_is_left_out() -> None:
+    """A view drawn from behind the source, looking back along the input ray: its ray cannot say
+    how far along the input ray the source is, so the one-view guess stands."""
+    a, behind = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((0.0, 0.05, -1.4), (0.0, 0.05, 0.0))
+    real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
+    drawn = init.GeneratedView(behind, _sphere_masks(behind, SOURCE, SOURCE_RADIUS), 0.25)
+    estimate = init.estimate_source({"a": a}, real, BOX, generated=[drawn])
+    assert estimate.depth_cue == "box axis" and estimate.generated == {}
