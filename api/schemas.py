@@ -1,6 +1,7 @@
 """Request and response bodies. Job requests are derived from `service.job_types.JobType`: one
-model per type, `{"type", "scene_id" | "parent_job_id", "params"}`, with the type's own parameter
-model, so a bad request is a 422 naming the field before anything is queued."""
+model per type that writes a run, `{"type", "scene_id" | "parent_job_id", "params"}`, with the
+type's own parameter model, so a bad request is a 422 naming the field before anything is queued
+(a `render` job is asked for at `POST /v1/jobs/{id}/videos/{name}`, api.routers.videos)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,9 @@ def job_request_model(job_type: JobType) -> type[BaseModel]:
     )
 
 
-JOB_REQUESTS: dict[JobType, type[BaseModel]] = {job_type: job_request_model(job_type) for job_type in JobType}
+JOB_REQUESTS: dict[JobType, type[BaseModel]] = {
+    job_type: job_request_model(job_type) for job_type in JobType if job_type.writes_run
+}
 JobRequest = Annotated[Union[tuple(JOB_REQUESTS.values())], Field(discriminator="type")]  # noqa: UP007
 
 
@@ -161,6 +164,23 @@ class ArtifactOut(BaseModel):
 class ArtifactList(BaseModel):
     job_id: str
     items: list[ArtifactOut]
+
+
+class VideoOut(BaseModel):
+    """One video a job can show: stored (`artifact`), or rendered when asked for (`render_job`)."""
+
+    name: str = Field(description="a camera of the run, 'orbit', a what-if's 'side_by_side'")
+    kind: Literal["video", "orbit", "side_by_side"]
+    camera: str | None
+    artifact: ArtifactOut | None = Field(description="the stored MP4; null until it is rendered")
+    render_job: JobOut | None = Field(
+        description="the latest job that renders it on request (poll it for progress); null when none was asked for"
+    )
+
+
+class VideoList(BaseModel):
+    job_id: str
+    items: list[VideoOut]
 
 
 class Health(BaseModel):

@@ -258,7 +258,22 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     return [write_mp4(inputs.render_dir / f"{name}.mp4", clip) for name in [*cameras, "orbit"]]
 
 
-FAKE_RUNNERS = {job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}
+def fake_render(inputs):  # type: ignore[no-untyped-def]
+    """The test double of a render job's runner: the video asked for as a 2-frame black clip,
+    progress per frame, should_cancel between frames."""
+    from fluidcore.jobs import Cancelled
+    from fluidcore.names import safe_join
+    from fluidcore.video import write_mp4
+
+    for t in range(2):
+        if inputs.should_cancel():
+            raise Cancelled(f"cancelled before frame {t}")
+        inputs.progress((t + 1) / 2, "render")
+    video = safe_join(inputs.render_dir, f"{inputs.params['video']}.mp4")
+    return [write_mp4(video, np.zeros((2, 16, 16, 3), dtype=np.uint8))]
+
+
+FAKE_RUNNERS = {**{job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}, "render": fake_render}
 
 
 def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None) -> None:  # noqa: ANN001 - Storage

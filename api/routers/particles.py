@@ -41,7 +41,7 @@ def get_particles(
     """Live particle positions (world units) of one frame, evenly subsampled to at most
     `max_points`, with the run's scene box, up axis and smoke source."""
     job = owned_job(session, job_id, owner)
-    record, scene = _record(storage, job.id)
+    record, scene = stored_run(storage, job.id)
     frames = record.frames()
     if not frames:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job.id} has not written a frame yet")
@@ -62,7 +62,7 @@ def get_particles(
     )
 
 
-def _record(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
+def stored_run(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
     """The job's run record and its scene, read from storage (a run that has none yet, or an
     unreadable one, is a 409)."""
     try:

@@ -3,7 +3,9 @@ against a real `fluidnexus serve` with its embedded worker running fluidcore's p
 tiny synthetic scene: sign in (a wrong key first), upload (a bad upload first, and a frame range
 past the clip, refused with nothing stored), reconstruct, chain a prediction onto the running
 reconstruction, play the results in sync and list their MP4s, refuse a ball outside the box,
-run a wind what-if branched at a chosen frame and a ball what-if, and play each.
+run a wind what-if branched at a chosen frame and a ball what-if, and play each: the videos a
+job did not render before it ended (orbit, side-by-side, other cameras) are rendered as the
+players ask for them, shown as "rendering…", then played in step.
 
 One journey in one test: the reconstruction it waits for is what every later step needs.
 Screenshots of every screen go to docs/screens/ (README shows them) when
@@ -101,6 +103,13 @@ def drop(page, path: Path) -> None:  # type: ignore[no-untyped-def]
     page.locator("#drop-zone").dispatch_event("drop", {"dataTransfer": page.evaluate_handle(
         """([name, text]) => { const d = new DataTransfer(); d.items.add(new File([text], name)); return d; }""",
         [path.name, path.read_text()])})
+
+
+def wait_rendered(page) -> None:  # type: ignore[no-untyped-def]
+    """Until no player waits for a video rendered on request (a render job on the server's worker)."""
+    page.wait_for_function("() => document.querySelectorAll('#players figure').length > 0 && "
+                           "!document.querySelector('#players figure.rendering')", timeout=JOB_TIMEOUT_MS, polling=500)
+    sync_api.expect(page.locator("#players .player-status", has_text="Could not")).to_have_count(0)
 
 
 def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
@@ -225,8 +234,10 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.set_viewport_size({"width": 1366, "height": 900})
     wait_succeeded(page, 2)
 
-    # results: players of one length in sync, plots from the manifest, downloads of the MP4s too
+    # results: players of one length in sync, plots from the manifest, downloads of the MP4s too;
+    # the job published its input view, the other camera and the orbit are rendered as the players ask
     row(page, "reconstruct").get_by_role("button", name="Results").click()
+    wait_rendered(page)
     play_first_video(page)
     players_in_sync(page)
     sync_api.expect(page.locator("#plots figure")).to_have_count(4)
@@ -280,8 +291,18 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     for nth, shot in ((0, "whatif-results.png"), (1, "whatif-branch-results.png")):
         page.get_by_role("button", name="Jobs").click()
         short_id = row(page, "interact", nth).locator(".job-id").text_content()
+        job_id = row(page, "interact", nth).get_attribute("data-job-id")
         row(page, "interact", nth).get_by_role("button", name="Results").click()
         sync_api.expect(page.locator("#results-title")).to_have_text(f"Results of interact {short_id}")
+        # a what-if renders no video before it ends: the players ask for theirs, say so, then play them
+        sync_api.expect(page.locator("#players figure.rendering .player-status").first).to_contain_text("rendering")
+        wait_rendered(page)
+        videos = {v["name"]: v for v in server.client.get(f"/v1/jobs/{job_id}/videos").json()["items"]}
+        rendered = {name for name, v in videos.items() if v["artifact"]}
+        assert {"orbit", *(["side_by_side"] if nth == 1 else [])} < rendered  # and the input view
+        assert all(videos[name]["render_job"]["state"] == "succeeded" for name in rendered), videos
+        renders = server.client.get("/v1/jobs", params={"type": "render", "parent_job_id": job_id}).json()["items"]
+        assert sorted(r["params"]["video"] for r in renders) == sorted(rendered)  # one render per video asked for
         if nth == 0:  # the ball, from the run's last frame: next to the factual prediction
             sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
             sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")

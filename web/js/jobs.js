@@ -131,7 +131,7 @@ function renderTable(items) {
 
 async function poll() {
   try {
-    renderTable(await refreshJobs());
+    renderTable((await refreshJobs()).filter((job) => job.type !== "render")); // a video's render shows in its player
     $("jobs-error").textContent = "";
   } catch (error) {
     $("jobs-error").textContent = `Could not update the job list: ${error.message}`;
