@@ -1,8 +1,10 @@
 """What a reconstruction needs before its first frame, estimated from the input videos alone.
 
 * the background: a colour for empty space (what every novel view shows where there is no
-  smoke) and, only when a view's background is textured, a static image for that view;
-* the smoke mask of a frame: where it differs from the background;
+  smoke), only when a view's background is textured a static image for that view, and the
+  video's own noise per channel;
+* the smoke mask of a frame: where some channel differs from the background by more than
+  SMOKE_SIGMAS of that channel's noise;
 * the source: where smoke enters the scene (the smoke that stays put at the bottom of the
   first second, along the scene's up axis), as a 3D centre and radius.
 
@@ -27,8 +29,17 @@ if TYPE_CHECKING:
 
 MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
 TEXTURED_FRACTION = 0.2  # a background image is kept when this much of the view is not flat
-FLAT_TOLERANCE = 0.04  # |pixel - background colour| below this counts as flat (8-bit video noise is ~0.01)
-SMOKE_THRESHOLD = 0.04  # |frame - background| above this is smoke
+# A pixel differs from the background (smoke, or a textured background) where some channel lies
+# more than SMOKE_SIGMAS of that channel's noise away. Set from the noise statistics, not from a
+# scene: Gaussian noise exceeds 5 sigma with probability 5.7e-7, so a preview frame (480 x 270
+# pixels, 3 channels) shows 0.2 false smoke pixels on average.
+SMOKE_SIGMAS = 5.0
+# The least noise a video is taken to have, per channel: one 8-bit code value. An 8-bit video
+# rounds every value to steps of 1/255 (and an mp4 codec moves values by about a step around
+# anything that changes), so noise below a step cannot be measured (the median absolute
+# deviation of a clean video is 0) and a difference of a step or two is no evidence of smoke.
+NOISE_FLOOR = 1.0 / 255.0
+MAD_TO_SIGMA = 1.4826  # median absolute deviation -> standard deviation for Gaussian noise
 SOURCE_SECONDS = 1.0  # the first second of video says where smoke enters
 SOURCE_PERSISTENCE = 0.8  # smoke in this fraction of those frames stays put: the inlet, not the rising puff
 # The floor cue needs a ray that descends steeply enough onto the floor: a base that sits dz above
@@ -42,10 +53,12 @@ class EstimationError(InputError):
 
 @dataclass(frozen=True)
 class Background:
-    """A view's background: a colour, plus a static image when the view's background is textured."""
+    """A view's background: a colour, plus a static image when the view's background is textured,
+    and the video's noise: how far a pixel strays from it while nothing is there."""
 
     color: np.ndarray  # (C,) float32 in [0, 1]
     image: np.ndarray | None  # (H, W, C) float32, or None: the colour everywhere
+    noise: np.ndarray  # (C,) float32: each channel's noise (standard deviation), at least NOISE_FLOOR
 
     def as_image(self, height: int, width: int) -> np.ndarray:
         """(H, W, C) float32 at the requested size (area-resampled from the stored image)."""
@@ -81,6 +94,20 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return out[0].permute(1, 2, 0).numpy()
 
 
+def estimate_noise(frames: np.ndarray) -> np.ndarray:
+    """(C,) float32: each channel's noise in `frames` (T, H, W, C), at least NOISE_FLOOR.
+
+    Per pixel, the median absolute deviation over time from the pixel's own temporal median (a
+    pixel that smoke crosses in fewer than half of the frames keeps its background's spread), then
+    the median over pixels (smoke covers well under half of a view): the temporal spread of the
+    background, robust to the smoke and blind to a textured background's spatial pattern.
+    """
+    median = np.median(frames, axis=0)
+    spread = np.median(np.abs(frames - median), axis=0)  # (H, W, C)
+    sigma = MAD_TO_SIGMA * np.median(spread.reshape(-1, spread.shape[-1]), axis=0)
+    return np.maximum(sigma, NOISE_FLOOR).astype(np.float32)
+
+
 def estimate_background(frames: np.ndarray) -> Background:
     """Background of one view from its frames (float (T, H, W, C) in [0, 1]).
 
@@ -88,38 +115,49 @@ def estimate_background(frames: np.ndarray) -> Background:
     well under half of a typical frame. The per-pixel image keeps, for each pixel, the value
     over time closest to that colour ("the least smoky moment"), which is the true background
     wherever the smoke ever leaves; it is only returned when the view's background is
-    textured, because a flat background is better described by its colour than by an image
+    textured (more than TEXTURED_FRACTION of it differs from the colour beyond the noise, as
+    smoke would), because a flat background is better described by its colour than by an image
     that still holds the smoke that never leaves (e.g. right above the source).
     """
     if frames.ndim != 4 or frames.shape[0] == 0:
         raise EstimationError(f"video: expected frames (T, H, W, C), got shape {frames.shape}")
     step = max(1, len(frames) // MAX_BACKGROUND_FRAMES)
     sample = frames[::step]
+    noise = estimate_noise(sample)
     median = np.median(sample, axis=0)
     color = np.median(median.reshape(-1, median.shape[-1]), axis=0).astype(np.float32)
-    distance = np.abs(sample - color).mean(axis=-1)  # (T, H, W)
+    distance = (np.abs(sample - color) / noise).max(axis=-1)  # (T, H, W), as `smoke_contrast`
     least_smoky = np.take_along_axis(sample, distance.argmin(axis=0)[None, ..., None], axis=0)[0]
-    off = np.abs(least_smoky - color).mean(axis=-1) > FLAT_TOLERANCE
+    off = is_smoke(distance.min(axis=0))
     image = least_smoky.astype(np.float32) if off.mean() > TEXTURED_FRACTION else None
-    return Background(color=color, image=image)
+    return Background(color=color, image=image, noise=noise)
 
 
-def smoke_contrast(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+def smoke_contrast(frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> np.ndarray:
     """(..., H, W) float32: how far `frames` (..., H, W, C) lie from the `background` ((H, W, C)
-    or (C,)), averaged over the channels; the measure every smoke mask thresholds."""
-    return (frames - background).abs().mean(dim=-1).cpu().numpy()
+    or (C,)) in units of the video's `noise` ((C,), `Background.noise`), in the channel where they
+    lie farthest; the measure every smoke mask thresholds.
+
+    The farthest channel, not the mean over channels: coloured smoke over a coloured background
+    may change one channel only (the mean divides it by the channel count) or shift channels in
+    opposite directions (a grey image does not change at all); nor the norm over channels, which
+    counts a decoded video's noise, shared by its channels, sqrt(C) times over
+    (tests/fluidcore/test_smoke_mask.py).
+    """
+    return ((frames - background).abs() / noise.to(frames)).amax(dim=-1).cpu().numpy()
 
 
-def smoke_mask(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+def smoke_mask(frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> np.ndarray:
     """(..., H, W) bool: where `frames` (..., H, W, C) differ visibly from the `background`
-    ((H, W, C) or (C,)): the one smoke mask of the reconstruction (source estimate, physics
-    identification, mirror agreement, optical flow confidence)."""
-    return is_smoke(smoke_contrast(frames, background))
+    ((H, W, C) or (C,)), beyond the video's `noise` ((C,)): the one smoke mask of the
+    reconstruction (source estimate, physics identification, mirror agreement, optical flow
+    confidence)."""
+    return is_smoke(smoke_contrast(frames, background, noise))
 
 
 def is_smoke(contrast: np.ndarray) -> np.ndarray:
     """Where a `smoke_contrast` is visible smoke (for a caller that needs the contrast too)."""
-    return contrast > SMOKE_THRESHOLD
+    return contrast > SMOKE_SIGMAS
 
 
 def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:
