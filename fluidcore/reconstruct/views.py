@@ -148,6 +148,9 @@ def image_loss(
 
 
 SSIM_WINDOW = 11
+# Not a smoke mask: the SSIM crop must hold every pixel where SSIM is not 1 (either image off the
+# background at all, the render included), or the crop would change the loss by more than a
+# constant; one 8-bit step is the least difference an input can show.
 CONTENT_THRESHOLD = 1.0 / 255.0
 
 
