@@ -73,7 +73,7 @@ def generated_targets(
     """Views the novel-view model drew from `source` (`fluidcore.generative.stages`, (T, H, W, C)
     per camera name) as fitting targets of kind "generated": `weight` split evenly, and the input's
     background colour (its background image belongs to the input camera's viewpoint) and noise (the
-    model draws in the input's colours)."""
+    model draws in the input's colours; the source estimate masks its smoke in those units)."""
     background = source.background
     if background.ndim > 1:
         background = background.reshape(-1, background.shape[-1]).median(dim=0).values
