@@ -157,7 +157,6 @@ def estimate_background(frames: np.ndarray) -> Background:
     return Background(color=color, image=np.where(smoky, least_smoky, median).astype(np.float32), noise=noise)
 
 
-
 def smoke_contrast(frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> np.ndarray:
     """(..., H, W) float32: how far `frames` (..., H, W, C) lie from the `background` ((H, W, C)
     or (C,)) in units of the video's `noise` ((C,), `Background.noise`), in the channel where they
