@@ -153,7 +153,8 @@ def read_inputs(
         if background.image is not None:
             backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
-        targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
+        noise = torch.from_numpy(background.noise).to(device)
+        targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device), noise))
     return InputViews(tuple(targets), frame_range, channels, backgrounds)
 
 
@@ -184,7 +185,7 @@ def prepare(
     """
     targets, channels = list(inputs.targets), inputs.channels
     masks = {  # the first second's smoke: what the source estimate and the smoke colour read
-        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background) for v in targets
+        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise) for v in targets
     }
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
@@ -195,7 +196,7 @@ def prepare(
     estimate_record = None
     if source is None or source.radius is None:
         generated = [  # the novel-view model's views close the depth one input view leaves open
-            init.GeneratedView(v.camera, init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background), v.weight)
+            init.GeneratedView(v.camera, init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise), v.weight)
             for v in extra_views if v.kind == "generated"
         ]
         estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
@@ -210,7 +211,7 @@ def prepare(
         center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
+    chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
                            sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
@@ -221,7 +222,7 @@ def prepare(
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
         if weight > 0 and pseudo_views and not extra_views:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
-    flow = input_flow(first.camera, first.frames, first.background) if quality.weights.flow > 0 else None
+    flow = input_flow(first.camera, first.frames, first.background, first.noise) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
         views=(*targets, *pseudo, *extra_views),
