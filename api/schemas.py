@@ -62,9 +62,22 @@ class SceneBox(BaseModel):
     max: Vec3
 
 
+class SourceDepth(BaseModel):
+    """How a reconstruction placed its source along the input ray (`fluidcore.scene_info`, from
+    the run manifest's `settings.source_estimate`)."""
+
+    cue: str = Field(description="triangulated, generated views, floor, box axis or given (docs/cameras.md)")
+    range: tuple[Vec3, Vec3] | None = Field(
+        description="one input view: the nearest and farthest centres on its ray inside the box, all of which "
+        "the view accepts (a source hint may pin any); null when two or more views triangulate it"
+    )
+
+
 class SceneSource(BaseModel):
     center: Vec3
     radius: float
+    depth: SourceDepth | None = Field(default=None, description="null when the user gave the whole source")
+    job_id: str | None = Field(default=None, description="the reconstruction job whose run this source is from")
 
 
 class CameraPlace(BaseModel):

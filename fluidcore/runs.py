@@ -133,9 +133,10 @@ class SourceEstimateRecord(BaseModel):
     where the centre could lie as well (world units), which the source hint can then pin."""
 
     model_config = _RECORD
-    depth_cue: str  # "triangulated", "floor", "box axis" or "given"
+    depth_cue: str  # "triangulated", "generated views", "floor", "box axis" or "given"
     depth_range: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # nearest, farthest
-    pixels: dict[str, tuple[float, float, float]] = {}  # camera -> (u, v, radius) in pixels
+    pixels: dict[str, tuple[float, float, float]] = {}  # input camera -> (u, v, radius) in pixels
+    generated: dict[str, float] = {}  # generated view -> its ray's weight in the triangulation (the input view's is 1)
 
 
 class ReconstructSettings(BaseModel):

@@ -261,10 +261,13 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
 FAKE_RUNNERS = {job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}
 
 
-def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, air=None) -> None:  # noqa: ANN001 - Storage, SavedAir
+def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None,  # noqa: ANN001 - Storage
+              air=None) -> None:  # noqa: ANN001 - SavedAir
     """What a worker leaves in storage: a run folder written by fluidcore.runs (scene box 1 unit
     wide, source at height 0.1), with `positions[t]` (P, 3) as frame t's particles, the last one
-    dead; consecutive frames, or none; `air` (a `fluidcore.runs.SavedAir`) saved with every frame."""
+    dead; consecutive frames, or none; `source_estimate` (a `SourceEstimateRecord`) as its
+    settings record how the source was found, or None (a source given whole); `air` (a
+    `fluidcore.runs.SavedAir`) saved with every frame."""
     import tempfile
 
     from fluidcore.cameras import Camera
@@ -280,7 +283,7 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     with tempfile.TemporaryDirectory(prefix="fluidnexus-stored-run-") as tmp:
         run = Run.create(Path(tmp) / "run", kind=RunKind.RECONSTRUCT, cameras={"cam0": camera}, input_views=["cam0"],
                          frame_range=(frames[0], frames[-1] + 1), fps=30.0, channels=1, background_color=[1.0], scene=scene,
-                         settings=ReconstructSettings(quality={}))
+                         settings=ReconstructSettings(quality={}, source_estimate=source_estimate))
         for t, points in sorted(positions.items()):
             alive = np.ones(len(points), bool)
             alive[-1] = False

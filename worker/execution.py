@@ -26,7 +26,6 @@ from fluidcore.names import safe_join
 from service import webhooks
 from service.chaining import release_children
 from service.database import session_scope
-from service.job_types import JobType
 from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings, signing_key

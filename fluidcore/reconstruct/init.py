@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,6 +23,8 @@ from fluidcore.errors import InputError
 
 if TYPE_CHECKING:
     import torch
+
+    from fluidcore.cameras import Camera
 
 
 MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
@@ -34,6 +36,10 @@ SOURCE_PERSISTENCE = 0.8  # smoke in this fraction of those frames stays put: th
 # The floor cue needs a ray that descends steeply enough onto the floor: a base that sits dz above
 # the floor misplaces the source by dz / tan(descent) in depth, 5.7 dz at 10 degrees.
 FLOOR_MIN_DESCENT = math.sin(math.radians(10.0))
+# A generated view's ray tells the depth along the input ray only when it crosses it: an error dx
+# across the generated ray becomes dx / tan(angle) along the input ray, 5.7 dx at 10 degrees (the
+# floor cue's bound, for the same reason); a view nearly opposite or behind the input camera is left out.
+GENERATED_MIN_ANGLE = math.sin(math.radians(10.0))
 
 
 class EstimationError(InputError):
@@ -59,8 +65,20 @@ class SourceEstimate:
     center: np.ndarray  # (3,) world
     radius: float  # world units
     pixels: dict[str, tuple[float, float, float]]  # per view: (u, v, radius in px) at full resolution
-    depth_cue: str  # how the centre's depth was found: "given", "triangulated", "floor" or "box axis"
+    depth_cue: str  # how the centre's depth was found: "given", "triangulated", "generated views", "floor" or "box axis"
     depth_range: tuple[np.ndarray, np.ndarray] | None  # one view: the nearest and farthest centres (3,) in the box on its ray
+    generated: dict[str, float] = field(default_factory=dict)  # generated view -> its ray's weight in the triangulation
+
+
+@dataclass(frozen=True)
+class GeneratedView:
+    """A view the novel-view model drew (`fluidcore.reconstruct.job.novel_views`), as the source
+    estimate reads it: its camera, the smoke masks (T, H, W) of its first frames, and how far its
+    ray is trusted next to an input view's 1 (the fit's loss weight of the view, `ViewTarget.weight`)."""
+
+    camera: Camera
+    masks: np.ndarray
+    weight: float
 
 
 def to_float(frames: np.ndarray, channels: int) -> np.ndarray:
@@ -184,12 +202,13 @@ def pixel_ray(camera, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:
     return c2w[:3, 3].copy(), direction / np.linalg.norm(direction)
 
 
-def closest_point_to_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Least-squares point nearest to several rays (needs two non-parallel ones)."""
+def closest_point_to_rays(origins: np.ndarray, directions: np.ndarray, weights: Sequence[float] | None = None) -> np.ndarray:
+    """Least-squares point nearest to several rays (needs two non-parallel ones), each ray's
+    squared distance counted `weights[i]` times (default: all alike)."""
     a = np.zeros((3, 3))
     b = np.zeros(3)
-    for o, d in zip(origins, directions, strict=True):
-        projector = np.eye(3) - np.outer(d, d)
+    for o, d, w in zip(origins, directions, np.ones(len(origins)) if weights is None else weights, strict=True):
+        projector = w * (np.eye(3) - np.outer(d, d))
         a += projector
         b += projector @ o
     return np.linalg.solve(a, b)
@@ -245,42 +264,81 @@ def estimate_source(
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
     center: Sequence[float] | None = None,
+    generated: Sequence[GeneratedView] = (),
 ) -> SourceEstimate:
     """Source centre and radius from the smoke masks of the first frames of each input view.
 
-    Two or more views triangulate the centre. One view leaves depth open: the centre is put on
-    the input ray where it passes closest to the box's vertical axis (the box is where the smoke
-    is), unless the source would then sink below the box's floor, which a camera looking down
-    onto the floor steeply enough can tell (`ray_point_on_floor`): then it rests on the floor.
-    `depth_range` says how far along the ray the centre could be. A known `center` (the
-    user's) is kept, and only the radius is measured, at its depth. Masks may be at any
+    Two or more views triangulate the centre. One view leaves depth open. Views a novel-view
+    model drew from it (`generated`) close it: their rays join the input ray's in a weighted
+    least-squares triangulation ("generated views"), each counted with its own `weight` against
+    the input view's 1. The input ray's distance does not change along that ray, so the depth
+    comes from the generated views alone, while across it the input view outweighs them by the
+    ratio of the weights; a generated view that shows no smoke, or whose ray runs within
+    GENERATED_MIN_ANGLE of the input ray, is left out (and all are with two or more input views,
+    which triangulate on their own). Without them, the
+    centre is put on the input ray where it passes closest to the box's vertical axis (the box
+    is where the smoke is), unless the source would then sink below the box's floor, which a
+    camera looking down onto the floor steeply enough can tell (`ray_point_on_floor`): then it
+    rests on the floor. For one input view `depth_range` says how far along its ray the centre
+    could be, whatever cue chose the depth. A known `center` (the user's) is kept, and only the
+    radius is measured, at its depth. The radius is the weighted median of every view's (one
+    input view outweighs generated views whose weights sum below 1). Masks may be at any
     resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)
     lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
     box_center = 0.5 * (lo + hi)
-    views, rays, pixels = [], [], {}  # views: (camera at the mask's size, (u, v, r) there, image up)
+    views, pixels = [], {}  # views: (camera at the mask's size, (u, v, r) there, image up, weight)
     for name, mask in masks.items():
         camera = cameras[name].scaled(mask.shape[2], mask.shape[1])
         up2d = image_up(camera, box_center, up_v)
         found = source_in_view(mask, up2d)
-        views.append((camera, found, up2d))
-        rays.append(pixel_ray(camera, found[0], found[1]))
+        views.append((camera, found, up2d, 1.0))
         sx, sy = cameras[name].width / mask.shape[2], cameras[name].height / mask.shape[1]
         pixels[name] = (found[0] * sx, found[1] * sy, found[2] * sx)
+    real, used = len(views), {}
+    if real == 1:
+        input_camera, (u, v, _), _, _ = views[0]
+        input_direction = pixel_ray(input_camera, u, v)[1]
+    for view in generated if real == 1 else ():
+        camera = view.camera.scaled(view.masks.shape[2], view.masks.shape[1])
+        try:
+            found = source_in_view(view.masks, image_up(camera, box_center, up_v))
+        except EstimationError:  # no smoke (or a view along the up axis): it says nothing of the source
+            continue
+        if np.linalg.norm(np.cross(pixel_ray(camera, found[0], found[1])[1], input_direction)) < GENERATED_MIN_ANGLE:
+            continue
+        views.append((camera, found, None, float(view.weight)))
+        used[view.camera.name] = float(view.weight)
+    rays = [pixel_ray(camera, found[0], found[1]) for camera, found, _, _ in views]
     origins, directions = np.array([o for o, _ in rays]), np.array([d for _, d in rays])
-    depth_range = None if len(rays) >= 2 else ray_in_box(origins[0], directions[0], lo, hi)
+    weights = np.array([w for *_, w in views])
+    depth_range = None if real >= 2 else ray_in_box(origins[0], directions[0], lo, hi)
     if center is not None:
         center, cue = np.asarray(center, dtype=np.float64), "given"
     elif len(rays) >= 2:
-        center, cue = closest_point_to_rays(origins, directions), "triangulated"
+        center, cue = closest_point_to_rays(origins, directions, weights), "triangulated" if real >= 2 else "generated views"
     else:
-        camera, found, up2d = views[0]
+        camera, found, up2d, _ = views[0]
         center, cue = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v), "box axis"
         on_floor = ray_point_on_floor(camera, found, up2d, up_v, float(lo @ up_v))
         if on_floor is not None and (center - on_floor) @ directions[0] > 0.0:  # the guess would sink below the floor
             center, cue = on_floor, "floor"
     center = np.clip(center, lo, hi)
-    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _ in views]
-    return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels, depth_cue=cue, depth_range=depth_range)
+    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _, _ in views]
+    return SourceEstimate(center=center, radius=weighted_median(radii, weights), pixels=pixels, depth_cue=cue,
+                          depth_range=depth_range, generated=used if cue != "given" else {})
+
+
+def weighted_median(values: Sequence[float], weights: Sequence[float]) -> float:
+    """The value with half the total weight on either side; where the halves meet between two
+    values, their mean (equal weights: `np.median`)."""
+    order = np.argsort(values)
+    v, w = np.asarray(values, dtype=np.float64)[order], np.asarray(weights, dtype=np.float64)[order]
+    cumulative = np.cumsum(w)
+    half = 0.5 * cumulative[-1]
+    k = int(np.searchsorted(cumulative, half))
+    if np.isclose(cumulative[k], half) and k + 1 < len(v):
+        return float(0.5 * (v[k] + v[k + 1]))
+    return float(v[k])

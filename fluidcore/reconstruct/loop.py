@@ -54,7 +54,7 @@ from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -179,7 +179,9 @@ def prepare(
     `source` is where the user knows the source to be (its radius, if not given, is measured at
     that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
-    (the generative novel views of a single input view): they take the place of the symmetry
+    (the generative novel views of a single input view): those of kind "generated" join the
+    source estimate's triangulation at their loss weight (`init.estimate_source`), so the
+    identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
     (a refinement fits its refined input views only).
     """
@@ -195,12 +197,17 @@ def prepare(
         source.check_in_box(*box)
     estimate_record = None
     if source is None or source.radius is None:
-        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center)
+        generated = [  # the novel-view model's views close the depth one input view leaves open
+            init.GeneratedView(v.camera, init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background), v.weight)
+            for v in extra_views if v.kind == "generated"
+        ]
+        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
         center, radius = estimate.center, estimate.radius
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,
             depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
             pixels={name: tuple(map(float, px)) for name, px in estimate.pixels.items()},
+            generated=estimate.generated,
         )
     else:
         center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
