@@ -257,7 +257,7 @@ class SavedAir:
     def __post_init__(self) -> None:
         if len(self.faces) != 3 or any(f.ndim != 3 for f in self.faces):
             raise RunError("state: air needs three 3-D face arrays (air_x, air_y, air_z)")
-        cells = np.asarray(self.faces[1].shape[:1] + self.faces[0].shape[1:])  # (nx, ny, nz)
+        cells = np.asarray(self.cells)
         for axis, face in enumerate(self.faces):
             if face.shape != tuple(cells + np.eye(3, dtype=int)[axis]):
                 raise RunError(f"state: {AIR_FIELDS[axis]} has shape {face.shape}, not the faces of a {tuple(cells)} grid")
@@ -266,6 +266,7 @@ class SavedAir:
 
     @property
     def cells(self) -> tuple[int, int, int]:
+        """(nx, ny, nz): the grid's cells, read off the faces that are not along each axis."""
         return self.faces[1].shape[0], self.faces[0].shape[1], self.faces[0].shape[2]
 
     def arrays(self) -> dict[str, np.ndarray]:
