@@ -196,6 +196,11 @@ class RunScene(BaseModel):
     dt: float | None = Field(default=None, description="the simulation's time step, seconds (one video frame)")
 
 
+class AirSample(BaseModel):
+    points: list[float] = Field(description="x0, y0, z0, x1, ...: a lattice of points over the scene box (world units)")
+    velocities: list[float] = Field(description="vx0, vy0, vz0, vx1, ...: the air's velocity at each point (world units/s)")
+
+
 class ParticlesOut(BaseModel):
     job_id: str
     frame: int
@@ -203,3 +208,5 @@ class ParticlesOut(BaseModel):
     total: int = Field(description="live particles in the frame, before subsampling")
     positions: list[float] = Field(description="x0, y0, z0, x1, ...: world units, evenly subsampled")
     scene: RunScene
+    air: AirSample | None = Field(default=None, description="the air saved with the frame, sampled on a coarse lattice "
+                                  "(a run with quality air_cells > 0); null: the run's air is still")

@@ -276,11 +276,13 @@ def fake_render(inputs):  # type: ignore[no-untyped-def]
 FAKE_RUNNERS = {**{job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}, "render": fake_render}
 
 
-def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None) -> None:  # noqa: ANN001 - Storage
+def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None,  # noqa: ANN001 - Storage
+              air=None) -> None:  # noqa: ANN001 - SavedAir
     """What a worker leaves in storage: a run folder written by fluidcore.runs (scene box 1 unit
     wide, source at height 0.1), with `positions[t]` (P, 3) as frame t's particles, the last one
     dead; consecutive frames, or none; `source_estimate` (a `SourceEstimateRecord`) as its
-    settings record how the source was found, or None (a source given whole)."""
+    settings record how the source was found, or None (a source given whole); `air` (a
+    `fluidcore.runs.SavedAir`) saved with every frame."""
     import tempfile
 
     from fluidcore.cameras import Camera
@@ -300,7 +302,7 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
         for t, points in sorted(positions.items()):
             alive = np.ones(len(points), bool)
             alive[-1] = False
-            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians), {}, 0.0)
+            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians, air=air), {}, 0.0)
         for path in sorted(run.path.rglob("*")):
             if path.is_file():
                 storage.put_bytes(f"jobs/{job_id}/run/{path.relative_to(run.path).as_posix()}", path.read_bytes())

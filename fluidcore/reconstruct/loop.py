@@ -10,7 +10,9 @@ physics in this scene's units);
     frame 0: the source seeds particles for 20 stabilisation steps; positions are fitted
              (with `first_frame_factor` times more iterations), the visual Gaussians are born
              on them and their appearance is fitted;
-    frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles), positions fitted
+    frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles and, with
+             `Quality.air_cells`, steps the air from p_{t-1}: the air is saved with the frame),
+             positions fitted
              (fluidcore.reconstruct.physical; with the input view's optical flow between
              frames t-1 and t, fluidcore.reconstruct.flow, when its weight is not 0),
              u_t = (p_t - p_{t-1}) / dt, visual Gaussians
@@ -41,6 +43,7 @@ import torch
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
+from fluidcore.physics.air import scene_air
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import scene_physics
@@ -266,7 +269,10 @@ class Reconstructor:
     def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
         self.rec = rec
         self.device = torch.device(device)
-        self.simulator = Simulator(rec.config, rec.box, rec.source, device=self.device)
+        # with quality.air_cells the air is part of the state: stepped from the fitted particles of
+        # each frame, saved with it, and continued by every prediction and branch of the run
+        air = scene_air(rec.box, rec.config, rec.quality.air_cells)
+        self.simulator = Simulator(rec.config, rec.box, rec.source, air=air, device=self.device)
 
     def open_run(self, out_dir) -> Run:
         rec = self.rec

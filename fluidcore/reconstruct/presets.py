@@ -74,8 +74,9 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
-    # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
-    # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).
+    # The air around the smoke (fluidcore.physics.air.AirGrid): cells on the box's long side, 0 = still
+    # air (the default until issue 23's measurements on both dev scenes and ScalarFlow). The
+    # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = 0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02

@@ -427,6 +427,57 @@ def test_controls_are_labelled_and_reachable_by_keyboard(static_web: str, browse
     page.close()
 
 
+def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None:  # type: ignore[no-untyped-def]
+    """The particles answer's `air` (GET /v1/jobs/{id}/particles, faked here) reaches the 3D what-if
+    view: one yellow arrow per sampled point, drawn on the canvas and counted in the summary; a run
+    without the air says so and draws none."""
+    import json
+
+    import numpy as np
+
+    lattice = np.stack(np.meshgrid(*[np.linspace(-0.4, 0.4, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    air = {"points": lattice.ravel().tolist(), "velocities": np.tile([0.0, 0.3, 0.1], len(lattice)).tolist()}
+    job = {"id": "job-air", "type": "predict", "state": "succeeded", "scene_id": None, "parent_job_id": "job-rec", "params": {}}
+
+    def particles(with_air: bool) -> str:
+        return json.dumps({
+            "job_id": job["id"], "frame": 1, "frames": [0, 1], "total": 3, "positions": [0.0, 0.1, 0.0] * 3,
+            "scene": {"box_lo": [-0.5, -0.5, -0.5], "box_hi": [0.5, 0.5, 0.5], "up": [0.0, 1.0, 0.0],
+                      "source": {"center": [0.0, -0.4, 0.0], "radius": 0.05}, "dt": 1 / 30},
+            "air": air if with_air else None,
+        })
+
+    def answer(body: str):  # a route handler of one argument (one of two is handed the request as well)
+        return lambda route: route.fulfill(body=body, content_type="application/json")
+
+    yellow = """() => {  // pixels of the air's colour (0xf1c40f): nothing else in the view is yellow
+        const source = document.getElementById('scene3d');
+        const copy = document.createElement('canvas');
+        copy.width = source.width; copy.height = source.height;
+        const context = copy.getContext('2d');
+        context.drawImage(source, 0, 0);
+        const data = context.getImageData(0, 0, copy.width, copy.height).data;
+        let count = 0;
+        for (let i = 0; i < data.length; i += 4) if (data[i] > 150 && data[i + 1] > 120 && data[i + 2] < 80) count++;
+        return count;
+    }"""
+    for with_air in (True, False):
+        page = browser.new_page()
+        page.route("**/v1/jobs?limit=100", lambda route: route.fulfill(json={"items": [job]}))
+        page.route("**/v1/jobs/job-air/particles*", answer(particles(with_air)))
+        page.goto(static_web)
+        page.evaluate("""async () => { document.getElementById('view-whatif').hidden = false;
+                                       await (await import('/js/whatif.js')).showWhatif('job-air'); }""")
+        summary = page.locator("#whatif-summary")
+        if with_air:
+            sync_api.expect(summary).to_contain_text("Yellow arrows: the air's velocity at 125 of 125 sampled points (fastest 0.316 units/s)")
+            assert page.evaluate(yellow) > 50
+        else:
+            sync_api.expect(summary).to_contain_text("This run does not simulate the air (still air): no air arrows.")
+            assert page.evaluate(yellow) == 0
+        page.close()
+
+
 def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_source_hint(  # type: ignore[no-untyped-def]
     static_web: str, browser, sqlite_service, scene_dir: dict, screens: Path,
 ) -> None:

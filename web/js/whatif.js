@@ -1,9 +1,10 @@
 // What-if view: wind and ball controls drawn over a 3D view of the reconstructed particles and
-// the scene box. The form refuses a ball outside the box (naming the box's limits) before
-// anything is sent; the server checks everything again (fluidcore.interaction). For a
-// reconstruction from one view, the view also draws the stretch of the input ray its source
-// could lie on (GET /v1/scenes/{id}: geometry.source.depth), and a slider along it fills the
-// source hint of a new reconstruction of the scene.
+// the scene box, and, for a run that simulates the air, arrows of the air's velocity sampled from
+// the saved frame (the particles answer's `air`). The form refuses a ball outside the box (naming
+// the box's limits) before anything is sent; the server checks everything again
+// (fluidcore.interaction). For a reconstruction from one view, the view also draws the stretch of
+// the input ray its source could lie on (GET /v1/scenes/{id}: geometry.source.depth), and a slider
+// along it fills the source hint of a new reconstruction of the scene.
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
@@ -23,6 +24,9 @@ const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
 const WIND_HORIZON = 15;
 const WIND_SHIFT = 0.25;
 const RETRY_MS = 3000;
+const AIR_COLOR = 0xf1c40f; // yellow: red is the ball, blue the wind, green the source
+// An arrow per air sample at least this fraction of the fastest one: slower air is clutter.
+const AIR_MIN_SHARE = 0.05;
 
 let view = null; // {renderer, scene, camera, controls, overlay}
 let run = null; // {jobId, box: {lo, hi}, up, source, frames, dt}
@@ -105,9 +109,9 @@ function createView() {
   const camera = new PerspectiveCamera(40, 4 / 3, 0.001, 1000);
   const controls = new OrbitControls(camera, canvas);
   controls.listenToKeyEvents(canvas);
-  const overlay = new Group(), sourceLayer = new Group();
-  scene.add(overlay, sourceLayer);
-  const current = { renderer, scene, camera, controls, overlay, sourceLayer, points: null, box: null };
+  const overlay = new Group(), sourceLayer = new Group(), air = new Group();
+  scene.add(overlay, sourceLayer, air);
+  const current = { renderer, scene, camera, controls, overlay, sourceLayer, air, points: null, box: null };
   controls.addEventListener("change", () => renderer.render(scene, camera));
   return current;
 }
@@ -131,6 +135,39 @@ function showParticles(data) {
   camera.position.copy(centre).addScaledVector(side.normalize(), 1.6 * size).addScaledVector(up, 0.5 * size);
   controls.target.copy(centre);
   controls.update();
+}
+
+/** The speed (units/s) at each of the air's sampled points. */
+function airSpeeds(air) {
+  const speeds = [];
+  for (let i = 0; i < air.velocities.length; i += 3) speeds.push(Math.hypot(...air.velocities.slice(i, i + 3)));
+  return speeds;
+}
+
+/** The air's arrows from the particles answer's `air` ({points, velocities}, flat xyz lists),
+ * longest for the fastest air (an eighth of the box's diagonal); returns how many were drawn. */
+function showAir(air, box) {
+  view.air.clear();
+  if (!air) return 0;
+  const size = new Vector3(...box.hi).sub(new Vector3(...box.lo)).length();
+  const speeds = airSpeeds(air);
+  const fastest = Math.max(0, ...speeds);
+  if (!(fastest > 0)) return 0;
+  speeds.forEach((speed, k) => {
+    if (speed < AIR_MIN_SHARE * fastest) return;
+    const dir = new Vector3(...air.velocities.slice(3 * k, 3 * k + 3)).divideScalar(speed);
+    const length = (size / 8) * (speed / fastest);
+    view.air.add(new ArrowHelper(dir, new Vector3(...air.points.slice(3 * k, 3 * k + 3)), length, AIR_COLOR, 0.3 * length, 0.12 * length));
+  });
+  return view.air.children.length;
+}
+
+/** In words: what the arrows show, or that the run's air is still. */
+function airSummary(air, arrows) {
+  if (!air) return " This run does not simulate the air (still air): no air arrows.";
+  const speeds = airSpeeds(air);
+  const fastest = Math.max(0, ...speeds);
+  return ` Yellow arrows: the air's velocity at ${arrows} of ${speeds.length} sampled points (fastest ${fmt(fastest)} units/s).`;
 }
 
 /** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
@@ -216,8 +253,9 @@ async function loadParticles(jobId) {
       frames: data.frames, dt: data.scene.dt };
     showLimits(run.box);
     if (view) showParticles(data);
+    const arrows = view ? showAir(data.air, run.box) : 0;
     $("whatif-summary").textContent += ` Showing ${data.positions.length / 3} of ${data.total} particles at frame ${data.frame}; `
-      + "the what-if continues after the run's last frame, or after the branch frame you choose.";
+      + "the what-if continues after the run's last frame, or after the branch frame you choose." + airSummary(data.air, arrows);
     validate();
     drawOverlay();
   } catch (error) {
