@@ -429,7 +429,7 @@ def test_controls_are_labelled_and_reachable_by_keyboard(static_web: str, browse
 
 def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None:  # type: ignore[no-untyped-def]
     """The particles answer's `air` (GET /v1/jobs/{id}/particles, faked here) reaches the 3D what-if
-    view: one yellow arrow per sampled point, drawn on the canvas and counted in the summary; a run
+    view: one violet arrow per sampled point, drawn on the canvas and counted in the summary; a run
     without the air says so and draws none."""
     import json
 
@@ -450,7 +450,7 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
     def answer(body: str):  # a route handler of one argument (one of two is handed the request as well)
         return lambda route: route.fulfill(body=body, content_type="application/json")
 
-    yellow = """() => {  // pixels of the air's colour (0xf1c40f): nothing else in the view is yellow
+    violet = """() => {  // pixels of the air's colour (0xb36bff): nothing else in the view is violet
         const source = document.getElementById('scene3d');
         const copy = document.createElement('canvas');
         copy.width = source.width; copy.height = source.height;
@@ -458,7 +458,7 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
         context.drawImage(source, 0, 0);
         const data = context.getImageData(0, 0, copy.width, copy.height).data;
         let count = 0;
-        for (let i = 0; i < data.length; i += 4) if (data[i] > 150 && data[i + 1] > 120 && data[i + 2] < 80) count++;
+        for (let i = 0; i < data.length; i += 4) if (data[i] > 130 && data[i + 1] < 140 && data[i + 2] > 200) count++;
         return count;
     }"""
     for with_air in (True, False):
@@ -470,11 +470,11 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
                                        await (await import('/js/whatif.js')).showWhatif('job-air'); }""")
         summary = page.locator("#whatif-summary")
         if with_air:
-            sync_api.expect(summary).to_contain_text("Yellow arrows: the air's velocity at 125 of 125 sampled points (fastest 0.316 units/s)")
-            assert page.evaluate(yellow) > 50
+            sync_api.expect(summary).to_contain_text("Violet arrows: the air's velocity at 125 of 125 sampled points (fastest 0.316 units/s)")
+            assert page.evaluate(violet) > 50
         else:
             sync_api.expect(summary).to_contain_text("This run does not simulate the air (still air): no air arrows.")
-            assert page.evaluate(yellow) == 0
+            assert page.evaluate(violet) == 0
         page.close()
 
 

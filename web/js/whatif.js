@@ -24,7 +24,7 @@ const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
 const WIND_HORIZON = 15;
 const WIND_SHIFT = 0.25;
 const RETRY_MS = 3000;
-const AIR_COLOR = 0xf1c40f; // yellow: red is the ball, blue the wind, green the source
+const AIR_COLOR = 0xb36bff; // violet: red is the ball, blue the wind, yellow and green the source
 // An arrow per air sample at least this fraction of the fastest one: slower air is clutter.
 const AIR_MIN_SHARE = 0.05;
 
@@ -167,7 +167,7 @@ function airSummary(air, arrows) {
   if (!air) return " This run does not simulate the air (still air): no air arrows.";
   const speeds = airSpeeds(air);
   const fastest = Math.max(0, ...speeds);
-  return ` Yellow arrows: the air's velocity at ${arrows} of ${speeds.length} sampled points (fastest ${fmt(fastest)} units/s).`;
+  return ` Violet arrows: the air's velocity at ${arrows} of ${speeds.length} sampled points (fastest ${fmt(fastest)} units/s).`;
 }
 
 /** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
