@@ -51,7 +51,7 @@ from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState, concentration
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -334,16 +334,17 @@ class Reconstructor:
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
+        previous, tie = self._opacity_tie(carry, means, p.detach(), problem.velocity_radius)
         appearance, app_loss = fit_appearance(
             means,
             appearance,
-            carry.appearance,
+            previous,
             self._image_loss(index, app_iterations, chooser),
             app_iterations,
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
             ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
-            OpacityTie(q.opacity_spread),
+            tie,
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
@@ -351,6 +352,25 @@ class Reconstructor:
         smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
+
+    def _opacity_tie(
+        self, carry: SmokeState, means: torch.Tensor, positions: torch.Tensor, radius: float
+    ) -> tuple[Appearance, OpacityTie]:
+        """The previous frame's appearance the fit is regularised towards, and the opacity tie.
+
+        With `Quality.opacity_concentration` the opacity follows the smoke's concentration at
+        each Gaussian (`fluidcore.smoke.concentration`, from the frame's fitted particle
+        `positions`): the previous frame's Gaussians are diluted (or thickened) to their new
+        concentration before the temporal regularisation compares with them, so it holds the
+        smoke's opacity per unit concentration steady rather than its opacity.
+        """
+        q, config = self.rec.quality, self.rec.config
+        if not q.opacity_concentration:
+            return carry.appearance, OpacityTie(q.opacity_spread)
+        now = concentration(means, positions, radius, config)
+        alive = carry.particles.positions[carry.particles.alive]
+        before = concentration(carry.means, alive, radius, config)
+        return carry.appearance.diluted(before, now[: len(carry.means)]), OpacityTie(q.opacity_spread, now)
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""

@@ -74,6 +74,10 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
+    # Opacity follows the smoke's concentration (fluidcore.smoke.concentration): the shared opacity
+    # is that of smoke as dense as at the inlet, and a Gaussian's optical depth scales with the
+    # concentration its particles give it, in the fit and in prediction (issue 23, item 5).
+    opacity_concentration: bool = False
     # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
     # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).
     air_cells: int = 0
@@ -97,7 +101,12 @@ class Quality:
     def visual_settings(self) -> dict[str, Any]:
         """How the visual Gaussians move and are born: recorded in a reconstruction's manifest
         ("visual") so a prediction continues them alike without reading the preset back."""
-        return {"velocity_radius": self.velocity_radius, "per_physical": self.visual_per_physical, "seed": self.seed}
+        return {
+            "velocity_radius": self.velocity_radius,
+            "per_physical": self.visual_per_physical,
+            "seed": self.seed,
+            "opacity_concentration": self.opacity_concentration,
+        }
 
     def with_overrides(self, **overrides: Any) -> Quality:
         """The preset with fields replaced; `weights` may be a mapping of just the loss weights
