@@ -54,9 +54,13 @@ class Appearance:
 
     def diluted(self, before: torch.Tensor, after: torch.Tensor) -> Appearance:
         """The Gaussians after the smoke they carry went from concentration `before` to `after`
-        (per Gaussian): each optical depth -log(1 - opacity) scaled by after / before, the rest kept."""
-        depth = F.softplus(self.opacity_logits) * (after / before)
-        return Appearance(self.log_scales, self.quats, depth_logits(depth), self.colors)
+        (per Gaussian), each a parcel of fixed smoke mass: its volume grows as 1/c, so its extent
+        by (before / after)^(1/3) on every axis, and its optical depth -log(1 - opacity) through
+        the centre (concentration x path length) by (after / before)^(2/3)."""
+        ratio = (after / before).clamp(1.0 / MAX_RATIO, MAX_RATIO)
+        log_scales = self.log_scales - torch.log(ratio)[:, None] / 3.0
+        depth = F.softplus(self.opacity_logits) * ratio.pow(2.0 / 3.0)
+        return Appearance(log_scales, self.quats, depth_logits(depth), self.colors)
 
     def select(self, rows: torch.Tensor) -> Appearance:
         """The Gaussians picked by `rows` (a boolean mask or indices, repeats allowed)."""
@@ -129,6 +133,10 @@ class SmokeState:
 # float32 still tells from 0 and 1, however far the smoke is diluted or piled up.
 MIN_DEPTH = 1.0e-4
 MAX_DEPTH = 15.0
+# A concentration changes at most this many times over: more than the particles resolve (1 down to
+# the floor of one particle's share, 0.012 for the 2 h neighbourhood at rho0 = 2, is 80 times), so
+# the clamp only keeps extents and depths finite.
+MAX_RATIO = 1.0e4
 
 
 def depth_logits(depth: torch.Tensor) -> torch.Tensor:

@@ -334,7 +334,7 @@ class Reconstructor:
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
-        previous, tie = self._opacity_tie(carry, means, p.detach(), problem.velocity_radius)
+        previous = self._previous(carry, means, p.detach(), problem.velocity_radius)
         appearance, app_loss = fit_appearance(
             means,
             appearance,
@@ -344,7 +344,7 @@ class Reconstructor:
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
             ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
-            tie,
+            OpacityTie(q.opacity_spread),
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
@@ -353,24 +353,21 @@ class Reconstructor:
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
 
-    def _opacity_tie(
-        self, carry: SmokeState, means: torch.Tensor, positions: torch.Tensor, radius: float
-    ) -> tuple[Appearance, OpacityTie]:
-        """The previous frame's appearance the fit is regularised towards, and the opacity tie.
+    def _previous(self, carry: SmokeState, means: torch.Tensor, positions: torch.Tensor, radius: float) -> Appearance:
+        """The previous frame's appearance the fit's temporal regularisation compares with.
 
-        With `Quality.opacity_concentration` the opacity follows the smoke's concentration at
-        each Gaussian (`fluidcore.smoke.concentration`, from the frame's fitted particle
-        `positions`): the previous frame's Gaussians are diluted (or thickened) to their new
-        concentration before the temporal regularisation compares with them, so it holds the
-        smoke's opacity per unit concentration steady rather than its opacity.
+        With `Quality.opacity_concentration` each of its Gaussians is expanded or compressed
+        to the concentration its smoke has now (`fluidcore.smoke.Appearance.diluted`, from the
+        frame's fitted particle `positions`), as prediction moves them: the regularisation then
+        holds the smoke's mass per Gaussian steady, not its opacity.
         """
         q, config = self.rec.quality, self.rec.config
         if not q.opacity_concentration:
-            return carry.appearance, OpacityTie(q.opacity_spread)
-        now = concentration(means, positions, radius, config)
+            return carry.appearance
+        n = len(carry.means)
         alive = carry.particles.positions[carry.particles.alive]
         before = concentration(carry.means, alive, radius, config)
-        return carry.appearance.diluted(before, now[: len(carry.means)]), OpacityTie(q.opacity_spread, now)
+        return carry.appearance.diluted(before, concentration(means[:n], positions, radius, config))
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""

@@ -14,9 +14,9 @@ docs/bench_generalise.md):
   colour, one fitted parameter;
 * the particles carry equal masses of smoke, so density shows through where they are: the
   opacity is the scene's one shared opacity, each Gaussian allowed `OpacityTie.spread` logits
-  from it (0 by default); with `OpacityTie.concentration` the shared opacity is that of smoke at
-  the inlet's concentration, and each Gaussian's optical depth scales with the concentration
-  its particles give it (`fluidcore.smoke.concentration`), so smoke that has spread is lighter;
+  from it (0 by default); with `Quality.opacity_concentration` each Gaussian is a parcel of that
+  mass, and the temporal regularisation compares it with last frame's parcel expanded or
+  compressed to the concentration its particles now give it (`fluidcore.smoke.Appearance.diluted`);
 * a Gaussian's extent stays between the spread of the SPH kernel that carries its particle's
   smoke and the kernel's support (`ScaleBounds`): neither a paint stroke thinner than the
   particles resolve nor a sheet wider than the particle it rides on.
@@ -29,11 +29,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from fluidcore.reconstruct.presets import LossWeights
 from fluidcore.render import Gaussians
-from fluidcore.smoke import Appearance, depth_logits
+from fluidcore.smoke import Appearance
 
 
 def spawn(
@@ -114,40 +113,20 @@ class ScaleBounds:
 
 @dataclass(frozen=True)
 class OpacityTie:
-    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity.
-
-    With `concentration` (G,) the shared opacity is that of smoke at concentration 1 and each
-    Gaussian's own base is the same smoke at its concentration (optical depth times c); without,
-    the base is the shared opacity itself.
-    """
+    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity."""
 
     spread: float | None  # 0: one opacity for all; None: free per Gaussian
-    concentration: torch.Tensor | None = None
-
-    def base(self, shared: torch.Tensor) -> torch.Tensor:
-        if self.concentration is None:
-            return shared
-        return depth_logits(F.softplus(shared) * self.concentration)
 
     def logits(self, shared: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
         if self.spread is None:
             return free
-        return self.base(shared) + self.spread * torch.tanh(free)
+        return shared + self.spread * torch.tanh(free)
 
     def free(self, logits: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
         """Inverse of `logits` (deviations beyond the spread start just inside it)."""
         if self.spread is None:
             return logits.clone()
-        return torch.atanh(((logits - self.base(shared)) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
-
-    def shared(self, logits: torch.Tensor) -> torch.Tensor:
-        """The shared opacity that `logits` (the first rows' Gaussians) amount to: their mean
-        logit, or with concentrations the logit of their optical depth per unit concentration
-        (total depth over total concentration, so a few Gaussians no particle reaches, at the
-        concentration floor, do not dominate it)."""
-        if self.concentration is None:
-            return logits.mean()
-        return depth_logits(F.softplus(logits).sum() / self.concentration[: len(logits)].sum())
+        return torch.atanh(((logits - shared) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
 
 
 def fit_appearance(
@@ -165,14 +144,16 @@ def fit_appearance(
     `bounds`), opacity (within `opacity` of the shared one) and rotation, positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
-    weighted photometric loss. The shared colour and opacity start from the previous frame's
+    weighted photometric loss. `previous` is the last frame's appearance as the regularisation
+    compares with it (diluted to this frame's concentrations when the opacity follows them).
+    The shared colour and opacity start from the previous frame's
     means (`appearance`'s on the first frame). Returns the fitted appearance (per Gaussian, as
     the renderer and the run folder take it) and the last total loss.
     """
     start = previous if len(previous) else appearance
     color = start.colors.detach().mean(0).clone().requires_grad_(True)
     free_scales = bounds.free(appearance.log_scales.detach()).requires_grad_(True)
-    shared_opacity = opacity.shared(start.opacity_logits.detach()).clone().requires_grad_(True)
+    shared_opacity = start.opacity_logits.detach().mean().clone().requires_grad_(True)
     free_opacity = opacity.free(appearance.opacity_logits.detach(), shared_opacity.detach()).requires_grad_(True)
     quats = appearance.quats.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam(
