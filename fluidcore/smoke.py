@@ -7,17 +7,15 @@ exporter read runs without torch). `from_frame` / `to_frame` are the one convers
 the two: both algorithms resume from and write the same files through it.
 
 `concentration` is the smoke concentration the physical particles give at any point, and
-`Appearance.diluted` the one rule by which a Gaussian's opacity follows it (Beer-Lambert: a
-Gaussian's optical depth is proportional to the concentration of the smoke it carries), used by
-the fit's temporal regularisation and by prediction alike (`Quality.opacity_concentration`).
+`Appearance.diluted` the one rule by which a visual Gaussian follows it: a parcel of fixed smoke
+mass that expands as its smoke thins (prediction, `Quality.opacity_concentration`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-
-import math
 
 import numpy as np
 import torch

@@ -51,7 +51,7 @@ from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
-from fluidcore.smoke import Appearance, SmokeState, concentration
+from fluidcore.smoke import SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -334,11 +334,10 @@ class Reconstructor:
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
-        previous = self._previous(carry, means, p.detach(), problem.velocity_radius)
         appearance, app_loss = fit_appearance(
             means,
             appearance,
-            previous,
+            carry.appearance,
             self._image_loss(index, app_iterations, chooser),
             app_iterations,
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
@@ -352,22 +351,6 @@ class Reconstructor:
         smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
-
-    def _previous(self, carry: SmokeState, means: torch.Tensor, positions: torch.Tensor, radius: float) -> Appearance:
-        """The previous frame's appearance the fit's temporal regularisation compares with.
-
-        With `Quality.opacity_concentration` each of its Gaussians is expanded or compressed
-        to the concentration its smoke has now (`fluidcore.smoke.Appearance.diluted`, from the
-        frame's fitted particle `positions`), as prediction moves them: the regularisation then
-        holds the smoke's mass per Gaussian steady, not its opacity.
-        """
-        q, config = self.rec.quality, self.rec.config
-        if not q.opacity_concentration:
-            return carry.appearance
-        n = len(carry.means)
-        alive = carry.particles.positions[carry.particles.alive]
-        before = concentration(carry.means, alive, radius, config)
-        return carry.appearance.diluted(before, concentration(means[:n], positions, radius, config))
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""

@@ -74,9 +74,10 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
-    # Opacity follows the smoke's concentration (fluidcore.smoke.concentration): the shared opacity
-    # is that of smoke as dense as at the inlet, and a Gaussian's optical depth scales with the
-    # concentration its particles give it, in the fit and in prediction (issue 23, item 5).
+    # In prediction each visual Gaussian follows the concentration of the smoke it carries
+    # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
+    # particles spread) instead of keeping its fitted opacity and extent (issue 23, item 5;
+    # docs/bench_generalise.md, "Opacity that follows the concentration").
     opacity_concentration: bool = False
     # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
     # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).

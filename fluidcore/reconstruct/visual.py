@@ -14,9 +14,7 @@ docs/bench_generalise.md):
   colour, one fitted parameter;
 * the particles carry equal masses of smoke, so density shows through where they are: the
   opacity is the scene's one shared opacity, each Gaussian allowed `OpacityTie.spread` logits
-  from it (0 by default); with `Quality.opacity_concentration` each Gaussian is a parcel of that
-  mass, and the temporal regularisation compares it with last frame's parcel expanded or
-  compressed to the concentration its particles now give it (`fluidcore.smoke.Appearance.diluted`);
+  from it (0 by default);
 * a Gaussian's extent stays between the spread of the SPH kernel that carries its particle's
   smoke and the kernel's support (`ScaleBounds`): neither a paint stroke thinner than the
   particles resolve nor a sheet wider than the particle it rides on.
@@ -144,9 +142,7 @@ def fit_appearance(
     `bounds`), opacity (within `opacity` of the shared one) and rotation, positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
-    weighted photometric loss. `previous` is the last frame's appearance as the regularisation
-    compares with it (diluted to this frame's concentrations when the opacity follows them).
-    The shared colour and opacity start from the previous frame's
+    weighted photometric loss. The shared colour and opacity start from the previous frame's
     means (`appearance`'s on the first frame). Returns the fitted appearance (per Gaussian, as
     the renderer and the run folder take it) and the last total loss.
     """

@@ -138,9 +138,8 @@ def test_a_source_hint_outside_the_box_or_malformed_is_refused(scene):
     assert parse_source("0.1,0.2,0.3,0.05") == SourceHint(center=(0.1, 0.2, 0.3), radius=0.05)
 
 
-@pytest.mark.parametrize("opacity_concentration", [False, True])
-def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path, opacity_concentration):
-    quick = dict(position_iterations=3, appearance_iterations=2, first_frame_factor=1, opacity_concentration=opacity_concentration)
+def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path):
+    quick = dict(position_iterations=3, appearance_iterations=2, first_frame_factor=1)
     straight = Reconstructor(_prepare(scene, frames=3, **quick)).run(tmp_path / "straight")
     calls = iter([False, False, True])
     partial = Reconstructor(_prepare(scene, frames=3, **quick)).run(tmp_path / "resumed", should_stop=lambda: next(calls))
@@ -152,8 +151,6 @@ def test_interrupted_run_resumes_to_the_same_result(scene, tmp_path, opacity_con
     np.testing.assert_array_equal(a.velocities, b.velocities)
     for key in a.gaussians:
         np.testing.assert_array_equal(a.gaussians[key], b.gaussians[key])
-    opacity = 1.0 / (1.0 + np.exp(-a.gaussians["opacity_logits"]))
-    assert np.isfinite(opacity).all() and ((opacity > 0) & (opacity < 1)).all()
 
 
 def test_bad_inputs_name_the_field(scene):
