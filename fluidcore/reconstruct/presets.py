@@ -76,9 +76,10 @@ class Quality:
     opacity_spread: float | None = 0.0
     # In prediction each visual Gaussian follows the concentration of the smoke it carries
     # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
-    # particles spread) instead of keeping its fitted opacity and extent (issue 23, item 5;
-    # docs/bench_generalise.md, "Opacity that follows the concentration").
-    opacity_concentration: bool = False
+    # particles spread) instead of keeping its fitted opacity and extent. On: future +0.04 dB on
+    # ScalarFlow, +0.08 on D, +0.09 on F (every seed of 0-2 gained; docs/bench_generalise.md,
+    # "Opacity that follows the concentration"). The fit itself is not tied to it (that lost).
+    opacity_concentration: bool = True
     # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
     # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).
     air_cells: int = 0

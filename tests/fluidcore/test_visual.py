@@ -183,10 +183,11 @@ def test_diluted_opacity_stays_in_0_1_and_finite(ratio):
 
 
 def test_runs_recorded_before_the_concentration_tie_load_and_continue_without_it():
-    old = {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}
+    old = {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}  # what a prediction reads of its parent
     assert VisualSettings.model_validate(old).opacity_concentration is False
     recorded = get("preview").to_json()
     del recorded["opacity_concentration"]
-    assert Quality.from_json(recorded).opacity_concentration is False
-    on = get("preview").with_overrides(opacity_concentration=True)
-    assert VisualSettings.model_validate(on.visual_settings()).opacity_concentration is True
+    assert Quality.from_json(recorded).name == "preview"  # an older quality record still loads
+    for flag in (True, False):
+        quality = get("preview").with_overrides(opacity_concentration=flag)
+        assert VisualSettings.model_validate(quality.visual_settings()).opacity_concentration is flag
