@@ -1,6 +1,7 @@
 """Request and response bodies. Job requests are derived from `service.job_types.JobType`: one
-model per type, `{"type", "scene_id" | "parent_job_id", "params"}`, with the type's own parameter
-model, so a bad request is a 422 naming the field before anything is queued."""
+model per type that writes a run, `{"type", "scene_id" | "parent_job_id", "params"}`, with the
+type's own parameter model, so a bad request is a 422 naming the field before anything is queued
+(a `render` job is asked for at `POST /v1/jobs/{id}/videos/{name}`, api.routers.videos)."""
 
 from __future__ import annotations
 
@@ -32,7 +33,9 @@ def job_request_model(job_type: JobType) -> type[BaseModel]:
     )
 
 
-JOB_REQUESTS: dict[JobType, type[BaseModel]] = {job_type: job_request_model(job_type) for job_type in JobType}
+JOB_REQUESTS: dict[JobType, type[BaseModel]] = {
+    job_type: job_request_model(job_type) for job_type in JobType if job_type.writes_run
+}
 JobRequest = Annotated[Union[tuple(JOB_REQUESTS.values())], Field(discriminator="type")]  # noqa: UP007
 
 
@@ -62,9 +65,22 @@ class SceneBox(BaseModel):
     max: Vec3
 
 
+class SourceDepth(BaseModel):
+    """How a reconstruction placed its source along the input ray (`fluidcore.scene_info`, from
+    the run manifest's `settings.source_estimate`)."""
+
+    cue: str = Field(description="triangulated, generated views, floor, box axis or given (docs/cameras.md)")
+    range: tuple[Vec3, Vec3] | None = Field(
+        description="one input view: the nearest and farthest centres on its ray inside the box, all of which "
+        "the view accepts (a source hint may pin any); null when two or more views triangulate it"
+    )
+
+
 class SceneSource(BaseModel):
     center: Vec3
     radius: float
+    depth: SourceDepth | None = Field(default=None, description="null when the user gave the whole source")
+    job_id: str | None = Field(default=None, description="the reconstruction job whose run this source is from")
 
 
 class CameraPlace(BaseModel):
@@ -150,6 +166,23 @@ class ArtifactList(BaseModel):
     items: list[ArtifactOut]
 
 
+class VideoOut(BaseModel):
+    """One video a job can show: stored (`artifact`), or rendered when asked for (`render_job`)."""
+
+    name: str = Field(description="a camera of the run, 'orbit', a what-if's 'side_by_side'")
+    kind: Literal["video", "orbit", "side_by_side"]
+    camera: str | None
+    artifact: ArtifactOut | None = Field(description="the stored MP4; null until it is rendered")
+    render_job: JobOut | None = Field(
+        description="the latest job that renders it on request (poll it for progress); null when none was asked for"
+    )
+
+
+class VideoList(BaseModel):
+    job_id: str
+    items: list[VideoOut]
+
+
 class Health(BaseModel):
     status: Literal["ok", "unavailable"]
     checks: dict[str, str] = {}
@@ -163,6 +196,11 @@ class RunScene(BaseModel):
     dt: float | None = Field(default=None, description="the simulation's time step, seconds (one video frame)")
 
 
+class AirSample(BaseModel):
+    points: list[float] = Field(description="x0, y0, z0, x1, ...: a lattice of points over the scene box (world units)")
+    velocities: list[float] = Field(description="vx0, vy0, vz0, vx1, ...: the air's velocity at each point (world units/s)")
+
+
 class ParticlesOut(BaseModel):
     job_id: str
     frame: int
@@ -170,3 +208,5 @@ class ParticlesOut(BaseModel):
     total: int = Field(description="live particles in the frame, before subsampling")
     positions: list[float] = Field(description="x0, y0, z0, x1, ...: world units, evenly subsampled")
     scene: RunScene
+    air: AirSample | None = Field(default=None, description="the air saved with the frame, sampled on a coarse lattice "
+                                  "(a run with quality air_cells > 0); null: the run's air is still")

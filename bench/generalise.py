@@ -23,7 +23,11 @@ computed in the same run):
               it where there is one, else from each variant's gt/meta.json):
               the reconstruction branched at the variant's branch frame, continued once with the
               intervention and once without it (the "own factual prediction" baseline), both
-              scored against the variant's truth on its window and on its late window
+              scored against the variant's truth on its window and on its late window; and the
+              effect score: the cosine between the predicted effect (what-if - own factual) and
+              the true one (variant truth - factual truth), pixels of the late window, all views
+              (1: the intervention changes the images as it does in truth, 0: unrelated, < 0:
+              the opposite; from the frames already rendered for the PSNR)
     rise      the first 10 reconstructed frames continued to frame A+60 by prediction: the plume's
               top height above the source against the truth's (a 10-frame reconstruction must rise)
 
@@ -141,6 +145,7 @@ class Protocol:
         self.gt, self.input_view, self.input_path, self.window = gt, input_view, input_path, window
         self.every, self.long_side, self.folder = score_every, score_long_side, folder
         self.seconds: dict[str, float] = {}
+        self.cpu_seconds: dict[str, float] = {}  # this process's CPU time: comparable across machine loads
 
     # -- running --------------------------------------------------------------------------------
     def run(self, tasks: Sequence[str], n_future: int, reuse: Path | None, quality: str, overrides: dict, progress_bar: bool) -> dict:
@@ -178,13 +183,14 @@ class Protocol:
             out["tasks"]["whatif"] = {v.name: self.whatif(recon, v) for v in self.gt.variants()}
         if "rise" in tasks:
             out["tasks"]["rise"] = self.rise(recon)
-        out["seconds"] = self.seconds
+        out["seconds"], out["cpu_seconds"] = self.seconds, self.cpu_seconds
         return out
 
     def _timed(self, name: str, work: Callable[[], Any]) -> Any:
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.process_time()
         value = work()
         self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - started
+        self.cpu_seconds[name] = self.cpu_seconds.get(name, 0.0) + time.process_time() - cpu
         return value
 
     def _reconstruct(self, reuse: Path | None, quality: str, overrides: dict, progress_bar: bool) -> Path:
@@ -324,13 +330,34 @@ class Protocol:
                                                                  wind=wind, ball=variant.ball))
         factual = self._timed("whatif", lambda: self._predict(branch.path, self.folder / f"factual_{variant.branch_frame:04d}", n))
         frames = self._frames(variant.first_frame, variant.scene.n_frames)
+        method, own_factual = _kept(self._render([intervened, branch])), _kept(self._render([factual, branch]))
         scored = self.score(variant.scene, variant.scene.views(), frames, {
-            "method": self._render([intervened, branch]), "own_factual": self._render([factual, branch]), "blank": self._blank(recon),
+            "method": method, "own_factual": own_factual, "blank": self._blank(recon),
         })
         scored["late_start"] = variant.late_start
         scored["late_mean"] = _means(scored["views"], ("method", "own_factual", "blank"), [t >= variant.late_start for t in frames])
+        scored["effect"] = self.effect(variant, frames, method, own_factual)
         scored["intervention"] = {"wind": wind, "ball": variant.ball}
         return scored
+
+    def effect(self, variant: Variant, frames: list[int], method: Predictor, own_factual: Predictor) -> dict:
+        """The what-if effect score (module docstring) over the late window of `frames`, all
+        views together and per view; a cosine is None where an effect is nothing at all."""
+        import numpy as np
+
+        late = [i for i, t in enumerate(frames) if t >= variant.late_start]
+        late_frames = [frames[i] for i in late]
+        totals = np.zeros(3)  # predicted . true, |predicted|^2, |true|^2
+        per_view = {}
+        for view in variant.scene.views():
+            camera = variant.scene.cameras[view]
+            size = self._size(camera)
+            predicted = method(camera, frames, size)[late].astype(np.float64) - own_factual(camera, frames, size)[late]
+            true = variant.scene.truth(view, late_frames, size).astype(np.float64) - self.gt.truth(view, late_frames, size)
+            sums = np.array([np.vdot(predicted, true), np.vdot(predicted, predicted), np.vdot(true, true)], dtype=np.float64)
+            totals += sums
+            per_view[view] = _cosine(sums)
+        return {"cosine": _cosine(totals), "views": per_view, "frames": late_frames}
 
     def rise(self, recon: Any) -> dict | None:
         """Continue the first RISE_OBSERVED reconstructed frames to frame A + RISE_AT; compare the
@@ -365,6 +392,26 @@ def _means(per_view: dict[str, Any], names: Sequence[str], keep: Sequence[bool] 
             out[name] = {"psnr": float(np.mean([np.mean([p for p, k in zip(v[name]["per_frame_psnr"], keep, strict=True) if k])
                                                 for v in per_view.values()]))}
     return out
+
+
+def _kept(predictor: Predictor) -> Predictor:
+    """`predictor`, answering a repeated question (camera, frames, size) from memory: the effect
+    score reads the frames the PSNR rendered."""
+    memory: dict[tuple, Any] = {}
+
+    def predict(camera: Any, frames: list[int], size: tuple[int, int]) -> Any:
+        key = (camera.name, tuple(frames), tuple(size))
+        if key not in memory:
+            memory[key] = predictor(camera, frames, size)
+        return memory[key]
+
+    return predict
+
+
+def _cosine(sums: Any) -> float | None:
+    """a.b / (|a| |b|) from (a.b, |a|^2, |b|^2); None when either is zero (no direction to compare)."""
+    dot, aa, bb = (float(v) for v in sums)
+    return dot / (aa * bb) ** 0.5 if aa > 0 and bb > 0 else None
 
 
 def _particle_velocity(run: Any, t: int, points: Any) -> Any:
@@ -450,6 +497,10 @@ def print_table(result: dict) -> None:
     velocity = result["tasks"].get("velocity")
     for part, v in ((velocity or {}).get("summary") or {}).items():
         print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f})")
+    for variant, scored in (result["tasks"].get("whatif") or {}).items():
+        cosine = scored["effect"]["cosine"]
+        print(f"{variant + ' effect':<16} cosine {'none' if cosine is None else f'{cosine:.3f}'} "
+              "(what-if - own factual vs variant truth - factual truth, late window, all views)")
     rise = result["tasks"].get("rise")
     if rise:
         print(f"rise: top {rise['top_above_source']:.3f} above the source at frame {rise['frame']}, truth "

@@ -2,25 +2,34 @@
 videos. The CLI's `render`, the worker's runners and the benchmarks all render here; single
 frames come from `fluidcore.run_frames` (which Algorithm S2's refinement uses too).
 
+    video_names       the videos a run can have: one per camera, `orbit`, a what-if's
+                      `side_by_side` (factual | what-if), a refined prediction's `refined_CAMERA`
+    eager_videos      those a finished job renders before it ends (a reconstruction's input
+                      views); the worker renders any other on request (`JobType.RENDER`) and
+                      storage keeps it
+    render_artifacts  named videos as MP4s, at the size the run's reconstruction was fit at,
+                      reporting progress per rendered frame
     render_orbit      one turn around the scene while the run plays
-    render_artifacts  one MP4 per camera plus `orbit.mp4` (and for a what-if `side_by_side.mp4`,
-                      factual | what-if): what a finished job publishes, at the size its
-                      reconstruction was fit at, reporting progress per rendered frame
     render_side_by_side  the factual | what-if picture, the what-if's ball and wind drawn
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fluidcore.jobs import JobContext, JobInputError, Progress, no_progress
 from fluidcore.run_frames import FrameDone, render_frames
 
-SCENE_VIDEOS = ("orbit", "side_by_side")  # render_artifacts' videos that belong to no camera
+if TYPE_CHECKING:
+    from fluidcore.runs import RunRecord
+
+ORBIT, SIDE_BY_SIDE = "orbit", "side_by_side"
+SCENE_VIDEOS = (ORBIT, SIDE_BY_SIDE)  # render_artifacts' videos that belong to no camera
 REFINED_PREFIX = "refined_"
 
 
@@ -86,18 +95,52 @@ def published_camera(camera, long_side: int | None):  # noqa: ANN001, ANN201 - C
     return camera if long_side is None else camera.scaled(*render_size(camera.width, camera.height, long_side))
 
 
+def video_names(run: RunRecord) -> list[str]:
+    """Every video `render_artifacts` can make of `run`: one per camera of the run, `orbit`, a
+    what-if's `side_by_side`, and `refined_CAMERA` per camera of a refined prediction's sub-run
+    (seen only in a run folder, `Run`; a manifest read from storage lists the rest). The names a
+    client may ask for: no other string becomes a file name."""
+    from fluidcore.runs import Run, RunKind
+
+    names = [*run.manifest["cameras"], ORBIT]
+    if run.kind is RunKind.INTERACT and run.input_views:  # the side-by-side is seen from the input view
+        names.append(SIDE_BY_SIDE)
+    refined = run.refined() if isinstance(run, Run) else None
+    return names + [f"{REFINED_PREFIX}{name}" for name in (refined.manifest["cameras"] if refined else ())]
+
+
+def eager_videos(run: RunRecord) -> list[str]:
+    """The videos a finished job renders before it ends: a reconstruction's input views, and a
+    refined prediction's `refined_CAMERA` videos (what Algorithm S2's refinement made). A
+    continuation (predict, what-if, resimulate) renders none: its simulation costs about what one
+    view's video does (a 30-frame preview what-if of ScalarFlow: 0.25 s CPU simulating, 0.27 s
+    rendering the input view), so even that one would be over a third of its time
+    (docs/bench_render.md, "What-if artifacts"). Every other name of `video_names` is rendered
+    when asked for (`POST /v1/jobs/{id}/videos/{name}`, which the results page calls for the
+    videos it shows; `fluidnexus render`)."""
+    from fluidcore.runs import RunKind
+
+    views = run.input_views if run.kind is RunKind.RECONSTRUCT else []
+    return [*views, *(name for name in video_names(run) if name.startswith(REFINED_PREFIX))]
+
+
+def check_video_names(run: RunRecord, names: Sequence[str]) -> None:
+    """Raise JobInputError unless every name is one of `video_names(run)`."""
+    known = video_names(run)
+    for name in names:
+        if name not in known:
+            raise JobInputError(f"video: {name!r} is not a video of this run; have {', '.join(known)}")
+
+
 def render_artifacts(
-    run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], cameras: Mapping[str, object] | None = None,
-    progress: Progress = no_progress, long_side: int | None = None,
+    run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], names: Sequence[str] | None = None,
+    progress: Progress = no_progress, long_side: int | None = None, device: str = "cpu",
 ) -> list[Path]:
-    """MP4 per camera (the run's own, or `cameras`) plus `orbit.mp4`; returns the files. A
-    what-if renders only its input views of the run's own cameras (its side-by-side shows the
-    input view; `fluidnexus render` draws any other camera), since rendering every camera took
-    most of its time (docs/bench_render.md, "What-if artifacts"). A prediction refined by
-    Algorithm S2 adds `refined_CAMERA.mp4` per camera: its `refined/` sub-run, the future
-    reconstructed on the refined frames. Videos are `long_side` pixels on their long side
-    (never upscaled; None: each camera's own size). `progress(fraction, "render")` after every
-    rendered frame."""
+    """`NAME.mp4` in `out_dir` for each of `names` (default: every one of `video_names`); returns
+    the files. A what-if's videos draw its ball and wind; its side-by-side reuses the input
+    view's frames when they are rendered in the same call. Videos are `long_side` pixels on
+    their long side (never upscaled; None: each camera's own size). `progress(fraction,
+    "render")` after every rendered frame."""
     from fluidcore.names import safe_join
     from fluidcore.runs import Run, RunKind
     from fluidcore.video import write_mp4
@@ -105,17 +148,23 @@ def render_artifacts(
     run = Run.open(run_dir)
     if not run.frames():
         raise JobInputError(f"run: {run_dir} has no finished frames to render")
-    check_camera_names(list(cameras or run.cameras()))
+    names = video_names(run) if names is None else list(dict.fromkeys(names))
+    check_video_names(run, names)
+    check_camera_names(list(run.cameras()))
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     what_if = run.kind is RunKind.INTERACT
-    own = dict(cameras or published_cameras(run))
+    input_view = run.input_views[0] if run.input_views else None
     refined = run.refined()
-    refined_cameras = dict(cameras or refined.cameras()) if refined is not None else {}
+    cameras = run.cameras()
     n = len(run.frames())
-    side = int(what_if) * (1 + int(cameras is not None))  # the factual side, and the what-if's unless already rendered
-    total = n * (len(own) + 1 + side) + (len(refined.frames()) * len(refined_cameras) if refined else 0)
-    done = 0
+
+    def cost(name: str) -> int:  # rendered frames, for the progress fraction
+        if name == SIDE_BY_SIDE:
+            return n * (1 + int(input_view not in names))  # the factual side, and the what-if's unless rendered here
+        return n if name in cameras or name == ORBIT else len(refined.frames())
+
+    total, done = sum(cost(name) for name in names), 0
 
     def on_frame() -> None:
         nonlocal done
@@ -125,30 +174,20 @@ def render_artifacts(
     def size(camera):  # noqa: ANN001, ANN202
         return published_camera(camera, long_side)
 
-    written, videos = [], {}
-    for name, camera in own.items():
-        videos[name] = render_frames(run, size(camera), interventions=what_if, on_frame=on_frame)
-        written.append(write_mp4(safe_join(out, f"{name}.mp4"), videos[name], fps=run.fps))
-    orbit = render_orbit(run, interventions=what_if, on_frame=on_frame, size=size)
-    written.append(write_mp4(out / "orbit.mp4", orbit, fps=run.fps))
-    for name, camera in refined_cameras.items():
-        written.append(write_mp4(safe_join(out, f"{REFINED_PREFIX}{name}.mp4"), render_frames(refined, size(camera), on_frame=on_frame), fps=refined.fps))
-    if what_if:
-        name = run.input_views[0]
-        camera = size(run.cameras()[name])
-        both = render_side_by_side(run, camera, what_if=videos.get(name) if cameras is None else None, on_frame=on_frame)
-        written.append(write_mp4(out / "side_by_side.mp4", both, fps=run.fps))
+    written, input_frames = [], None
+    for name in sorted(names, key=lambda name: name == SIDE_BY_SIDE):  # the side-by-side last: it reuses the input view
+        if name == ORBIT:
+            video = render_orbit(run, device=device, interventions=what_if, on_frame=on_frame, size=size)
+        elif name == SIDE_BY_SIDE:
+            video = render_side_by_side(run, size(cameras[input_view]), device, what_if=input_frames, on_frame=on_frame)
+        elif name in cameras:
+            video = render_frames(run, size(cameras[name]), device=device, interventions=what_if, on_frame=on_frame)
+            input_frames = video if name == input_view else input_frames
+        else:  # refined_CAMERA: the refined sub-run
+            video = render_frames(refined, size(refined.cameras()[name[len(REFINED_PREFIX):]]), device=device, on_frame=on_frame)
+        fps = run.fps if name in cameras or name in SCENE_VIDEOS else refined.fps
+        written.append(write_mp4(safe_join(out, f"{name}.mp4"), video, fps=fps))
     return written
-
-
-def published_cameras(run) -> dict[str, object]:  # noqa: ANN001 - Run
-    """The cameras whose videos a finished job publishes: all of the run's, a what-if's input views."""
-    cameras = run.cameras()
-    from fluidcore.runs import RunKind
-
-    if run.kind is RunKind.INTERACT:
-        return {name: cameras[name] for name in run.input_views}
-    return cameras
 
 
 def render_side_by_side(

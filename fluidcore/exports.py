@@ -8,11 +8,20 @@
   ply      the visual Gaussians in the 3D Gaussian splatting PLY layout that splat viewers and
            VFX plug-ins read (x y z, nx ny nz, f_dc_0..2, opacity, scale_0..2, rot_0..3);
   density  the physical density on a voxel grid in world units, as .npz (density, origin,
-           spacing), mass conserving: density x voxel volume sums to the particles' mass;
-  nrrd     the same grid as a NRRD volume (raw float32, origin and spacing in the header),
-           which ParaView, 3D Slicer and Houdini's NRRD readers open;
-  vdb      the same grid as an OpenVDB `density` fog volume (fluidcore.vdb), what Blender and
-           Houdini load as smoke; a job publishes it for every frame, a sequence.
+           spacing), mass conserving: density x voxel volume sums to the particles' mass, with
+           the velocity on the same voxels (world units/s, `frame_density`);
+  nrrd     the same density grid as a NRRD volume (raw float32, origin and spacing in the
+           header), which ParaView, 3D Slicer and Houdini's NRRD readers open;
+  velocity the same grid's velocity as a NRRD volume of 3-vectors (velocity_NNNNNN.nrrd), the
+           density's companion (NRRD holds one field a file);
+  vdb      the same grid as an OpenVDB `density` fog volume and a `velocity` vector grid
+           (fluidcore.vdb), what Blender and Houdini load as smoke and use for motion blur;
+           a job publishes it for every frame, a sequence.
+
+The velocity is the air's (the run's `SavedAir`, sampled at the voxel centres) when the run
+simulates the air; otherwise the particles' own velocities, mass-weighted over the same Poly6
+kernels as the density (zero where there is no smoke): in a run without the air grid the model's
+air is still, and zeros would blur nothing, while the particles' velocity is how the smoke moves.
 
 One frame goes to a file of the caller's choosing (`export_frame`); a range of frames to
 numbered files in a folder (`export_sequence`: smoke_000012.vdb, ..., names from
@@ -28,7 +37,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,23 +58,37 @@ class ExportError(InputError):
     """The frame cannot be exported as asked; the message names the option."""
 
 
+VELOCITY_SOURCES = ("air", "particles")  # where a grid's velocity comes from (module docstring)
+
+
 @dataclass(frozen=True)
 class DensityGrid:
     """Density (X, Y, Z) float32 indexed [x, y, z]; voxel [i, j, k] is centred at
-    origin + (i, j, k) * spacing (world units)."""
+    origin + (i, j, k) * spacing (world units). `velocity` (X, Y, Z, 3) float32, world units/s, on
+    the same voxels when asked for, with `velocity_source` one of VELOCITY_SOURCES."""
 
     density: np.ndarray
     origin: np.ndarray
     spacing: float
     particle_mass: float
+    velocity: np.ndarray | None = None
+    velocity_source: str | None = None
 
     def total_mass(self) -> float:
         return float(self.density.sum(dtype=np.float64) * self.spacing**3)
 
+    def voxel_centres(self) -> np.ndarray:
+        """World positions (X * Y * Z, 3) of the voxel centres, in the grid's memory order."""
+        axes = [self.origin[a] + self.spacing * np.arange(n) for a, n in enumerate(self.density.shape)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
 
-def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> DensityGrid:
+
+def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray, spacing: float,
+                 velocities: np.ndarray | None = None) -> DensityGrid:
     """Splat particles (N, 3) (world units) with kernel radius `h` onto a grid covering the box
-    [lo, hi] plus h on every side (a particle at the box wall keeps its whole kernel)."""
+    [lo, hi] plus h on every side (a particle at the box wall keeps its whole kernel). With
+    `velocities` (N, 3) the grid's velocity is theirs, averaged with the same weights as the mass
+    (momentum / density; zero where no particle reaches)."""
     if not 0 < spacing <= h:
         raise ExportError(f"spacing must be in (0, h = {h:g}] world units, got {spacing:g}")
     origin = np.asarray(lo, dtype=np.float64) - h
@@ -76,6 +99,7 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
     points = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     reach = np.arange(-int(np.ceil(h / spacing)), int(np.ceil(h / spacing)) + 2)  # voxels a kernel can touch
     grid = np.zeros(int(np.prod(shape)))
+    momentum = None if velocities is None else np.zeros((int(np.prod(shape)), 3))
     for first in range(0, len(points), PARTICLE_CHUNK):
         chunk = points[first : first + PARTICLE_CHUNK]
         cells = np.floor((chunk - origin) / spacing).astype(int)[:, :, None] + reach  # (n, 3, reach) per axis
@@ -88,16 +112,32 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
         total = weights.sum(axis=(1, 2, 3), keepdims=True)  # > 0 for a particle in the box: a voxel centre lies within h
         total[total == 0] = 1.0  # a particle beyond the grid touches no voxel and deposits nothing
         flat = (cells[:, 0, :, None, None] * shape[1] + cells[:, 1, None, :, None]) * shape[2] + cells[:, 2, None, None, :]
-        np.add.at(grid, flat[within], (weights / total * (mass / spacing**3))[within])
-    grid = grid.reshape(shape)
-    return DensityGrid(grid.astype(np.float32), origin, float(spacing), mass)
+        share = (weights / total * (mass / spacing**3))[within]
+        np.add.at(grid, flat[within], share)
+        if momentum is not None:
+            owner = np.broadcast_to(np.arange(len(chunk))[:, None, None, None], within.shape)[within]
+            np.add.at(momentum, flat[within], share[:, None] * velocities[first + owner])
+    velocity = None
+    if momentum is not None:
+        velocity = np.where(grid[:, None] > 0, momentum / np.where(grid > 0, grid, 1.0)[:, None], 0.0)
+        velocity = velocity.reshape(*shape, 3).astype(np.float32)
+    return DensityGrid(grid.reshape(shape).astype(np.float32), origin, float(spacing), mass, velocity,
+                       None if velocity is None else "particles")
 
 
 def frame_density(run: Run, state: FrameState, spacing: float | None = None) -> DensityGrid:
-    """The density grid of a run's frame, over its scene box, with the scene's kernel radius."""
+    """The density grid of a run's frame, over its scene box, with the scene's kernel radius, and
+    its velocity: the air's where the frame holds the air, else the particles' (module docstring)."""
     h = run.scene.physics.h
-    positions = state.positions[state.alive.astype(bool)]
-    return density_grid(positions, h, np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi), spacing or DENSITY_SPACING * h)
+    alive = state.alive.astype(bool)
+    positions = state.positions[alive]
+    lo, hi = np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi)
+    if state.air is None:
+        return density_grid(positions, h, lo, hi, spacing or DENSITY_SPACING * h, state.velocities[alive])
+    grid = density_grid(positions, h, lo, hi, spacing or DENSITY_SPACING * h)
+    velocity = state.air.velocity_at(grid.voxel_centres()).reshape(*grid.density.shape, 3)
+    return replace(grid, velocity=velocity, velocity_source="air")
+
 
 
 def splat_vertices(gaussians: dict[str, np.ndarray]) -> np.ndarray:
@@ -137,37 +177,53 @@ def _write_density(run: Run, state: FrameState, path: Path) -> None:
         np.savez(
             file, density=grid.density, origin=grid.origin, spacing=np.asarray(grid.spacing),
             particle_mass=np.asarray(grid.particle_mass), rest_density=np.asarray(run.scene.physics.rho0),
+            velocity=grid.velocity, velocity_source=np.asarray(grid.velocity_source),
         )
 
 
-def _write_nrrd(run: Run, state: FrameState, path: Path) -> None:
-    grid = frame_density(run, state)
+def _nrrd(grid: DensityGrid, values: np.ndarray, path: Path) -> None:
+    """`values` on `grid`'s voxels, (X, Y, Z) or (X, Y, Z, 3), as NRRD 4: raw little-endian float32,
+    x fastest (a vector's components fastest of all), origin and spacing in the header."""
     s = grid.spacing
+    vector = values.ndim == 4
     header = "\n".join(
         [
             "NRRD0004",
             "type: float",
-            "dimension: 3",
-            f"sizes: {' '.join(map(str, grid.density.shape))}",
+            f"dimension: {values.ndim}",
+            f"sizes: {' '.join(map(str, (3, *values.shape[:3]) if vector else values.shape))}",
             "space dimension: 3",
-            f"space directions: ({s!r},0,0) (0,{s!r},0) (0,0,{s!r})",
+            f"space directions: {'none ' if vector else ''}({s!r},0,0) (0,{s!r},0) (0,0,{s!r})",
             f"space origin: ({','.join(repr(float(v)) for v in grid.origin)})",
-            "kinds: domain domain domain",
+            f"kinds: {'3-vector ' if vector else ''}domain domain domain",
             "endian: little",
             "encoding: raw",
             "",
             "",
         ]
     )
+    data = np.moveaxis(values, 3, 0) if vector else values
     with path.open("wb") as file:
         file.write(header.encode("ascii"))
-        file.write(grid.density.astype("<f4").tobytes(order="F"))  # NRRD: the first axis (x) varies fastest
+        file.write(data.astype("<f4").tobytes(order="F"))  # NRRD: the first axis varies fastest
+
+
+def _write_nrrd(run: Run, state: FrameState, path: Path) -> None:
+    grid = frame_density(run, state)
+    _nrrd(grid, grid.density, path)
+
+
+def _write_velocity(run: Run, state: FrameState, path: Path) -> None:
+    grid = frame_density(run, state)
+    _nrrd(grid, grid.velocity, path)
 
 
 def _write_vdb(run: Run, state: FrameState, path: Path) -> None:
     grid = frame_density(run, state)
-    # `velocity` (X, Y, Z, 3), world units/s, joins this mapping once the air's velocity is in the run.
-    write_vdb(path, {"density": grid.density}, grid.origin, grid.spacing)
+    # velocity active where there is smoke: what motion blur reads, and a sequence of dense air
+    # grids would cost 12 bytes a voxel of the whole box in every frame
+    velocity = np.where(grid.density[..., None] > 0, grid.velocity, 0.0)
+    write_vdb(path, {"density": grid.density, "velocity": velocity}, grid.origin, grid.spacing)
 
 
 @dataclass(frozen=True)
@@ -184,6 +240,7 @@ EXPORTERS: dict[str, Exporter] = {
     "ply": Exporter(".ply", _write_ply, "application/octet-stream", "splats"),
     "density": Exporter(".npz", _write_density, "application/octet-stream", "density"),
     "nrrd": Exporter(".nrrd", _write_nrrd, "application/octet-stream", "density"),
+    "velocity": Exporter(".nrrd", _write_velocity, "application/octet-stream", "velocity"),
     "vdb": Exporter(".vdb", _write_vdb, "application/octet-stream", "smoke", every_frame=True),
 }
 

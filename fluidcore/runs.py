@@ -42,6 +42,12 @@ A state file (`numpy.savez`, uncompressed, float32 unless noted) holds:
     gauss_opacity_logits (G,), gauss_colors (G, C)      the visual Gaussians, world units
     extra_NAME                             anything else a writer needs to resume exactly
                                            (e.g. a random generator's state)
+    air_version () int, air_origin (3,) float64, air_spacing () float64,
+    air_x (nx+1, ny, nz), air_y (nx, ny+1, nz), air_z (nx, ny, nz+1)
+                                           only in runs that simulate the air (quality `air_cells`
+                                           > 0): the air's face velocities on its MAC grid (units/s),
+                                           the grid's lowest corner and cell size (`SavedAir`,
+                                           air_version 1); a file without them holds still air
 
 Every reader goes through `RunRecord` (a run folder: `Run`, a subclass; a manifest fetched from
 storage: `RunRecord.from_bytes`), and the file names above are named only here (`MANIFEST`,
@@ -81,6 +87,8 @@ BACKGROUND = "background.npz"
 STATES_DIR = "states"
 REFINED_RUN = "refined"  # sub-run of a prediction: the reconstruction on its video-model-refined frames
 GAUSSIAN_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
+AIR_FIELDS = ("air_x", "air_y", "air_z")
+AIR_VERSION = 1  # the layout of the air arrays in a state file (module docstring); a reader refuses a later one
 
 
 class RunError(InputError):
@@ -126,9 +134,10 @@ class SourceEstimateRecord(BaseModel):
     where the centre could lie as well (world units), which the source hint can then pin."""
 
     model_config = _RECORD
-    depth_cue: str  # "triangulated", "floor", "box axis" or "given"
+    depth_cue: str  # "triangulated", "generated views", "floor", "box axis" or "given"
     depth_range: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # nearest, farthest
-    pixels: dict[str, tuple[float, float, float]] = {}  # camera -> (u, v, radius) in pixels
+    pixels: dict[str, tuple[float, float, float]] = {}  # input camera -> (u, v, radius) in pixels
+    generated: dict[str, float] = {}  # generated view -> its ray's weight in the triangulation (the input view's is 1)
 
 
 class ReconstructSettings(BaseModel):
@@ -235,9 +244,76 @@ class Scene:
         return replace(self, physics=replace(self.physics, alpha=self.physics.alpha * factor))
 
 
+@dataclass(frozen=True)
+class SavedAir:
+    """The air of a saved frame, torch-free: face velocities (world units/s) on a MAC grid with
+    lowest corner `origin` and cubic cells of `spacing` (`fluidcore.physics.AirState` as numpy).
+    The exporter and the API read it without the simulator, hence a numpy sampler here next to
+    the torch one in fluidcore.physics.air."""
+
+    faces: tuple[np.ndarray, np.ndarray, np.ndarray]
+    origin: np.ndarray
+    spacing: float
+
+    def __post_init__(self) -> None:
+        if len(self.faces) != 3 or any(f.ndim != 3 for f in self.faces):
+            raise RunError("state: air needs three 3-D face arrays (air_x, air_y, air_z)")
+        cells = np.asarray(self.cells)
+        for axis, face in enumerate(self.faces):
+            if face.shape != tuple(cells + np.eye(3, dtype=int)[axis]):
+                raise RunError(f"state: {AIR_FIELDS[axis]} has shape {face.shape}, not the faces of a {tuple(cells)} grid")
+        if np.shape(self.origin) != (3,) or not np.all(np.isfinite(self.origin)) or not 0 < self.spacing < np.inf:
+            raise RunError("state: air_origin must be 3 finite numbers and air_spacing a number > 0")
+
+    @property
+    def cells(self) -> tuple[int, int, int]:
+        """(nx, ny, nz): the grid's cells, read off the faces that are not along each axis."""
+        return self.faces[1].shape[0], self.faces[0].shape[1], self.faces[0].shape[2]
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The state file's air arrays (module docstring)."""
+        return {
+            "air_version": np.asarray(AIR_VERSION, dtype=np.int64),
+            "air_origin": np.asarray(self.origin, dtype=np.float64),
+            "air_spacing": np.asarray(self.spacing, dtype=np.float64),
+            **{name: face.astype(np.float32, copy=False) for name, face in zip(AIR_FIELDS, self.faces)},
+        }
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], where: str) -> SavedAir | None:
+        """The air in a state file's arrays; None (still air) in a file written without it."""
+        if "air_version" not in arrays:
+            return None
+        if int(arrays["air_version"]) != AIR_VERSION:
+            raise RunError(f"state file {where}: air_version {int(arrays['air_version'])} is not supported "
+                           f"(this version reads {AIR_VERSION}); written by a newer FluidNexus?")
+        faces = tuple(arrays[name] for name in AIR_FIELDS)
+        return cls(faces, np.asarray(arrays["air_origin"], dtype=np.float64), float(arrays["air_spacing"]))  # type: ignore[arg-type]
+
+    def velocity_at(self, points: np.ndarray) -> np.ndarray:
+        """The air's velocity (N, 3) at world `points` (N, 3): each component trilinear on its own
+        faces; points beyond the grid take the value at its border (as AirGrid.velocity_at)."""
+        s = (np.asarray(points, dtype=np.float64).reshape(-1, 3) - self.origin) / self.spacing  # grid units
+        out = np.empty((len(s), 3), dtype=np.float32)
+        for axis, face in enumerate(self.faces):
+            index = s - np.where(np.arange(3) == axis, 0.0, 0.5)  # faces along `axis` sit half a cell off the others
+            index = np.clip(index, 0.0, np.asarray(face.shape) - 1.0)
+            base = np.minimum(np.floor(index).astype(np.int64), np.maximum(np.asarray(face.shape) - 2, 0))
+            frac = index - base
+            value = np.zeros(len(s))
+            for corner in range(8):
+                bits = [(corner >> a) & 1 for a in range(3)]
+                weight = np.prod([frac[:, a] if bit else 1.0 - frac[:, a] for a, bit in enumerate(bits)], axis=0)
+                at = tuple(np.minimum(base[:, a] + bit, face.shape[a] - 1) for a, bit in enumerate(bits))
+                value += weight * face[at]
+            out[:, axis] = value
+        return out
+
+
 @dataclass
 class FrameState:
-    """One frame's particles, as numpy arrays in world units (see the module docstring)."""
+    """One frame's particles, as numpy arrays in world units (see the module docstring), and the
+    air around them when the run simulates it (None: still air)."""
 
     positions: np.ndarray
     velocities: np.ndarray
@@ -245,6 +321,7 @@ class FrameState:
     time: float
     gaussians: dict[str, np.ndarray]
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    air: SavedAir | None = None
 
     def __post_init__(self) -> None:
         n = len(self.positions)
@@ -272,6 +349,8 @@ class FrameState:
         }
         arrays.update({f"gauss_{k}": self.gaussians[k].astype(np.float32, copy=False) for k in GAUSSIAN_FIELDS})
         arrays.update({f"extra_{k}": v for k, v in self.extra.items()})
+        if self.air is not None:
+            arrays.update(self.air.arrays())
         return arrays
 
     def save(self, path: Path) -> None:
@@ -304,6 +383,7 @@ class FrameState:
                 time=float(arrays["time"]),
                 gaussians={k: arrays[f"gauss_{k}"] for k in GAUSSIAN_FIELDS},
                 extra={k[6:]: v for k, v in arrays.items() if k.startswith("extra_")},
+                air=SavedAir.from_arrays(arrays, where),
             )
         except KeyError as exc:
             raise RunError(f"state file {where}: missing array {exc}") from None

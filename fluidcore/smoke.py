@@ -1,5 +1,6 @@
-"""The two-layer smoke state: physical particles and the visual Gaussians that ride on them,
-with `Appearance`, the visual layer's per-Gaussian parameters.
+"""The two-layer smoke state: physical particles (with the air around them, when the run
+simulates it: `ParticleState.air`) and the visual Gaussians that ride on them, with
+`Appearance`, the visual layer's per-Gaussian parameters.
 
 Reconstruction (Algorithm S1) and prediction (S2) carry a `SmokeState` from frame to frame; a
 run folder stores it as a numpy `fluidcore.runs.FrameState` (torch-free, so the API and the
@@ -21,10 +22,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fluidcore.physics import PBFConfig, ParticleState
+from fluidcore.physics import AirState, PBFConfig, ParticleState
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.render import Gaussians
-from fluidcore.runs import FrameState, RunError
+from fluidcore.runs import FrameState, RunError, SavedAir
 
 
 @dataclass
@@ -95,6 +96,7 @@ class SmokeState:
             _tensor(saved.alive, device),
             saved.time,
             int(saved.extra["step"]),
+            None if saved.air is None else _air_state(saved.air, device),
         )
         return cls(particles, *visual_layer(saved, device))
 
@@ -115,6 +117,7 @@ class SmokeState:
                 "colors": numpy(a.colors),
             },
             extra={"step": np.asarray(self.particles.step, dtype=np.int64)},
+            air=None if self.particles.air is None else _saved_air(self.particles.air),
         )
 
     def with_visual(self, means: torch.Tensor, appearance: Appearance) -> SmokeState:
@@ -168,6 +171,14 @@ def visual_layer(saved: FrameState, device: str | torch.device) -> tuple[torch.T
     g = saved.gaussians
     t = lambda name: _tensor(g[name], device)  # noqa: E731
     return t("means"), Appearance(t("log_scales"), t("quats"), t("opacity_logits"), t("colors"))
+
+
+def _air_state(saved: SavedAir, device: str | torch.device) -> AirState:
+    return AirState(tuple(_tensor(f, device) for f in saved.faces), tuple(map(float, saved.origin)), saved.spacing)  # type: ignore[arg-type]
+
+
+def _saved_air(air: AirState) -> SavedAir:
+    return SavedAir(tuple(f.detach().cpu().numpy() for f in air.faces), np.asarray(air.origin, dtype=np.float64), air.spacing)  # type: ignore[arg-type]
 
 
 def _tensor(array: np.ndarray, device: str | torch.device) -> torch.Tensor:

@@ -5,6 +5,10 @@ The API's request schema (`api.schemas.JobRequest`), the Celery task names (`ser
 (`worker.runners`) are all derived from `JobType`, so a new job type is one member here plus its
 runner in `worker/runners.py`. Parameter models are strict (an unknown field is a 422 naming it)
 and torch-free, so the API validates a request before anything is queued.
+
+A job that starts from a "run" (`render`) renders one video of a succeeded job's run on request
+and publishes it with that job's artifacts; it writes no run of its own, and is asked for at
+`POST /v1/jobs/{id}/videos/{name}` (api.routers.videos), which serves a stored video without one.
 """
 
 from __future__ import annotations
@@ -12,9 +16,10 @@ from __future__ import annotations
 import enum
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fluidcore.interaction import Intervention
+from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import RunKind
@@ -24,7 +29,7 @@ _STRICT = ConfigDict(extra="forbid")
 QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
 PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
 
-StartsFrom = Literal["scene", "parent"]
+StartsFrom = Literal["scene", "parent", "run"]  # an upload, a run to continue, a run to render
 
 
 class ReconstructParams(BaseModel):
@@ -68,10 +73,25 @@ class ResimulateParams(BaseModel):
     model_config = _STRICT
 
 
+class RenderParams(BaseModel):
+    """`video`: the name of one video of the parent job's run (`fluidcore.artifacts.video_names`:
+    a camera of the run, `orbit`, a what-if's `side_by_side`); a safe name here
+    (`fluidcore.names`), checked against the run's manifest where it is asked for."""
+
+    model_config = _STRICT
+    video: str
+
+    @field_validator("video")
+    @classmethod
+    def _safe(cls, value: str) -> str:
+        return check_name(value, "video")
+
+
 class JobType(enum.StrEnum):
     """A job type: its name (the value stored in `jobs.type` and sent in requests), its parameter
-    model, and whether it starts from an uploaded scene or continues a succeeded parent job.
-    Each is a `fluidcore.runs.RunKind` (same value): the kind of run the job writes."""
+    model, and whether it starts from an uploaded scene, continues a parent job, or renders a
+    video of a succeeded job's run. Each that writes a run is a `fluidcore.runs.RunKind` (same
+    value): the kind of run it writes."""
 
     params: type[BaseModel]
     starts_from: StartsFrom
@@ -87,11 +107,18 @@ class JobType(enum.StrEnum):
     PREDICT = RunKind.PREDICT, PredictParams, "parent"
     INTERACT = RunKind.INTERACT, InteractParams, "parent"
     RESIMULATE = RunKind.RESIMULATE, ResimulateParams, "parent"
+    RENDER = "render", RenderParams, "run"
 
     @property
-    def run_kind(self) -> RunKind:
-        """The kind of run this job writes."""
-        return RunKind(self.value)
+    def writes_run(self) -> bool:
+        """Whether the job writes a run folder (and is created with `POST /v1/jobs`); a render
+        publishes a video of its parent's run."""
+        return self.starts_from != "run"
+
+    @property
+    def run_kind(self) -> RunKind | None:
+        """The kind of run this job writes; None for a render."""
+        return RunKind(self.value) if self.writes_run else None
 
     @property
     def input_field(self) -> str:

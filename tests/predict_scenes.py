@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 
 from fluidcore.physics import ParticleState, Simulator
+from fluidcore.physics.air import scene_air
 from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene, VisualSettings
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.synth import SynthSpec, particle_gaussians
@@ -25,8 +26,9 @@ def scene_of(spec: SynthSpec = SPEC) -> Scene:
     return Scene(box.lo, box.hi, (0.0, 1.0, 0.0), spec.config(), spec.source())
 
 
-def simulator_of(spec: SynthSpec = SPEC) -> Simulator:
-    return Simulator(spec.config(), spec.box(), spec.source())
+def simulator_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Simulator:
+    """The plume's simulator; with `air_cells` it simulates the air, as a reconstruction does."""
+    return Simulator(spec.config(), spec.box(), spec.source(), air=scene_air(spec.box(), spec.config(), air_cells))
 
 
 def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
@@ -39,10 +41,11 @@ def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
 def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC,
               quality: dict | None = None, visual: VisualSettings | None = None, physics: str = "scalarflow") -> Path:
     """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
-    (`quality`: what its settings record as the quality, e.g. the fields a test needs; `visual`:
+    (`quality`: what its settings record as the quality, e.g. the fields a test needs; with
+    `air_cells` there the plume is simulated with the air, and every frame saves it; `visual`:
     how its Gaussians move, one per particle with fixed opacity unless given; `physics`: the
     physics mode it records, a preset's unless "auto")."""
-    simulator = simulator_of(spec)
+    simulator = simulator_of(spec, int((quality or {}).get("air_cells", 0)))
     state = simulator.new_state()
     simulator.stabilize(state, 20)
     for _ in range(warmup):

@@ -258,13 +258,31 @@ def fake_job(inputs, n_frames: int | None = None):  # type: ignore[no-untyped-de
     return [write_mp4(inputs.render_dir / f"{name}.mp4", clip) for name in [*cameras, "orbit"]]
 
 
-FAKE_RUNNERS = {job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}
+def fake_render(inputs):  # type: ignore[no-untyped-def]
+    """The test double of a render job's runner: the video asked for as a 2-frame black clip,
+    progress per frame, should_cancel between frames."""
+    from fluidcore.jobs import Cancelled
+    from fluidcore.names import safe_join
+    from fluidcore.video import write_mp4
+
+    for t in range(2):
+        if inputs.should_cancel():
+            raise Cancelled(f"cancelled before frame {t}")
+        inputs.progress((t + 1) / 2, "render")
+    video = safe_join(inputs.render_dir, f"{inputs.params['video']}.mp4")
+    return [write_mp4(video, np.zeros((2, 16, 16, 3), dtype=np.uint8))]
 
 
-def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None) -> None:  # noqa: ANN001 - Storage
+FAKE_RUNNERS = {**{job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}, "render": fake_render}
+
+
+def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None,  # noqa: ANN001 - Storage
+              air=None) -> None:  # noqa: ANN001 - SavedAir
     """What a worker leaves in storage: a run folder written by fluidcore.runs (scene box 1 unit
     wide, source at height 0.1), with `positions[t]` (P, 3) as frame t's particles, the last one
-    dead; consecutive frames, or none."""
+    dead; consecutive frames, or none; `source_estimate` (a `SourceEstimateRecord`) as its
+    settings record how the source was found, or None (a source given whole); `air` (a
+    `fluidcore.runs.SavedAir`) saved with every frame."""
     import tempfile
 
     from fluidcore.cameras import Camera
@@ -280,11 +298,11 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     with tempfile.TemporaryDirectory(prefix="fluidnexus-stored-run-") as tmp:
         run = Run.create(Path(tmp) / "run", kind=RunKind.RECONSTRUCT, cameras={"cam0": camera}, input_views=["cam0"],
                          frame_range=(frames[0], frames[-1] + 1), fps=30.0, channels=1, background_color=[1.0], scene=scene,
-                         settings=ReconstructSettings(quality={}))
+                         settings=ReconstructSettings(quality={}, source_estimate=source_estimate))
         for t, points in sorted(positions.items()):
             alive = np.ones(len(points), bool)
             alive[-1] = False
-            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians), {}, 0.0)
+            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians, air=air), {}, 0.0)
         for path in sorted(run.path.rglob("*")):
             if path.is_file():
                 storage.put_bytes(f"jobs/{job_id}/run/{path.relative_to(run.path).as_posix()}", path.read_bytes())

@@ -140,8 +140,10 @@ def test_every_job_type_writes_the_run_kind_of_its_name() -> None:
     from fluidcore.runs import RunKind
     from service.job_types import JobType
 
-    assert {job.run_kind for job in JobType} == set(RunKind)
-    assert all(job.run_kind.value == job.value for job in JobType)
+    writers = [job for job in JobType if job.writes_run]
+    assert {job.run_kind for job in writers} == set(RunKind)
+    assert all(job.run_kind.value == job.value for job in writers)
+    assert [job.run_kind for job in JobType if not job.writes_run] == [None]  # a render writes no run
 
 
 def test_the_smoke_mask_has_one_home() -> None:
@@ -155,9 +157,9 @@ def test_the_smoke_mask_has_one_home() -> None:
         text = inspect.getsource(function)
         assert "smoke_mask(" in text or "is_smoke(" in text, function.__name__
         assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__
-    frames = torch.tensor([[[[0.5, 0.5, 0.5], [0.5, 0.55, 0.5]], [[0.3, 0.9, 0.5], [0.53, 0.53, 0.53]]]])  # (1, 2, 2, 3)
-    background = torch.tensor([0.5, 0.5, 0.5])
-    assert init.smoke_mask(frames, background).tolist() == [[[False, False], [True, False]]]  # 0.05/3 and 0.03 are not smoke
+    frames = torch.tensor([[[[0.5, 0.5, 0.5], [0.5, 0.54, 0.5]], [[0.3, 0.9, 0.5], [0.51, 0.51, 0.51]]]])  # (1, 2, 2, 3)
+    background, noise = torch.tensor([0.5, 0.5, 0.5]), torch.tensor([0.01, 0.01, 0.001])
+    assert init.smoke_mask(frames, background, noise).tolist() == [[[False, False], [True, True]]]  # 4 noise units are not smoke, 10 are (in the quietest channel)
 
 
 def test_the_wind_speed_limit_is_the_physics_configs() -> None:

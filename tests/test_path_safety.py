@@ -269,16 +269,23 @@ def test_cameras_single_refuses_a_video_whose_stem_is_no_camera_name(tmp_path: P
 # -- rendering: the join refuses even a name that got past the checks --------------------------------
 
 def test_render_artifacts_never_writes_outside_its_folder(tmp_path: Path) -> None:
-    """A run made before the naming rule (or any caller that skips it): the MP4 named after a
-    camera is refused by the join, not written next to the output folder."""
+    """A video name that is no video of the run is refused before anything renders (what a
+    client asks for is checked against the run's names); a run made before the naming rule,
+    with a camera named like a path, is refused by the join, not written next to the output folder."""
     from fluidcore.artifacts import render_artifacts
     from run_support import _camera, _create, _state
 
     run = _create(tmp_path / "run", frame_range=(0, 1))
     run.write_frame(0, _state(0), {}, 0.0)
     out = tmp_path / "deep" / "out"
+    with pytest.raises(JobInputError, match="not a video of this run; have cam, orbit"):
+        render_artifacts(run.path, out, ["../../escaped"])
+    old = _create(tmp_path / "old", frame_range=(0, 1), cameras={"../../escaped": _camera()}, input_views=["../../escaped"])
+    old.write_frame(0, _state(0), {}, 0.0)
     with pytest.raises(UnsafePath):
-        render_artifacts(run.path, out, cameras={"../../escaped": _camera()})
-    assert not (tmp_path / "escaped.mp4").exists()
+        render_artifacts(old.path, out, ["../../escaped"])
+    assert not (tmp_path / "escaped.mp4").exists() and not (tmp_path / "deep" / "escaped.mp4").exists()
+    clash = _create(tmp_path / "clash", frame_range=(0, 1), cameras={"orbit": _camera()}, input_views=["orbit"])
+    clash.write_frame(0, _state(0), {}, 0.0)
     with pytest.raises(JobInputError, match="camera 'orbit'"):
-        render_artifacts(run.path, out, cameras={"orbit": _camera()})
+        render_artifacts(clash.path, out, ["orbit"])

@@ -31,6 +31,7 @@ from service.models import Artifact, Job, JobState, Scene, utcnow
 from service.queue import RESUME_STAGE, JobQueue
 from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
+from service.videos import VIDEO_FOLDER, VIDEO_TYPE, video_kind
 from worker.runners import Runner, RunInputs
 from fluidcore.runs import MANIFEST, STATES_DIR
 from worker.sync import FolderMirror
@@ -264,19 +265,22 @@ class JobExecutor:
 
     def _publish(self, claim: Claim, files: list[Path], reporter: ProgressReporter) -> None:
         """Upload the rendered videos and exports and record every artifact (videos, exports,
-        manifest, states)."""
+        manifest, states). A render job publishes its video with its parent's artifacts, under
+        the parent's keys (`service.videos`), where clients look for it and find it the next time."""
         reporter.report(RUN_SHARE, "publish")
+        renders = not JobType(claim.job_type).writes_run
+        owner = claim.ancestors[0] if renders else claim.job_id
         rows = []
         uploaded: list[str] = []
         try:
             for path in files:
                 folder, kind, camera, content_type = _published_as(path)
-                key = f"{job_prefix(claim.job_id)}/{folder}/{path.name}"
+                key = f"{job_prefix(owner)}/{folder}/{path.name}"
                 self.storage.put_file(key, path, content_type)
                 uploaded.append(key)
                 rows.append(
                     Artifact(
-                        job_id=claim.job_id, name=f"{folder}/{path.name}", kind=kind, camera=camera, key=key,
+                        job_id=owner, name=f"{folder}/{path.name}", kind=kind, camera=camera, key=key,
                         size=path.stat().st_size, content_type=content_type,
                     )
                 )
@@ -284,6 +288,12 @@ class JobExecutor:
             for key in uploaded:
                 self.storage.delete(key)
             raise
+        if renders:
+            with session_scope(self.sessions) as session:
+                reporter.owned(session)
+                session.execute(delete(Artifact).where(Artifact.job_id == owner, Artifact.name.in_([r.name for r in rows])))
+                session.add_all(rows)
+            return
         prefix = run_prefix(claim.job_id)
         for info in self.storage.list(f"{prefix}/"):
             name = info.key[len(prefix) + 1 :]
@@ -499,10 +509,8 @@ TRANSIENT_ERRORS = _transient_errors()
 
 
 def _published_as(path: Path) -> tuple[str, str, str | None, str]:
-    """(folder, kind, camera, content type) of a file a runner returned: an MP4 per camera, the
-    orbit, a what-if's side-by-side, or an export (fluidcore.exports)."""
+    """(folder, kind, camera, content type) of a file a runner returned: a video
+    (service.videos) or an export (fluidcore.exports)."""
     if path.suffix != ".mp4":
         return "exports", "export", None, "application/octet-stream"
-    if path.stem in ("orbit", "side_by_side"):
-        return "videos", path.stem, None, "video/mp4"
-    return "videos", "video", path.stem, "video/mp4"
+    return (VIDEO_FOLDER, *video_kind(path.stem), VIDEO_TYPE)

@@ -4,9 +4,10 @@ Celery app, the API and the tests of the service logic load without them; only t
 `fluidcore.jobs` (the progress, cancellation and context types) is imported here.
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
-files to publish besides the run folder itself (MP4 per camera, orbit video, a what-if's
-side-by-side, the last frame in every `fluidcore.exports` format, every frame as VDB). Each reads its
-parameters through its type's model in `service.job_types`, so defaults live there only.
+files to publish besides the run folder itself (a reconstruction's input-view MP4s, the last frame in
+every `fluidcore.exports` format, every frame as VDB; a render job: the one video asked for).
+Each reads its parameters through its type's model in `service.job_types`, so defaults live
+there only.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from fluidcore.jobs import JobContext, Progress, ShouldCancel
-from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams
+from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams, RenderParams
 
 
 @dataclass(frozen=True)
@@ -33,7 +34,7 @@ class RunInputs:
     should_cancel: ShouldCancel
     cameras_path: Path | None = None  # reconstruct
     videos: Mapping[str, Path] | None = None  # reconstruct: camera name -> video
-    parent_run: Path | None = None  # predict / interact / resimulate
+    parent_run: Path | None = None  # predict / interact / resimulate / render
 
     @property
     def context(self) -> JobContext:
@@ -48,18 +49,33 @@ RENDER_SHARE = 0.25  # of a job's progress bar: a 62 s ScalarFlow reconstruction
 
 
 def _render(inputs: RunInputs) -> list[Path]:
-    """The videos (a what-if adds its side-by-side) at the size the run's reconstruction was fit
-    at, the last frame in every export format and the run's frames as a VDB sequence
+    """The videos a finished job renders before it ends (a reconstruction's input views,
+    `eager_videos`; any other is a render job away) at the size the run's reconstruction was fit at, the last frame
+    in every export format and the run's frames as a VDB sequence
     (fluidcore.exports.export_artifacts); progress moves per rendered frame."""
-    from fluidcore.artifacts import fit_long_side, render_artifacts
+    from fluidcore.artifacts import eager_videos, fit_long_side, render_artifacts
     from fluidcore.exports import export_artifacts
+    from fluidcore.runs import Run
 
     def progress(fraction: float, stage: str) -> None:
         inputs.progress(1.0 - RENDER_SHARE + RENDER_SHARE * fraction, stage)
 
     progress(0.0, "render")  # the run itself is complete; rendering fills the rest
-    videos = render_artifacts(inputs.run_dir, inputs.render_dir, progress=progress, long_side=fit_long_side(inputs.run_dir))
+    videos = render_artifacts(inputs.run_dir, inputs.render_dir, eager_videos(Run.open(inputs.run_dir)), progress,
+                              fit_long_side(inputs.run_dir), inputs.device)
+    progress(1.0, "export")  # a stage of its own, so the job's timings tell rendering from writing files
     return [*videos, *export_artifacts(inputs.run_dir, inputs.render_dir)]
+
+
+def render(inputs: RunInputs) -> list[Path]:
+    """One video of the parent job's run, asked for by a client (`JobType.RENDER`), as the
+    parent's own videos are made: at its reconstruction's fit size, progress per rendered frame."""
+    from fluidcore.artifacts import fit_long_side, render_artifacts
+
+    video = RenderParams.model_validate(inputs.params).video
+    assert inputs.parent_run is not None
+    return render_artifacts(inputs.parent_run, inputs.render_dir, [video], inputs.progress, fit_long_side(inputs.parent_run),
+                            inputs.device)
 
 
 def _rendered(run: Callable[[RunInputs], None]) -> Runner:
@@ -131,6 +147,7 @@ FLUIDCORE_RUNNERS: dict[JobType, Runner] = {
     JobType.PREDICT: predict,
     JobType.INTERACT: interact,
     JobType.RESIMULATE: resimulate,
+    JobType.RENDER: render,
 }
 
 

@@ -109,7 +109,7 @@ def _register(job_type: JobType) -> Task:
         return _run(self, job_id)
 
     run_job.__name__ = job_type.value
-    run_job.__doc__ = f"Run a {job_type.value} job ({job_type.params.__name__}), then render its videos."
+    run_job.__doc__ = f"Run a {job_type.value} job ({job_type.params.__name__}) and publish what it rendered."
     return app.task(name=task_name(job_type), bind=True)(run_job)
 
 

@@ -15,7 +15,8 @@ from api.routers.jobs import owned_job
 from api.schemas import ArtifactList, ArtifactOut
 from api.signing import signed_url, signing_key, verify
 from service.models import Artifact, Job
-from service.storage import ObjectNotFound
+from service.settings import Settings
+from service.storage import ObjectNotFound, Storage
 
 router = APIRouter(prefix="/v1/jobs", tags=["artifacts"], responses=error_responses(401, 422, 503))
 
@@ -63,18 +64,19 @@ def list_artifacts(
     particle-state files and the manifest, with download URLs."""
     job = owned_job(session, job_id, owner)
     rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id).order_by(Artifact.name)).all()
-    key = signing_key(settings)
-    items = []
-    for row in rows:
-        path = artifact_path(job.id, row.name)
-        presigned = storage.presign(row.key, settings.presign_seconds) or signed_url(key, path, settings.presign_seconds)
-        items.append(
-            ArtifactOut(
-                name=row.name, kind=row.kind, camera=row.camera, size=row.size, content_type=row.content_type,
-                url=path, presigned_url=presigned,
-            )
-        )
-    return ArtifactList(job_id=job.id, items=items)
+    return ArtifactList(job_id=job.id, items=[artifact_out(row, storage, settings) for row in rows])
+
+
+def artifact_out(row: Artifact, storage: Storage, settings: Settings) -> ArtifactOut:
+    """An artifact as the API lists it, with its download URL and a time-limited one for <video>."""
+    path = artifact_path(row.job_id, row.name)
+    presigned = storage.presign(row.key, settings.presign_seconds) or signed_url(
+        signing_key(settings), path, settings.presign_seconds
+    )
+    return ArtifactOut(
+        name=row.name, kind=row.kind, camera=row.camera, size=row.size, content_type=row.content_type,
+        url=path, presigned_url=presigned,
+    )
 
 
 @router.get(

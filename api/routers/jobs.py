@@ -21,7 +21,7 @@ from service import webhooks
 from service.chaining import release_children, waiting_stage
 from service.job_types import InteractParams, JobType
 from service.models import Artifact, Job, JobState, utcnow
-from service.queue import QueueUnavailable
+from service.queue import JobQueue, QueueUnavailable
 from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, job_prefix, log_key, run_prefix
 
@@ -86,17 +86,22 @@ def create_job(
         release_children(session, waits_for, queue)
         session.refresh(job)
         return job_out(job)
+    send(session, job, queue)
+    return job_out(job)
+
+
+def send(session: Session, job: Job, queue: JobQueue) -> None:
+    """Hand a stored job to the workers. When the queue is down the job fails and the answer is
+    a 503; its Idempotency-Key is released: the retry the 503 invites must create a job and
+    queue it, not replay this one that never reached a worker."""
     try:
         job.task_id = queue.enqueue(job.id, job.type)
     except QueueUnavailable as exc:
-        # The key is released: the retry the 503 invites must create a job and queue it, not
-        # replay this one that never reached a worker.
         job.state, job.error, job.finished_at = JobState.FAILED, str(exc), utcnow()
         job.idempotency_key = None
         session.commit()
         raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
     session.commit()
-    return job_out(job)
 
 
 @router.get("", response_model=Page[JobOut])
@@ -154,17 +159,26 @@ def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
 def delete_job(job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
-    """Delete a finished job, its run folder and its artifacts; refused (409) while it runs or has
-    continuations."""
+    """Delete a finished job, its run folder and its artifacts (the records of its videos'
+    renders with it); refused (409) while it runs, has continuations, or renders a video."""
     job = owned_job(session, job_id, owner, for_update=True)
     if not JobState(job.state).finished:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} is {job.state}; cancel it first")
-    children = session.scalars(select(Job.id).where(Job.parent_job_id == job.id)).all()
-    if children:
+    children = session.scalars(select(Job).where(Job.parent_job_id == job.id)).all()
+    continued = [child.id for child in children if JobType(child.type).writes_run]
+    if continued:
         raise HTTPException(
-            status.HTTP_409_CONFLICT, f"job {job_id} is continued by jobs {', '.join(children)}; delete them first"
+            status.HTTP_409_CONFLICT, f"job {job_id} is continued by jobs {', '.join(continued)}; delete them first"
+        )
+    rendering = [child.id for child in children if not JobState(child.state).finished]
+    if rendering:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"job {job_id} has videos rendering in jobs {', '.join(rendering)}; cancel them first"
         )
     session.execute(delete(Artifact).where(Artifact.job_id == job.id))
+    for child in children:
+        session.delete(child)
+    session.flush()  # the renders before the job they name
     session.delete(job)
     session.commit()  # rows first: a failed file removal leaves garbage, never a dangling row
     storage.delete_prefix(f"{job_prefix(job.id)}/")
@@ -198,8 +212,12 @@ def _check_references(
         box = capture_geometry_of(storage, scene)["box"] if request.params.source is not None else None
         check_reconstruct_params(request.params, scene.n_frames, box, "params")
         return None
-    # Any job can be continued: every job type leaves the same run-folder format.
+    # Any job that writes a run can be continued: every such type leaves the same run-folder format.
     parent = owned_job(session, request.parent_job_id, owner)
+    if not JobType(parent.type).writes_run:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, f"parent_job_id: job {parent.id} renders a video; it has no run to continue"
+        )
     if parent.state in (JobState.FAILED, JobState.CANCELLED):
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"parent job {parent.id} is {parent.state}; it cannot be continued"

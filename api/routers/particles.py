@@ -1,5 +1,6 @@
 """`/v1/jobs/{id}/particles`: a job's reconstructed particle positions and its scene box, as JSON,
-for the browser's 3D what-if view (where a ball sits, where the wind blows).
+for the browser's 3D what-if view (where a ball sits, where the wind blows), and the air saved
+with the frame sampled on a coarse lattice (the view draws it as arrows).
 
 Read from the run folder the worker checkpoints to storage, so it answers while a job still
 runs (frames done so far). numpy only: the API process never imports torch.
@@ -15,14 +16,15 @@ from fastapi import APIRouter, HTTPException, Query, status
 from api.deps import OwnerDep, SessionDep, StorageDep
 from api.errors import error_responses
 from api.routers.jobs import owned_job
-from api.schemas import ParticlesOut, RunScene
-from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, Scene, state_file
+from api.schemas import AirSample, ParticlesOut, RunScene
+from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, SavedAir, Scene, state_file
 from service.storage import ObjectNotFound, Storage, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["particles"], responses=error_responses(401, 422, 503))
 
 DEFAULT_POINTS = 20_000
 MAX_POINTS = 100_000  # 1.2 MB of float32 positions as JSON text is already ~2.5 MB
+AIR_LATTICE = 5  # air samples along the box's long side: at most 125 arrows (a cubic box), readable at a glance
 
 
 @router.get(
@@ -41,7 +43,7 @@ def get_particles(
     """Live particle positions (world units) of one frame, evenly subsampled to at most
     `max_points`, with the run's scene box, up axis and smoke source."""
     job = owned_job(session, job_id, owner)
-    record, scene = _record(storage, job.id)
+    record, scene = stored_run(storage, job.id)
     frames = record.frames()
     if not frames:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job.id} has not written a frame yet")
@@ -50,7 +52,8 @@ def get_particles(
         raise HTTPException(
             status.HTTP_404_NOT_FOUND, f"frame {t} is not in job {job.id}'s run (frames {frames[0]}..{frames[-1]})"
         )
-    positions = _positions(storage, job.id, t)
+    state = _frame(storage, job.id, t)
+    positions = state.positions[state.alive.astype(bool)].astype(np.float32)
     keep = _even_subsample(len(positions), max_points)
     return ParticlesOut(
         job_id=job.id,
@@ -59,10 +62,22 @@ def get_particles(
         total=len(positions),
         positions=np.round(positions[keep], 5).astype(float).ravel().tolist(),
         scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"], dt=scene.physics.dt),
+        air=None if state.air is None else _air_sample(state.air, scene),
     )
 
 
-def _record(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
+def _air_sample(air: SavedAir, scene: Scene) -> AirSample:
+    """The air at the centres of a lattice of AIR_LATTICE cubes along the box's long side."""
+    lo, hi = np.asarray(scene.box_lo), np.asarray(scene.box_hi)
+    step = float((hi - lo).max()) / AIR_LATTICE
+    axes = [np.arange(a + step / 2, b, step) for a, b in zip(lo, hi)]
+    axes = [axis if len(axis) else np.asarray([(a + b) / 2]) for axis, a, b in zip(axes, lo, hi)]  # thinner than a cube
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return AirSample(points=np.round(points, 5).ravel().tolist(),
+                     velocities=np.round(air.velocity_at(points), 6).astype(float).ravel().tolist())
+
+
+def stored_run(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
     """The job's run record and its scene, read from storage (a run that has none yet, or an
     unreadable one, is a 409)."""
     try:
@@ -74,15 +89,14 @@ def _record(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
 
 
-def _positions(storage: Storage, job_id: str, t: int) -> np.ndarray:
-    """(P, 3) float32 positions of the particles alive at frame t."""
+def _frame(storage: Storage, job_id: str, t: int) -> FrameState:
+    """Frame t's saved state."""
     try:
-        state = FrameState.from_bytes(storage.read_bytes(f"{run_prefix(job_id)}/{state_file(t)}"), f"frame {t} of job {job_id}")
+        return FrameState.from_bytes(storage.read_bytes(f"{run_prefix(job_id)}/{state_file(t)}"), f"frame {t} of job {job_id}")
     except ObjectNotFound:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"frame {t} of job {job_id} is missing from storage") from None
     except RunError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    return state.positions[state.alive.astype(bool)].astype(np.float32)
 
 
 def _even_subsample(count: int, cap: int) -> np.ndarray:

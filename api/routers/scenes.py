@@ -214,8 +214,9 @@ def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: Stor
 
 
 def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeometry:
-    """From the latest succeeded reconstruction of the scene (its run knows the source), else
-    from the uploaded cameras file alone."""
+    """From the latest succeeded reconstruction of the scene (its run knows the source, how its
+    depth was found and, from one view, the range of depths the view allows; `source.job_id`
+    names that job), else from the uploaded cameras file alone."""
     from fluidcore import scene_info
     from fluidcore.runs import MANIFEST, RunRecord
 
@@ -227,7 +228,9 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
     ).first()
     if job is not None:
         record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job.id)}/{MANIFEST}"), f"job {job.id}'s run")
-        return SceneGeometry.model_validate(scene_info.from_run(record))
+        geometry = scene_info.from_run(record)
+        geometry["source"]["job_id"] = job.id
+        return SceneGeometry.model_validate(geometry)
     return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
 
 

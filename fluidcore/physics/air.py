@@ -44,19 +44,24 @@ MIN_CELLS_PER_AXIS = 2  # trilinear sampling and central differences need two ce
 @dataclass
 class AirState:
     """Face velocities of the air on an `AirGrid`'s MAC grid, world units / s: the x component on
-    the x faces (nx+1, ny, nz), y on the y faces (nx, ny+1, nz), z on the z faces (nx, ny, nz+1)."""
+    the x faces (nx+1, ny, nz), y on the y faces (nx, ny+1, nz), z on the z faces (nx, ny, nz+1).
+    `origin` (the grid's lowest corner) and `spacing` (the cell size), world units, travel with
+    the faces so a saved frame says where its air is without the grid that made it
+    (`fluidcore.runs.SavedAir`, read torch-free by the exporter and the API)."""
 
     faces: tuple[Tensor, Tensor, Tensor]
+    origin: tuple[float, float, float]
+    spacing: float
 
     @property
     def device(self) -> torch.device:
         return self.faces[0].device
 
     def clone(self) -> AirState:
-        return AirState(tuple(f.clone() for f in self.faces))  # type: ignore[arg-type]
+        return AirState(tuple(f.clone() for f in self.faces), self.origin, self.spacing)  # type: ignore[arg-type]
 
     def to(self, device: torch.device | str) -> AirState:
-        return AirState(tuple(f.to(device) for f in self.faces))  # type: ignore[arg-type]
+        return AirState(tuple(f.to(device) for f in self.faces), self.origin, self.spacing)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -124,10 +129,11 @@ class AirGrid:
         """Air at rest on `device`."""
         nx, ny, nz = self.shape
         return AirState((torch.zeros(nx + 1, ny, nz, device=device), torch.zeros(nx, ny + 1, nz, device=device),
-                         torch.zeros(nx, ny, nz + 1, device=device)))
+                         torch.zeros(nx, ny, nz + 1, device=device)), self.box.lo, self.spacing)
 
     def check(self, air: object) -> AirState:
-        """`air` if it is a finite state of this grid's shape, else a PhysicsInputError."""
+        """`air` if it is a finite state of this grid (shape, corner and cell size), else a
+        PhysicsInputError (e.g. air saved by a run on another grid)."""
         if not isinstance(air, AirState):
             raise PhysicsInputError(f"air must be an AirState, got {type(air).__name__}")
         for axis, face in enumerate(air.faces):
@@ -137,6 +143,10 @@ class AirGrid:
                                         f"got {tuple(face.shape)}")
             if not bool(torch.isfinite(face).all()):
                 raise PhysicsInputError(f"air.faces[{axis}] contains NaN or Inf")
+        if not (math.isclose(air.spacing, self.spacing, rel_tol=1e-6)
+                and all(math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9 * self.spacing) for a, b in zip(air.origin, self.box.lo))):
+            raise PhysicsInputError(f"air lies on a grid at {tuple(air.origin)} with cells of {air.spacing:g}; this grid "
+                                    f"starts at {self.box.lo} with cells of {self.spacing:g}")
         return air
 
     # --- sampling ----------------------------------------------------------------------------
@@ -346,6 +356,13 @@ class AirGrid:
             shape = [n + (a == axis) for a, n in enumerate(self.shape)]
             self._coords[key] = face_coords(shape, axis, device)
         return self._coords[key]
+
+
+def scene_air(box: Box, config: PBFConfig, cells: int, force: ForceField | None = None) -> AirGrid | None:
+    """The air grid of a scene with `cells` cells on its box's long side (0: None, still air), its
+    floor where the scene's gravity points: reconstruction (S1) and prediction (S2) build the
+    same grid, so a continuation steps the air its parent saved."""
+    return AirGrid(box, cells, down=config.gravity, force=force) if cells else None
 
 
 def floor_face(down: Vec3) -> tuple[int, int]:

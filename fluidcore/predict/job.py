@@ -28,7 +28,8 @@ from typing import TYPE_CHECKING
 
 from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
-from fluidcore.physics import AirGrid, Simulator
+from fluidcore.physics import Simulator
+from fluidcore.physics.air import scene_air
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
@@ -239,12 +240,12 @@ def _rollout(
 
     New frame 0 is the step that begins at the start state's time; the interventions' frame
     numbers are counted from there. With `air_cells` the air is an `AirGrid` that the wind
-    pushes (instead of the wind's uniformly accelerated air); it starts still at `start` (saved
-    frames do not hold the air yet).
+    pushes (instead of the wind's uniformly accelerated air); it continues the air saved with
+    `start` (still air when the parent frame holds none: a run written before the air was saved).
     """
     config, box, source = scene.simulator_parts()
     applied = interventions(params, config, source, scene.up, start.particles.time)
-    air = AirGrid(box, air_cells, down=config.gravity, force=applied.force) if air_cells else applied.air
+    air = scene_air(box, config, air_cells, applied.force) or applied.air
     return Rollout(
         Simulator(config, box, source, force=applied.force, air=air, device=device),
         source_template(start, source.center),

@@ -15,8 +15,9 @@ the working resolution. It is computed once, before frame 0, and asked per parti
                     the confidence there, in world units at the particle's depth and in
                     kernel radii squared (like L_sim).
 
-Flow is computed on the smoke's contrast |frame - background| rather than on the frames, so a
-textured background (which does not move) cannot pull the flow towards zero.
+Flow is computed on the smoke's contrast (`init.smoke_contrast`, |frame - background| in units of
+the video's noise) rather than on the frames, so a textured background (which does not move)
+cannot pull the flow towards zero.
 
 What flow cannot see: motion along the view ray (depth) changes nothing in the image, so the
 term constrains the two image-plane components of u_t only; the depth component stays what the
@@ -61,7 +62,7 @@ class FlowField:
 
 
 def contrast_images(contrast: np.ndarray) -> np.ndarray:
-    """uint8 (T, H, W) of the smoke's contrast (T, H, W) |frame - background|, its
+    """uint8 (T, H, W) of the smoke's contrast (T, H, W) (`init.smoke_contrast`), its
     CONTRAST_PERCENTILE over the video mapped to 255."""
     top = max(float(np.percentile(contrast, CONTRAST_PERCENTILE)), 1e-6)
     return np.clip(contrast * (255.0 / top), 0, 255).astype(np.uint8)
@@ -90,11 +91,11 @@ def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
     return error <= FB_RELATIVE * (np.square(forward).sum(-1) + np.square(back).sum(-1)) + FB_ABSOLUTE
 
 
-def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor) -> FlowField:
+def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> FlowField:
     """DIS flow between consecutive `frames` ((T, H, W, C) float in [0, 1], `camera` at their
-    resolution, `background` (H, W, C) or (C,)), with the confidence of the module docstring;
-    a pixel is smoke where `fluidcore.reconstruct.init.smoke_mask` says so."""
-    contrast = smoke_contrast(frames, background)
+    resolution, `background` (H, W, C) or (C,), the video's `noise` (C,)), with the confidence of
+    the module docstring; a pixel is smoke where `fluidcore.reconstruct.init.smoke_mask` says so."""
+    contrast = smoke_contrast(frames, background, noise)
     images, smoke = contrast_images(contrast), is_smoke(contrast)
     flows, confidences = [], []
     for k in range(len(images) - 1):

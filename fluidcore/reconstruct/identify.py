@@ -51,6 +51,7 @@ from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
 from fluidcore.reconstruct.presets import PHYSICS_MODES
+from fluidcore.reconstruct.views import ViewTarget
 
 MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
 MAX_FRAMES = 45  # observed frames the misfit is measured over (the first ones)
@@ -310,9 +311,7 @@ def check_mode(mode: str) -> str:
 
 def scene_physics(
     mode: str,
-    camera: Camera,
-    frames: torch.Tensor,
-    background: torch.Tensor,
+    view: ViewTarget,
     center: np.ndarray,
     radius: float,
     box: Box,
@@ -322,8 +321,8 @@ def scene_physics(
     seed: int,
     device: torch.device | str = "cpu",
 ) -> ScenePhysics:
-    """Physics for a scene seen by `camera` in `frames` ((T, H, W, C) working-resolution input
-    frames, `background` (H, W, C) or (C,)), with the source estimated at (center, radius).
+    """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
+    background and noise), with the source estimated at (center, radius).
 
     The kernel radius is a resolution choice in the scene's own units (its box's height over
     KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
@@ -340,7 +339,8 @@ def scene_physics(
     source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
     record: dict = {"mode": mode, "prior_preset": prior_name, "kernel_radius": h}
     if mode == "auto":
-        masks = smoke_mask(frames, background)
+        camera = view.camera
+        masks = smoke_mask(view.frames, view.background, view.noise)
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)

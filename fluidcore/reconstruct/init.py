@@ -1,8 +1,10 @@
 """What a reconstruction needs before its first frame, estimated from the input videos alone.
 
 * the background: a colour for empty space (what every novel view shows where there is no
-  smoke) and, only when a view's background is textured, a static image for that view;
-* the smoke mask of a frame: where it differs from the background;
+  smoke), only when a view's background is textured a static image for that view, and the
+  video's own noise per channel;
+* the smoke mask of a frame: where some channel differs from the background by more than
+  SMOKE_SIGMAS of that channel's noise;
 * the source: where smoke enters the scene (the smoke that stays put at the bottom of the
   first second, along the scene's up axis), as a 3D centre and radius.
 
@@ -14,7 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -24,16 +26,31 @@ from fluidcore.errors import InputError
 if TYPE_CHECKING:
     import torch
 
+    from fluidcore.cameras import Camera
+
 
 MAX_BACKGROUND_FRAMES = 40  # frames sampled for the per-pixel background statistic
 TEXTURED_FRACTION = 0.2  # a background image is kept when this much of the view is not flat
-FLAT_TOLERANCE = 0.04  # |pixel - background colour| below this counts as flat (8-bit video noise is ~0.01)
-SMOKE_THRESHOLD = 0.04  # |frame - background| above this is smoke
+# A pixel differs from the background (smoke, or a textured background) where some channel lies
+# more than SMOKE_SIGMAS of that channel's noise away. Set from the noise statistics, not from a
+# scene: Gaussian noise exceeds 5 sigma with probability 5.7e-7, so a preview frame (480 x 270
+# pixels, 3 channels) shows 0.2 false smoke pixels on average.
+SMOKE_SIGMAS = 5.0
+# The least noise a video is taken to have, per channel: one 8-bit code value. An 8-bit video
+# rounds every value to steps of 1/255 (and an mp4 codec moves values by about a step around
+# anything that changes), so noise below a step is not taken at its word (the dev scenes and
+# ScalarFlow have perfectly still backgrounds: 0 measured) and a difference of a step or two is
+# no evidence of smoke.
+NOISE_FLOOR = 1.0 / 255.0
 SOURCE_SECONDS = 1.0  # the first second of video says where smoke enters
 SOURCE_PERSISTENCE = 0.8  # smoke in this fraction of those frames stays put: the inlet, not the rising puff
 # The floor cue needs a ray that descends steeply enough onto the floor: a base that sits dz above
 # the floor misplaces the source by dz / tan(descent) in depth, 5.7 dz at 10 degrees.
 FLOOR_MIN_DESCENT = math.sin(math.radians(10.0))
+# A generated view's ray tells the depth along the input ray only when it crosses it: an error dx
+# across the generated ray becomes dx / tan(angle) along the input ray, 5.7 dx at 10 degrees (the
+# floor cue's bound, for the same reason); a view nearly opposite or behind the input camera is left out.
+GENERATED_MIN_ANGLE = math.sin(math.radians(10.0))
 
 
 class EstimationError(InputError):
@@ -42,10 +59,12 @@ class EstimationError(InputError):
 
 @dataclass(frozen=True)
 class Background:
-    """A view's background: a colour, plus a static image when the view's background is textured."""
+    """A view's background: a colour, plus a static image when the view's background is textured,
+    and the video's noise: how far a pixel strays from it while nothing is there."""
 
     color: np.ndarray  # (C,) float32 in [0, 1]
     image: np.ndarray | None  # (H, W, C) float32, or None: the colour everywhere
+    noise: np.ndarray  # (C,) float32: each channel's noise (standard deviation), at least NOISE_FLOOR
 
     def as_image(self, height: int, width: int) -> np.ndarray:
         """(H, W, C) float32 at the requested size (area-resampled from the stored image)."""
@@ -59,8 +78,20 @@ class SourceEstimate:
     center: np.ndarray  # (3,) world
     radius: float  # world units
     pixels: dict[str, tuple[float, float, float]]  # per view: (u, v, radius in px) at full resolution
-    depth_cue: str  # how the centre's depth was found: "given", "triangulated", "floor" or "box axis"
+    depth_cue: str  # how the centre's depth was found: "given", "triangulated", "generated views", "floor" or "box axis"
     depth_range: tuple[np.ndarray, np.ndarray] | None  # one view: the nearest and farthest centres (3,) in the box on its ray
+    generated: dict[str, float] = field(default_factory=dict)  # generated view -> its ray's weight in the triangulation
+
+
+@dataclass(frozen=True)
+class GeneratedView:
+    """A view the novel-view model drew (`fluidcore.reconstruct.job.novel_views`), as the source
+    estimate reads it: its camera, the smoke masks (T, H, W) of its first frames, and how far its
+    ray is trusted next to an input view's 1 (the fit's loss weight of the view, `ViewTarget.weight`)."""
+
+    camera: Camera
+    masks: np.ndarray
+    weight: float
 
 
 def to_float(frames: np.ndarray, channels: int) -> np.ndarray:
@@ -81,45 +112,76 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return out[0].permute(1, 2, 0).numpy()
 
 
+def estimate_noise(frames: np.ndarray) -> np.ndarray:
+    """(C,) float32: each channel's noise in `frames` (T, H, W, C), at least NOISE_FLOOR.
+
+    Per pixel, the standard deviation over time; then the median over pixels, which are those
+    the smoke never crosses as long as it crosses fewer than half of them (36% of dev scene D's
+    input view over its 90 frames, 14% of ScalarFlow's): the temporal spread of the background,
+    blind to a textured background's spatial pattern. Not the median absolute deviation, though
+    it is robust within a pixel: on 8-bit values it moves in half steps (Gaussian noise of 2 codes
+    reads 1.48, of 1 code 1.48 or 0), where the median of standard deviations reads 2.01 and 1.03.
+    """
+    spread = frames.std(axis=0)  # (H, W, C)
+    sigma = np.median(spread.reshape(-1, spread.shape[-1]), axis=0)
+    return np.maximum(sigma, NOISE_FLOOR).astype(np.float32)
+
+
 def estimate_background(frames: np.ndarray) -> Background:
     """Background of one view from its frames (float (T, H, W, C) in [0, 1]).
 
     The colour is the median over the frame of the per-pixel temporal median: smoke covers
-    well under half of a typical frame. The per-pixel image keeps, for each pixel, the value
-    over time closest to that colour ("the least smoky moment"), which is the true background
-    wherever the smoke ever leaves; it is only returned when the view's background is
-    textured, because a flat background is better described by its colour than by an image
-    that still holds the smoke that never leaves (e.g. right above the source).
+    well under half of a typical frame. The background is textured when that per-pixel median
+    differs from the colour beyond the noise (as smoke would) on more than TEXTURED_FRACTION of
+    the view; only then is an image returned, because a flat background is better described by
+    its colour than by an image that still holds the smoke that never leaves (e.g. right above
+    the source). The image is the per-pixel temporal median (smoke covers a pixel in fewer than
+    half of the frames), and where smoke stays longer, the value over time closest to the colour
+    ("the least smoky moment"), the true background wherever the smoke ever leaves; not that
+    everywhere, since the noise pulls it towards the colour by two or three of its units.
     """
+    import torch
+
     if frames.ndim != 4 or frames.shape[0] == 0:
         raise EstimationError(f"video: expected frames (T, H, W, C), got shape {frames.shape}")
     step = max(1, len(frames) // MAX_BACKGROUND_FRAMES)
     sample = frames[::step]
+    noise = estimate_noise(sample)
     median = np.median(sample, axis=0)
     color = np.median(median.reshape(-1, median.shape[-1]), axis=0).astype(np.float32)
-    distance = np.abs(sample - color).mean(axis=-1)  # (T, H, W)
-    least_smoky = np.take_along_axis(sample, distance.argmin(axis=0)[None, ..., None], axis=0)[0]
-    off = np.abs(least_smoky - color).mean(axis=-1) > FLAT_TOLERANCE
-    image = least_smoky.astype(np.float32) if off.mean() > TEXTURED_FRACTION else None
-    return Background(color=color, image=image)
+    least_smoky = np.take_along_axis(sample, np.abs(sample - color).mean(axis=-1).argmin(axis=0)[None, ..., None], axis=0)[0]
+    median_t, noise_t = torch.from_numpy(median), torch.from_numpy(noise)
+    if is_smoke(smoke_contrast(median_t, torch.from_numpy(color), noise_t)).mean() <= TEXTURED_FRACTION:
+        return Background(color=color, image=None, noise=noise)
+    smoky = is_smoke(smoke_contrast(median_t, torch.from_numpy(least_smoky), noise_t))[..., None]  # smoke there more often than not
+    return Background(color=color, image=np.where(smoky, least_smoky, median).astype(np.float32), noise=noise)
 
 
-def smoke_contrast(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+def smoke_contrast(frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> np.ndarray:
     """(..., H, W) float32: how far `frames` (..., H, W, C) lie from the `background` ((H, W, C)
-    or (C,)), averaged over the channels; the measure every smoke mask thresholds."""
-    return (frames - background).abs().mean(dim=-1).cpu().numpy()
+    or (C,)) in units of the video's `noise` ((C,), `Background.noise`), in the channel where they
+    lie farthest; the measure every smoke mask thresholds.
+
+    The farthest channel, not the mean over channels: coloured smoke over a coloured background
+    may change one channel only (the mean divides it by the channel count) or shift channels in
+    opposite directions (a grey image does not change at all); nor the norm over channels, which
+    counts a decoded video's noise, shared by its channels, sqrt(C) times over
+    (tests/fluidcore/test_smoke_mask.py).
+    """
+    return ((frames - background).abs() / noise.to(frames)).amax(dim=-1).cpu().numpy()
 
 
-def smoke_mask(frames: torch.Tensor, background: torch.Tensor) -> np.ndarray:
+def smoke_mask(frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> np.ndarray:
     """(..., H, W) bool: where `frames` (..., H, W, C) differ visibly from the `background`
-    ((H, W, C) or (C,)): the one smoke mask of the reconstruction (source estimate, physics
-    identification, mirror agreement, optical flow confidence)."""
-    return is_smoke(smoke_contrast(frames, background))
+    ((H, W, C) or (C,)), beyond the video's `noise` ((C,)): the one smoke mask of the
+    reconstruction (source estimate, physics identification, mirror agreement, optical flow
+    confidence)."""
+    return is_smoke(smoke_contrast(frames, background, noise))
 
 
 def is_smoke(contrast: np.ndarray) -> np.ndarray:
     """Where a `smoke_contrast` is visible smoke (for a caller that needs the contrast too)."""
-    return contrast > SMOKE_THRESHOLD
+    return contrast > SMOKE_SIGMAS
 
 
 def image_up(camera, point: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -184,12 +246,13 @@ def pixel_ray(camera, u: float, v: float) -> tuple[np.ndarray, np.ndarray]:
     return c2w[:3, 3].copy(), direction / np.linalg.norm(direction)
 
 
-def closest_point_to_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Least-squares point nearest to several rays (needs two non-parallel ones)."""
+def closest_point_to_rays(origins: np.ndarray, directions: np.ndarray, weights: Sequence[float] | None = None) -> np.ndarray:
+    """Least-squares point nearest to several rays (needs two non-parallel ones), each ray's
+    squared distance counted `weights[i]` times (default: all alike)."""
     a = np.zeros((3, 3))
     b = np.zeros(3)
-    for o, d in zip(origins, directions, strict=True):
-        projector = np.eye(3) - np.outer(d, d)
+    for o, d, w in zip(origins, directions, np.ones(len(origins)) if weights is None else weights, strict=True):
+        projector = w * (np.eye(3) - np.outer(d, d))
         a += projector
         b += projector @ o
     return np.linalg.solve(a, b)
@@ -245,42 +308,81 @@ def estimate_source(
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
     center: Sequence[float] | None = None,
+    generated: Sequence[GeneratedView] = (),
 ) -> SourceEstimate:
     """Source centre and radius from the smoke masks of the first frames of each input view.
 
-    Two or more views triangulate the centre. One view leaves depth open: the centre is put on
-    the input ray where it passes closest to the box's vertical axis (the box is where the smoke
-    is), unless the source would then sink below the box's floor, which a camera looking down
-    onto the floor steeply enough can tell (`ray_point_on_floor`): then it rests on the floor.
-    `depth_range` says how far along the ray the centre could be. A known `center` (the
-    user's) is kept, and only the radius is measured, at its depth. Masks may be at any
+    Two or more views triangulate the centre. One view leaves depth open. Views a novel-view
+    model drew from it (`generated`) close it: their rays join the input ray's in a weighted
+    least-squares triangulation ("generated views"), each counted with its own `weight` against
+    the input view's 1. The input ray's distance does not change along that ray, so the depth
+    comes from the generated views alone, while across it the input view outweighs them by the
+    ratio of the weights; a generated view that shows no smoke, or whose ray runs within
+    GENERATED_MIN_ANGLE of the input ray, is left out (and all are with two or more input views,
+    which triangulate on their own). Without them, the
+    centre is put on the input ray where it passes closest to the box's vertical axis (the box
+    is where the smoke is), unless the source would then sink below the box's floor, which a
+    camera looking down onto the floor steeply enough can tell (`ray_point_on_floor`): then it
+    rests on the floor. For one input view `depth_range` says how far along its ray the centre
+    could be, whatever cue chose the depth. A known `center` (the user's) is kept, and only the
+    radius is measured, at its depth. The radius is the weighted median of every view's (one
+    input view outweighs generated views whose weights sum below 1). Masks may be at any
     resolution; cameras are scaled to match them.
     """
     up_v = np.asarray(up, dtype=np.float64)
     up_v = up_v / np.linalg.norm(up_v)
     lo, hi = (np.asarray(x, dtype=np.float64) for x in box)
     box_center = 0.5 * (lo + hi)
-    views, rays, pixels = [], [], {}  # views: (camera at the mask's size, (u, v, r) there, image up)
+    views, pixels = [], {}  # views: (camera at the mask's size, (u, v, r) there, image up, weight)
     for name, mask in masks.items():
         camera = cameras[name].scaled(mask.shape[2], mask.shape[1])
         up2d = image_up(camera, box_center, up_v)
         found = source_in_view(mask, up2d)
-        views.append((camera, found, up2d))
-        rays.append(pixel_ray(camera, found[0], found[1]))
+        views.append((camera, found, up2d, 1.0))
         sx, sy = cameras[name].width / mask.shape[2], cameras[name].height / mask.shape[1]
         pixels[name] = (found[0] * sx, found[1] * sy, found[2] * sx)
+    real, used = len(views), {}
+    if real == 1:
+        input_camera, (u, v, _), _, _ = views[0]
+        input_direction = pixel_ray(input_camera, u, v)[1]
+    for view in generated if real == 1 else ():
+        camera = view.camera.scaled(view.masks.shape[2], view.masks.shape[1])
+        try:
+            found = source_in_view(view.masks, image_up(camera, box_center, up_v))
+        except EstimationError:  # no smoke (or a view along the up axis): it says nothing of the source
+            continue
+        if np.linalg.norm(np.cross(pixel_ray(camera, found[0], found[1])[1], input_direction)) < GENERATED_MIN_ANGLE:
+            continue
+        views.append((camera, found, None, float(view.weight)))
+        used[view.camera.name] = float(view.weight)
+    rays = [pixel_ray(camera, found[0], found[1]) for camera, found, _, _ in views]
     origins, directions = np.array([o for o, _ in rays]), np.array([d for _, d in rays])
-    depth_range = None if len(rays) >= 2 else ray_in_box(origins[0], directions[0], lo, hi)
+    weights = np.array([w for *_, w in views])
+    depth_range = None if real >= 2 else ray_in_box(origins[0], directions[0], lo, hi)
     if center is not None:
         center, cue = np.asarray(center, dtype=np.float64), "given"
     elif len(rays) >= 2:
-        center, cue = closest_point_to_rays(origins, directions), "triangulated"
+        center, cue = closest_point_to_rays(origins, directions, weights), "triangulated" if real >= 2 else "generated views"
     else:
-        camera, found, up2d = views[0]
+        camera, found, up2d, _ = views[0]
         center, cue = ray_point_nearest_axis(origins[0], directions[0], box_center, up_v), "box axis"
         on_floor = ray_point_on_floor(camera, found, up2d, up_v, float(lo @ up_v))
         if on_floor is not None and (center - on_floor) @ directions[0] > 0.0:  # the guess would sink below the floor
             center, cue = on_floor, "floor"
     center = np.clip(center, lo, hi)
-    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _ in views]
-    return SourceEstimate(center=center, radius=float(np.median(radii)), pixels=pixels, depth_cue=cue, depth_range=depth_range)
+    radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _, _ in views]
+    return SourceEstimate(center=center, radius=weighted_median(radii, weights), pixels=pixels, depth_cue=cue,
+                          depth_range=depth_range, generated=used if cue != "given" else {})
+
+
+def weighted_median(values: Sequence[float], weights: Sequence[float]) -> float:
+    """The value with half the total weight on either side; where the halves meet between two
+    values, their mean (equal weights: `np.median`)."""
+    order = np.argsort(values)
+    v, w = np.asarray(values, dtype=np.float64)[order], np.asarray(weights, dtype=np.float64)[order]
+    cumulative = np.cumsum(w)
+    half = 0.5 * cumulative[-1]
+    k = int(np.searchsorted(cumulative, half))
+    if np.isclose(cumulative[k], half) and k + 1 < len(v):
+        return float(0.5 * (v[k] + v[k + 1]))
+    return float(v[k])

@@ -10,7 +10,9 @@ physics in this scene's units);
     frame 0: the source seeds particles for 20 stabilisation steps; positions are fitted
              (with `first_frame_factor` times more iterations), the visual Gaussians are born
              on them and their appearance is fitted;
-    frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles), positions fitted
+    frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles and, with
+             `Quality.air_cells`, steps the air from p_{t-1}: the air is saved with the frame),
+             positions fitted
              (fluidcore.reconstruct.physical; with the input view's optical flow between
              frames t-1 and t, fluidcore.reconstruct.flow, when its weight is not 0),
              u_t = (p_t - p_{t-1}) / dt, visual Gaussians
@@ -41,6 +43,7 @@ import torch
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
+from fluidcore.physics.air import scene_air
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import scene_physics
@@ -51,7 +54,7 @@ from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
-from fluidcore.smoke import SmokeState
+from fluidcore.smoke import Appearance, SmokeState
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -153,7 +156,8 @@ def read_inputs(
         if background.image is not None:
             backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
-        targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device)))
+        noise = torch.from_numpy(background.noise).to(device)
+        targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device), noise))
     return InputViews(tuple(targets), frame_range, channels, backgrounds)
 
 
@@ -176,13 +180,15 @@ def prepare(
     `source` is where the user knows the source to be (its radius, if not given, is measured at
     that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
-    (the generative novel views of a single input view): they take the place of the symmetry
+    (the generative novel views of a single input view): those of kind "generated" join the
+    source estimate's triangulation at their loss weight (`init.estimate_source`), so the
+    identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
     (a refinement fits its refined input views only).
     """
     targets, channels = list(inputs.targets), inputs.channels
     masks = {  # the first second's smoke: what the source estimate and the smoke colour read
-        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background) for v in targets
+        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise) for v in targets
     }
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
@@ -192,18 +198,23 @@ def prepare(
         source.check_in_box(*box)
     estimate_record = None
     if source is None or source.radius is None:
-        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center)
+        generated = [  # the novel-view model's views close the depth one input view leaves open
+            init.GeneratedView(v.camera, init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise), v.weight)
+            for v in extra_views if v.kind == "generated"
+        ]
+        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
         center, radius = estimate.center, estimate.radius
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,
             depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
             pixels={name: tuple(map(float, px)) for name, px in estimate.pixels.items()},
+            generated=estimate.generated,
         )
     else:
         center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    chosen = scene_physics(physics, first.camera, first.frames, first.background, np.asarray(center, np.float64), radius,
+    chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
                            sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
@@ -214,7 +225,7 @@ def prepare(
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
         if weight > 0 and pseudo_views and not extra_views:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
-    flow = input_flow(first.camera, first.frames, first.background) if quality.weights.flow > 0 else None
+    flow = input_flow(first.camera, first.frames, first.background, first.noise) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
         views=(*targets, *pseudo, *extra_views),
@@ -258,7 +269,10 @@ class Reconstructor:
     def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
         self.rec = rec
         self.device = torch.device(device)
-        self.simulator = Simulator(rec.config, rec.box, rec.source, device=self.device)
+        # with quality.air_cells the air is part of the state: stepped from the fitted particles of
+        # each frame, saved with it, and continued by every prediction and branch of the run
+        air = scene_air(rec.box, rec.config, rec.quality.air_cells)
+        self.simulator = Simulator(rec.config, rec.box, rec.source, air=air, device=self.device)
 
     def open_run(self, out_dir) -> Run:
         rec = self.rec

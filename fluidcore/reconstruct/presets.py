@@ -80,8 +80,9 @@ class Quality:
     # ScalarFlow, +0.08 on D, +0.09 on F (every seed of 0-2 gained; docs/bench_generalise.md,
     # "Opacity that follows the concentration"). The fit itself is not tied to it (that lost).
     opacity_concentration: bool = True
-    # The air around the smoke in prediction (fluidcore.physics.air.AirGrid): cells on the box's long
-    # side, 0 = still air (the default until issue 23's measurements on both dev scenes and ScalarFlow).
+    # The air around the smoke (fluidcore.physics.air.AirGrid): cells on the box's long side, 0 = still
+    # air (the default until issue 23's measurements on both dev scenes and ScalarFlow). The
+    # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = 0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02

@@ -33,6 +33,7 @@ class ViewTarget:
     camera: Camera  # at the working (finest) resolution of `frames`
     frames: torch.Tensor  # (T, H, W, C) float32 in [0, 1]
     background: torch.Tensor  # (H, W, C) or (C,)
+    noise: torch.Tensor  # (C,) the video's noise per channel (init.Background.noise): the smoke mask's unit
     weight: float = 1.0
     kind: str = "input"  # "input" | "symmetry" | "generated"
 
@@ -56,13 +57,13 @@ def symmetry_views(
     inputs: Sequence[ViewTarget], center: np.ndarray, up: np.ndarray, count: int, weight: float
 ) -> list[ViewTarget]:
     """`count` pseudo-views per input view, evenly spread in azimuth (the input's own excluded),
-    each reusing the input's frames and background as its target."""
+    each reusing the input's frames, background and noise as its target."""
     views = []
     for view in inputs:
         for i in range(1, count + 1):
             angle = 2.0 * math.pi * i / (count + 1)
             camera = rotate_about_axis(view.camera, center, up, angle, f"{view.camera.name}~sym{i}")
-            views.append(ViewTarget(camera, view.frames, view.background, weight=weight, kind="symmetry"))
+            views.append(ViewTarget(camera, view.frames, view.background, view.noise, weight=weight, kind="symmetry"))
     return views
 
 
@@ -71,13 +72,14 @@ def generated_targets(
 ) -> list[ViewTarget]:
     """Views the novel-view model drew from `source` (`fluidcore.generative.stages`, (T, H, W, C)
     per camera name) as fitting targets of kind "generated": `weight` split evenly, and the input's
-    background colour (its background image belongs to the input camera's viewpoint)."""
+    background colour (its background image belongs to the input camera's viewpoint) and noise (the
+    model draws in the input's colours; the source estimate masks its smoke in those units)."""
     background = source.background
     if background.ndim > 1:
         background = background.reshape(-1, background.shape[-1]).median(dim=0).values
     per_view = weight / max(len(targets), 1)
     return [
-        ViewTarget(camera, frames[camera.name].to(source.frames.device), background, weight=per_view, kind="generated")
+        ViewTarget(camera, frames[camera.name].to(source.frames.device), background, source.noise, weight=per_view, kind="generated")
         for camera in targets
     ]
 
@@ -114,7 +116,7 @@ def mirror_agreement(view: ViewTarget, center: np.ndarray, up: np.ndarray) -> fl
     mirrored = origin + 2.0 * along[..., None] * axis - offset  # reflection of (u, v) across the axis line
     mu, mv = np.floor(mirrored[..., 0]).astype(np.int64), np.floor(mirrored[..., 1]).astype(np.int64)
     inside = (mu >= 0) & (mv >= 0) & (mu < width) & (mv < height)
-    masks = smoke_mask(view.frames, view.background)
+    masks = smoke_mask(view.frames, view.background, view.noise)
     scores = []
     for mask in masks:
         if not mask.any():
@@ -146,6 +148,9 @@ def image_loss(
 
 
 SSIM_WINDOW = 11
+# Not a smoke mask: the SSIM crop must hold every pixel where SSIM is not 1 (either image off the
+# background at all, the render included), or the crop would change the loss by more than a
+# constant; one 8-bit step is the least difference an input can show.
 CONTENT_THRESHOLD = 1.0 / 255.0
 
 

@@ -173,11 +173,11 @@ def export(
     frames: str | None = typer.Option(
         None, "--frames", help="START:END (end excluded): a numbered sequence of these frames into the folder --out."
     ),
-    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd | vdb (docs/exports.md)."),
+    fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd | velocity | vdb (docs/exports.md)."),
     out: Path = typer.Option(..., "--out", help="File to write; with --frames, the folder for the sequence."),
     as_json: bool = JSON_OPT,
 ) -> None:
-    """Write a frame or a sequence: particles (npz), 3D Gaussian splats (ply) or a density volume (density, nrrd, vdb)."""
+    """Write a frame or a sequence: particles (npz), 3D Gaussian splats (ply), a density volume (density, nrrd, vdb) or its velocity (velocity)."""
     from fluidcore.exports import export_frame, export_sequence, last_frame
     from fluidcore.jobs import parse_frames
 

@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from fluidcore import cameras, scene_info
 from fluidcore.cameras.single import single_camera
 from fluidcore.physics.config import PBFConfig, Source
-from fluidcore.runs import ReconstructSettings, Run
+from fluidcore.runs import ReconstructSettings, Run, SourceEstimateRecord
 from fluidcore.runs import Scene as RunScene
 from service.database import session_scope
 from service.models import Job, JobState, Scene
@@ -79,20 +79,37 @@ def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
         assert geometry["cameras"][name]["center"] == pytest.approx(camera.center().tolist())
     assert http.get("/v1/scenes", headers=auth).json()["items"][0]["geometry"] is None  # listings stay light
 
-    # a finished reconstruction: its run manifest knows the source
+    # a finished reconstruction given its whole source: its run manifest knows the source
+    given = _finished_reconstruction(http, auth, scene["id"], loaded, tmp_path / "given", None)
+    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
+    assert geometry["box"] == {"min": [0.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
+    assert geometry["source"] == {"center": [0.5, -0.8, 0.0], "radius": 0.1, "depth": None, "job_id": given}
+
+    # a later one that estimated it from one view: how the depth was found, and the range the view allows
+    estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=((0.5, -0.8, 1.0), (0.5, -0.8, -1.0)),
+                                    pixels={"cam0": (16.0, 20.0, 2.0)})
+    later = _finished_reconstruction(http, auth, scene["id"], loaded, tmp_path / "later", estimate)
+    source = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]["source"]
+    assert source["job_id"] == later and source["center"] == [0.5, -0.8, 0.0]
+    assert source["depth"] == {"cue": "box axis", "range": [[0.5, -0.8, 1.0], [0.5, -0.8, -1.0]]}
+    schema = http.get("/openapi.json").json()["components"]["schemas"]
+    assert "depth" in schema["SceneSource"]["properties"] and "range" in schema["SourceDepth"]["properties"]
+
+
+def _finished_reconstruction(http, auth, scene_id: str, loaded, folder: Path, estimate) -> str:  # noqa: ANN001
+    """A reconstruct job of the scene marked succeeded, with a run manifest in storage whose source
+    was given whole (`estimate` None) or estimated as `estimate` says; its job id."""
     run = Run.create(
-        tmp_path / "run", kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
-        channels=1, background_color=[0.0], settings=ReconstructSettings(quality={}),
+        folder, kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
+        channels=1, background_color=[0.0], settings=ReconstructSettings(quality={}, source_estimate=estimate),
         scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.5, -0.8, 0.0), 0.1, 1)),
     )
-    job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene["id"]}, headers=auth).json()
+    job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene_id}, headers=auth).json()
     http.app.state.storage.put_file(f"{run_prefix(job['id'])}/manifest.json", run.path / "manifest.json")
     with session_scope(http.app.state.sessionmaker) as session:
         row = session.get(Job, job["id"])
         row.state, row.finished_at = JobState.SUCCEEDED, datetime.now(UTC)
-    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
-    assert geometry["box"] == {"min": [0.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
-    assert geometry["source"] == {"center": [0.5, -0.8, 0.0], "radius": 0.1}
+    return job["id"]
 
 
 def test_scene_info_command_matches(tmp_path: Path) -> None:

@@ -215,3 +215,50 @@ def test_bench_runs_end_to_end_on_a_synth_scene(synth_dir: Path, tmp_path: Path)
     assert result["tasks"]["velocity"]["summary"]["observed"]["zero_epe"] > 0
     assert set(result["tasks"]["input"]["reconstruction"]) == {"fit", "forecast"}
     assert figure.stat().st_size > 1000
+
+
+def test_the_effect_score_is_the_cosine_of_predicted_and_true_effects_over_the_late_window(tmp_path: Path) -> None:
+    """Protocol.effect on hand-made frames: a what-if that changes the images as the truth does
+    (at any strength) scores 1, the opposite change -1, no change None; frames before the late
+    window do not count, and the frames the PSNR rendered are not rendered again."""
+    rng = np.random.default_rng(0)
+    frames, late_start, shape = [3, 4, 5, 6], 5, (4, 6, 8, 3)
+    factual_truth = rng.integers(60, 200, shape).astype(np.uint8)
+    change = rng.integers(-40, 40, shape)
+    variant_truth = (factual_truth + change).astype(np.uint8)
+    own_factual = rng.integers(60, 200, shape).astype(np.uint8)
+    camera = SimpleNamespace(name="cam", width=8, height=6)
+
+    def truth_of(video: np.ndarray):  # noqa: ANN202 - a GroundTruth.truth stand-in over `frames`
+        return lambda view, wanted, size: video[[frames.index(t) for t in wanted]]
+
+    def scene(video: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(views=lambda: ["cam"], cameras={"cam": camera}, truth=truth_of(video))
+
+    protocol = Protocol(scene(factual_truth), "cam", Path("in.mp4"), (0, 3), 1, None, tmp_path)
+    variant = SimpleNamespace(scene=scene(variant_truth), late_start=late_start)
+    calls = []
+
+    def predictor(images: np.ndarray):  # noqa: ANN202
+        def predict(camera, wanted, size):  # noqa: ANN001, ANN202
+            calls.append(1)
+            return images
+        return predict
+
+    from bench.generalise import _kept
+
+    for strength, expected in ((0.5, 1.0), (-1.0, -1.0)):
+        whatif = (own_factual + strength * change).clip(0, 255).astype(np.uint8)
+        early_noise = whatif.copy()
+        early_noise[:2] = rng.integers(0, 255, (2, *shape[1:]))  # before the late window: ignored
+        method, factual = _kept(predictor(early_noise)), _kept(predictor(own_factual))
+        method(camera, frames, (8, 6)), factual(camera, frames, (8, 6))  # what the PSNR renders
+        calls.clear()
+        score = protocol.effect(variant, frames, method, factual)
+        assert calls == [] and score["frames"] == [5, 6]
+        late_change = (whatif.astype(float) - own_factual)[2:], change[2:]
+        cosine = np.vdot(*late_change) / np.linalg.norm(late_change[0]) / np.linalg.norm(late_change[1])
+        assert score["cosine"] == pytest.approx(cosine) and score["views"]["cam"] == pytest.approx(cosine)
+        assert score["cosine"] == pytest.approx(expected, abs=0.1)  # clipping to 0..255 bends it a little
+    nothing = protocol.effect(variant, frames, _kept(predictor(own_factual)), _kept(predictor(own_factual)))
+    assert nothing["cosine"] is None

@@ -99,6 +99,61 @@ def test_density_grid_is_mass_conserving_anywhere_in_a_voxel(monkeypatch):
         density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.2)
 
 
+def read_nrrd(path) -> tuple[dict[str, str], np.ndarray]:
+    """A raw NRRD's header fields and its values, the first axis fastest (what NRRD readers do)."""
+    header, body = path.read_bytes().split(b"\n\n", 1)
+    fields = dict(line.split(": ", 1) for line in header.decode().splitlines()[1:])
+    sizes = tuple(int(v) for v in fields["sizes"].split())
+    return fields, np.frombuffer(body, dtype="<f4").reshape(sizes, order="F")
+
+
+def test_a_run_without_air_exports_the_particles_velocity(run_dir, tmp_path):
+    """Density npz and velocity NRRD: the particles' velocities, mass-weighted on the density's voxels."""
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "velocity", "--out", str(tmp_path / "v.nrrd")])
+    state = Run.open(run_dir).read_frame(1)
+    alive = state.alive.astype(bool)
+    with np.load(tmp_path / "d.npz") as data:
+        density, velocity, spacing = data["density"], data["velocity"], float(data["spacing"])
+        assert str(data["velocity_source"]) == "particles" and state.air is None
+    assert velocity.shape == (*density.shape, 3) and np.abs(velocity).max() > 0
+    assert not velocity[density == 0].any()  # no smoke, no velocity
+    # momentum is conserved as mass is: sum(density x velocity) dV = sum(mass x v)
+    h = Run.open(run_dir).scene.physics.h
+    np.testing.assert_allclose((density[..., None] * velocity).sum(axis=(0, 1, 2), dtype=np.float64) * spacing**3,
+                               (h / 2) ** 3 * state.velocities[alive].sum(0, dtype=np.float64), rtol=1e-4, atol=1e-9)
+    fields, volume = read_nrrd(tmp_path / "v.nrrd")
+    assert fields["kinds"] == "3-vector domain domain domain" and fields["space directions"].startswith("none ")
+    np.testing.assert_array_equal(np.moveaxis(volume, 0, 3), velocity)
+
+
+def test_one_velocity_everywhere_is_that_velocity_wherever_there_is_smoke():
+    rng = np.random.default_rng(1)
+    points = rng.uniform(0.2, 0.8, (300, 3))
+    grid = density_grid(points, 0.1, np.zeros(3), np.ones(3), 0.05, np.tile([0.5, -1.0, 2.0], (300, 1)))
+    assert grid.velocity_source == "particles"
+    np.testing.assert_allclose(grid.velocity[grid.density > 0], np.tile([0.5, -1.0, 2.0], ((grid.density > 0).sum(), 1)), rtol=1e-5)
+
+
+def test_a_run_with_air_exports_the_airs_velocity(tmp_path):
+    from predict_scenes import plume_run
+
+    run_dir = plume_run(tmp_path / "run", frames=2, warmup=20, quality={"air_cells": 12})
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "velocity", "--out", str(tmp_path / "v.nrrd")])
+    state = Run.open(run_dir).read_frame(1)
+    with np.load(tmp_path / "d.npz") as data:
+        assert str(data["velocity_source"]) == "air"
+        origin, spacing, velocity, density = data["origin"], float(data["spacing"]), data["velocity"], data["density"]
+    # the voxel [i, j, k] holds the air's velocity at its centre: check a few against the saved air
+    for index in [(0, 0, 0), tuple(np.array(density.shape) // 2), tuple(np.array(density.shape) - 1)]:
+        centre = origin + spacing * np.asarray(index)
+        np.testing.assert_allclose(velocity[index], state.air.velocity_at(centre[None])[0], rtol=1e-6, atol=1e-7)
+    assert np.abs(velocity[density == 0]).max() > 0  # the air moves beyond the smoke too
+    _, volume = read_nrrd(tmp_path / "v.nrrd")
+    np.testing.assert_array_equal(np.moveaxis(volume, 0, 3), velocity)
+
+
 def test_bad_format_and_frame_are_one_line_errors(run_dir, tmp_path):
     result = runner.invoke(app, ["export", str(run_dir), "--frame", "1", "--format", "obj", "--out", str(tmp_path / "x")])
     assert result.exit_code == 2 and f"format must be one of {', '.join(EXPORTERS)}" in result.output
@@ -113,7 +168,7 @@ def test_export_artifacts_hold_the_last_frame_in_every_format_and_every_frame_as
     files = export_artifacts(run_dir, tmp_path / "exports")
     assert sorted(p.name for p in files) == sorted(
         ["state_000001.npz", "splats_000001.ply", "density_000001.npz", "density_000001.nrrd",
-         "smoke_000000.vdb", "smoke_000001.vdb"]
+         "velocity_000001.nrrd", "smoke_000000.vdb", "smoke_000001.vdb"]
     )
     assert all(p.stat().st_size > 0 for p in files)
 

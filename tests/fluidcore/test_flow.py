@@ -22,6 +22,7 @@ from scipy import ndimage
 from fluidcore.cameras import Camera, look_at
 from fluidcore.reconstruct import Reconstructor, get, prepare, read_inputs
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
+from fluidcore.reconstruct.init import NOISE_FLOOR
 from fluidcore.reconstruct.presets import Quality
 from fluidcore import synth
 
@@ -52,7 +53,7 @@ def _camera(width: int = 96, height: int = 64) -> Camera:
 
 def test_flow_recovers_a_known_shift():
     frames = _blob_frames()
-    field = input_flow(_camera(), frames, torch.full((3,), BACKGROUND))
+    field = input_flow(_camera(), frames, torch.full((3,), BACKGROUND), torch.full((3,), NOISE_FLOOR))
     assert field.flow.shape == (2, 64, 96, 2) and field.confidence.shape == (2, 64, 96)
     for k in range(2):
         confident = field.confidence[k] > 0.5

@@ -87,6 +87,10 @@ def test_single_view_reconstruction_fits_generated_views_from_the_input_view_onl
     assert [v["camera"] for v in views] == [INPUT, *HELD_OUT]
     assert [v["kind"] for v in views] == ["input", "generated", "generated"]
     assert all(v["weight"] < views[0]["weight"] for v in views[1:]) and sum(v["weight"] for v in views[1:]) == pytest.approx(0.5)
+    # the generated views placed the source (its depth along the input ray), each at its loss weight
+    estimate = manifest["settings"]["source_estimate"]
+    assert estimate["depth_cue"] == "generated views" and estimate["depth_range"] is not None
+    assert estimate["generated"] == {v["camera"]: v["weight"] for v in views[1:]} and set(estimate["pixels"]) == {INPUT}
     assert manifest["novel_views"].startswith(f"generated 2 views x 3 frames from {INPUT}")
     assert manifest["view_refinement"].startswith("refined 2 videos with cogvideox (strength 0.5")
     assert {"novel views", "refine views", "reconstruct"} <= {stage for _, stage in seen}
@@ -176,7 +180,7 @@ def test_the_worker_runs_the_generative_stages_from_the_models_variable(
     assert seen.index("novel views") < seen.index("refine views") < seen.index("reconstruct") < seen.index("render")
     assert [v["kind"] for v in Run.open(tmp_path / "run").manifest["settings"]["views"]] == ["input", "generated", "generated"]
     videos = sorted(f.name for f in files if f.suffix == ".mp4")
-    assert videos == ["orbit.mp4", *(f"{name}.mp4" for name in sorted((INPUT, *HELD_OUT)))]
+    assert videos == [f"{INPUT}.mp4"]  # the input view; the generated views' cameras and the orbit on request
     frames = len(Run.open(tmp_path / "run").frames())  # the last frame in every export format, every frame of a sequence
     assert len(files) - len(videos) == sum(frames if e.every_frame else 1 for e in EXPORTERS.values())
 

@@ -25,7 +25,7 @@ def camera_at(angle: float, name: str, width: int = 24, height: int = 32) -> Cam
 
 def input_view(frames: int = 3) -> ViewTarget:
     images = 0.9 - 0.4 * torch.rand(frames, 32, 24, 1, generator=torch.Generator().manual_seed(0))
-    return ViewTarget(camera_at(0.0, "view_00"), images, torch.full((32, 24, 1), 0.9))
+    return ViewTarget(camera_at(0.0, "view_00"), images, torch.full((32, 24, 1), 0.9), torch.full((1,), 1.0 / 255.0))
 
 
 def test_targets_are_the_other_cameras_at_the_working_size_else_turned_copies() -> None:

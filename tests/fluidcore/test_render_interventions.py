@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 from fluidcore import artifacts, run_frames
 from fluidcore import video
 from fluidcore.interaction import InteractionParams, parse_interaction
+from fluidcore.jobs import JobInputError
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run
 from fluidnexus.cli import app
@@ -57,7 +58,7 @@ def test_cli_render_draws_interventions_of_interact_runs_by_default(what_if: Run
 def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, tmp_path: Path, from_frame: int) -> None:
     ball = parse_interaction(None, BALL).ball
     run = Run.open(run_interact(parent, tmp_path / "run", InteractionParams(ball=ball), frames=3, from_frame=from_frame))
-    files = artifacts.render_artifacts(run.path, tmp_path / "videos")
+    files = artifacts.render_artifacts(run.path, tmp_path / "videos", ["side_by_side"])
     assert tmp_path / "videos" / "side_by_side.mp4" in files
     camera = run.cameras()[run.manifest["input_views"][0]]
     assert video.probe(tmp_path / "videos" / "side_by_side.mp4").n_frames == 3
@@ -69,10 +70,27 @@ def test_side_by_side_puts_factual_and_what_if_next_to_each_other(parent: Path, 
         np.testing.assert_array_equal(both[:, 30:, :96], run_frames.render_frames(Run.open(parent), large, [3, 4, 5])[:, 30:])
 
 
+def test_only_a_reconstruction_renders_videos_before_it_ends_and_any_video_renders_by_name(
+    parent: Path, what_if: Run, tmp_path: Path
+) -> None:
+    inputs = what_if.manifest["input_views"]
+    cameras = list(what_if.cameras())
+    assert artifacts.video_names(what_if) == [*cameras, "orbit", "side_by_side"] and len(cameras) > len(inputs)
+    assert artifacts.video_names(Run.open(parent)) == [*cameras, "orbit"]
+    assert artifacts.eager_videos(Run.open(parent)) == inputs and artifacts.eager_videos(what_if) == []
+    other = next(name for name in cameras if name not in inputs)
+    files = artifacts.render_artifacts(what_if.path, tmp_path / "one", [other])
+    assert files == [tmp_path / "one" / f"{other}.mp4"] and sorted((tmp_path / "one").iterdir()) == files
+    with pytest.raises(JobInputError, match="'spin' is not a video of this run"):
+        artifacts.render_artifacts(what_if.path, tmp_path / "bad", ["spin"])
+    assert not (tmp_path / "bad").exists()
+
+
 def test_what_if_artifacts_report_progress_per_frame_and_share_one_length(what_if: Run, tmp_path: Path) -> None:
     seen: list[tuple[float, str]] = []
-    files = artifacts.render_artifacts(what_if.path, tmp_path / "videos", progress=lambda f, s: seen.append((f, s)))
     inputs = what_if.manifest["input_views"]
+    names = ["side_by_side", *inputs, "orbit"]  # the side-by-side is rendered last, reusing the input view
+    files = artifacts.render_artifacts(what_if.path, tmp_path / "videos", names, progress=lambda f, s: seen.append((f, s)))
     assert sorted(f.name for f in files) == sorted([*(f"{n}.mp4" for n in inputs), "orbit.mp4", "side_by_side.mp4"])
     n = len(what_if.frames())
     assert len(seen) == n * (len(inputs) + 2)  # every input view, the orbit, the factual side
@@ -90,6 +108,6 @@ def test_orbit_of_a_what_if_draws_the_ball(what_if: Run) -> None:
 def test_published_videos_are_scaled_to_the_fit_size(what_if: Run, tmp_path: Path) -> None:
     camera = what_if.cameras()[what_if.manifest["input_views"][0]]
     long_side = max(camera.width, camera.height) // 2
-    artifacts.render_artifacts(what_if.path, tmp_path / "videos", long_side=long_side)
+    artifacts.render_artifacts(what_if.path, tmp_path / "videos", ["orbit"], long_side=long_side)
     info = video.probe(tmp_path / "videos" / "orbit.mp4")
     assert max(info.width, info.height) in (long_side, long_side + 1)  # + 1: MP4 pads odd sizes

@@ -83,16 +83,22 @@ def _camera(eye: tuple[float, float, float], target: tuple[float, float, float])
     return look_at(eye, target, (0.0, 1.0, 0.0), like, "cam")
 
 
-def _sphere_masks(camera, center: np.ndarray, radius: float, frames: int = 8) -> np.ndarray:
-    """The silhouette of a ball, drawn by projecting points that fill it."""
+def _sphere_points(camera, center: np.ndarray, radius: float) -> np.ndarray:
+    """(H, W) how many of 200 000 points filling a ball land in each pixel: its silhouette, and
+    the smoke's thickness along each ray (the chord, thin at the rim)."""
     rng = np.random.default_rng(0)
     points = rng.normal(size=(200_000, 3))
     points = center + radius * points / np.linalg.norm(points, axis=1, keepdims=True) * rng.random((200_000, 1)) ** (1 / 3)
     uv, _ = camera.project_numpy(points)
-    mask = np.zeros((camera.height, camera.width), bool)
+    counts = np.zeros((camera.height, camera.width))
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-    mask[uv[inside, 1].astype(int), uv[inside, 0].astype(int)] = True
-    return np.stack([mask] * frames)
+    np.add.at(counts, (uv[inside, 1].astype(int), uv[inside, 0].astype(int)), 1.0)
+    return counts
+
+
+def _sphere_masks(camera, center: np.ndarray, radius: float, frames: int = 8) -> np.ndarray:
+    """The silhouette of a ball, drawn by projecting points that fill it."""
+    return np.stack([_sphere_points(camera, center, radius) > 0] * frames)
 
 
 BOX = (np.array([-0.3, 0.0, -0.3]), np.array([0.3, 0.8, 0.3]))
@@ -132,3 +138,70 @@ def test_two_views_triangulate_and_report_no_range() -> None:
     estimate = init.estimate_source({"a": a, "b": b}, masks, BOX)
     assert estimate.depth_cue == "triangulated" and estimate.depth_range is None
     assert np.linalg.norm(estimate.center - SOURCE) < 0.01
+
+
+def test_dark_smoke_on_a_bright_background_gives_the_source_its_size() -> None:
+    """The whole image path on a bright, noisy 8-bit video: a dense ball of smoke that darkens a
+    white wall (by half where it is thickest, by a tenth at the rim), with 2 codes of noise; the
+    background, its noise, the one smoke mask and the estimate find the ball's size and place."""
+    import torch
+
+    camera = _camera((0.0, 0.9, 1.4), (0.0, 0.1, 0.0))
+    near = SOURCE * np.array([1.0, 1.0, -1.0])
+    thickness = _sphere_points(camera, near, SOURCE_RADIUS)
+    rng = np.random.default_rng(1)
+    darkening = 0.5 * (1.0 - np.exp(-8.0 * thickness / thickness.max()))
+    frames = np.stack([0.92 * (1.0 - darkening) + 2.0 / 255.0 * rng.normal(size=thickness.shape) for _ in range(8)])
+    frames = np.round(np.clip(frames, 0.0, 1.0)[..., None].repeat(3, axis=-1) * 255.0).astype(np.float32) / 255.0
+    background = init.estimate_background(frames)
+    assert background.image is None and background.color == pytest.approx(np.full(3, 0.92), abs=1.5 / 255.0)
+    masks = init.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.color), torch.from_numpy(background.noise))
+    estimate = init.estimate_source({"cam": camera}, {"cam": masks}, BOX)
+    assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
+    assert np.linalg.norm(estimate.center - near) < 0.015
+
+
+def test_a_generated_view_gives_one_view_its_depth_at_its_weight() -> None:
+    """One level input view (depth open) and a view drawn from the side: the generated ray fixes
+    the depth ("generated views"), the range still reports what the input view alone allows,
+    and a generated view that shows no smoke is left out (back to the box-axis guess)."""
+    a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
+    real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
+    drawn = init.GeneratedView(b, _sphere_masks(b, SOURCE, SOURCE_RADIUS), 0.25)
+    alone = init.estimate_source({"a": a}, real, BOX)
+    assert alone.depth_cue == "box axis" and abs(alone.center[2] - SOURCE[2]) > 0.04  # the axis guess misses the depth
+    estimate = init.estimate_source({"a": a}, real, BOX, generated=[drawn])
+    assert estimate.depth_cue == "generated views" and estimate.generated == {"cam": 0.25}
+    assert np.linalg.norm(estimate.center - SOURCE) < 0.01
+    assert estimate.depth_range is not None and set(estimate.pixels) == {"a"}
+    assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
+    empty = init.GeneratedView(b, np.zeros_like(drawn.masks), 0.25)
+    assert init.estimate_source({"a": a}, real, BOX, generated=[empty]).depth_cue == "box axis"
+
+
+def test_the_input_view_outweighs_a_generated_one_across_its_ray() -> None:
+    """A generated view that misplaces the source sideways: the centre stays nearer the input
+    ray the lighter the generated view is (the weight is what trusting it less means)."""
+    a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
+    real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
+    wrong = _sphere_masks(b, SOURCE + np.array([0.0, 0.05, 0.0]), SOURCE_RADIUS)  # 5 cm high in the drawn view
+    lifts = [init.estimate_source({"a": a}, real, BOX, generated=[init.GeneratedView(b, wrong, w)]).center[1] - SOURCE[1]
+             for w in (1.0, 0.25)]
+    assert 0.0 < lifts[1] < lifts[0] < 0.05
+
+
+def test_the_weighted_median_is_the_median_for_equal_weights() -> None:
+    for values in ([3.0], [1.0, 4.0], [5.0, 1.0, 2.0], [4.0, 1.0, 3.0, 2.0]):
+        assert init.weighted_median(values, [1.0] * len(values)) == pytest.approx(float(np.median(values)))
+    assert init.weighted_median([1.0, 2.0, 3.0], [0.25, 1.0, 0.25]) == 2.0
+    assert init.weighted_median([1.0, 2.0, 3.0], [1.0, 0.25, 0.25]) == 1.0
+
+
+def test_a_generated_view_along_the_input_ray_is_left_out() -> None:
+    """A view drawn from behind the source, looking back along the input ray: its ray cannot say
+    how far along the input ray the source is, so the one-view guess stands."""
+    a, behind = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((0.0, 0.05, -1.4), (0.0, 0.05, 0.0))
+    real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
+    drawn = init.GeneratedView(behind, _sphere_masks(behind, SOURCE, SOURCE_RADIUS), 0.25)
+    estimate = init.estimate_source({"a": a}, real, BOX, generated=[drawn])
+    assert estimate.depth_cue == "box axis" and estimate.generated == {}

@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from fluidcore.cameras import Camera, look_at
+from fluidcore.reconstruct.init import NOISE_FLOOR
 from fluidcore.reconstruct.views import ViewTarget, mirror_agreement, symmetry_support
 
 UP = np.array([0.0, 1.0, 0.0])
@@ -16,7 +17,7 @@ CENTER = np.array([0.0, 0.1, 0.0])
 def _view(frames: np.ndarray) -> ViewTarget:
     like = Camera("like", 40.0, 40.0, 16.0, 24.0, 32, 48, np.eye(4))
     camera = look_at(np.array([0.0, 0.1, 2.0]), CENTER, (0.0, 1.0, 0.0), like, "v")
-    return ViewTarget(camera, torch.from_numpy(frames), torch.zeros(1))
+    return ViewTarget(camera, torch.from_numpy(frames), torch.zeros(1), torch.full((1,), NOISE_FLOOR))
 
 
 def test_a_symmetric_column_agrees_with_its_mirror_and_a_bent_one_does_not() -> None:

@@ -107,10 +107,11 @@ def test_non_finite_values_and_bad_shapes_are_refused(tmp_path):
 
 
 @needs_openvdb
-def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path):
+@pytest.mark.parametrize("air_cells", [0, 12])  # velocity from the particles / from the saved air
+def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path, air_cells):
     from predict_scenes import plume_run
 
-    run_dir = plume_run(tmp_path / "run", frames=3)
+    run_dir = plume_run(tmp_path / "run", frames=3, quality={"air_cells": air_cells})
     runner = CliRunner()
     done = runner.invoke(app, ["export", str(run_dir), "--frames", "1:3", "--format", "vdb", "--out", str(tmp_path / "vdb")])
     assert done.exit_code == 0, done.output
@@ -120,9 +121,16 @@ def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path):
         assert done.exit_code == 0, done.output
         with np.load(tmp_path / "d.npz") as expected:
             density, origin, spacing = expected["density"], expected["origin"], float(expected["spacing"])
-        report, grids = read_with_openvdb(tmp_path / "vdb" / f"smoke_{t:06d}.vdb", {"density": density.shape})
-        assert list(report) == ["density"] and report["density"]["class"] == "fog volume"
+            velocity = expected["velocity"]
+        report, grids = read_with_openvdb(tmp_path / "vdb" / f"smoke_{t:06d}.vdb",
+                                          {"density": density.shape, "velocity": velocity.shape})
+        assert list(report) == ["density", "velocity"] and report["density"]["class"] == "fog volume"
         assert density.any() and np.array_equal(grids["density"], density)
+        # the velocity (world units/s) where there is smoke, the npz's velocity there
+        assert report["velocity"]["type"] == "vec3s" and report["velocity"]["vector_type"] == "contravariant relative"
+        np.testing.assert_array_equal(grids["velocity"], np.where(density[..., None] > 0, velocity, 0.0))
+        assert np.abs(grids["velocity"]).max() > 0
+        np.testing.assert_allclose(report["velocity"]["origin"], origin)
         assert report["density"]["active"] == np.count_nonzero(density)
         np.testing.assert_allclose(report["density"]["voxel_size"], [spacing] * 3)
         np.testing.assert_allclose(report["density"]["origin"], origin)

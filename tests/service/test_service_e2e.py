@@ -63,11 +63,19 @@ def test_upload_reconstruct_interact_download(server: Server, tmp_path: Path) ->
     chained = server.wait_job(server.client.post("/v1/jobs", json=body).json()["id"], timeout=600)
     assert chained["state"] == "succeeded", chained
 
+    published = server.client.get(f"/v1/jobs/{job['id']}/artifacts").json()["items"]
+    assert sorted(a["camera"] for a in published if a["kind"] == "video") == sorted(scene["videos"])  # its input views
+    assert "orbit" not in {a["kind"] for a in published}  # and the orbit on request
+    asked = server.client.post(f"/v1/jobs/{interacted['id']}/videos/orbit")  # a what-if's videos: on request
+    assert asked.status_code == 202, asked.text
+    rendered = server.wait_job(asked.json()["render_job"]["id"], timeout=600)
+    assert rendered["state"] == "succeeded" and "render" in rendered["timings"]["stages"], rendered
+    served = server.client.post(f"/v1/jobs/{interacted['id']}/videos/orbit")
+    assert served.status_code == 200 and served.json()["render_job"] is None  # stored: no second render
     artifacts = server.client.get(f"/v1/jobs/{interacted['id']}/artifacts").json()["items"]
     kinds = {a["kind"] for a in artifacts}
-    assert {"video", "orbit", "manifest", "state"} <= kinds
-    video = next(a for a in artifacts if a["kind"] == "video")
-    assert video["camera"] in scene["cameras"]
+    assert {"orbit", "manifest", "state", "export"} <= kinds
+    video = next(a for a in artifacts if a["kind"] == "orbit")
     download = server.client.get(video["url"])
     assert download.status_code == 200 and download.headers["content-type"] == "video/mp4"
     path = tmp_path / "download.mp4"

@@ -82,6 +82,7 @@ def test_particles_of_a_frame_with_the_scene_box(service: Service, scene_id: str
     np.testing.assert_allclose(np.reshape(last["positions"], (-1, 3)), positions[4][:39], atol=1e-5)
     assert last["scene"]["box_lo"] == [-0.5, 0.0, -0.5] and last["scene"]["box_hi"] == [0.5, 1.0, 0.5]
     assert last["scene"]["up"] == [0.0, 1.0, 0.0] and last["scene"]["source"]["center"] == [0.0, 0.1, 0.0]
+    assert last["air"] is None  # a run without the air grid: still air
 
     capped = service.client.get(url, params={"frame": 3, "max_points": 10}, headers=alice).json()
     sample = np.reshape(capped["positions"], (-1, 3))
@@ -94,3 +95,23 @@ def test_particles_of_a_frame_with_the_scene_box(service: Service, scene_id: str
     assert service.client.get(url, params={"max_points": 10**6}, headers=alice).status_code == 422
     assert service.client.get(url, headers=service.key("bob")).status_code == 404
     assert service.client.get(url).status_code == 401
+
+
+def test_the_air_saved_with_a_frame_comes_sampled_on_a_lattice(service: Service, scene_id: str) -> None:
+    """A run that saves the air: the particles answer carries it at the centres of a lattice over the
+    box (5 along the long side), each point's velocity the air's there (world units/s)."""
+    from fluidcore.runs import SavedAir
+
+    alice = service.key("alice")
+    job = reconstruct(service, alice, scene_id).json()["id"]
+    n = 8  # a MAC grid of 8^3 cells over the 1-unit box: x faces (9, 8, 8), y (8, 9, 8), z (8, 8, 9)
+    y_faces = np.broadcast_to(np.linspace(0.0, 1.0, n + 1)[None, :, None], (n, n + 1, n)).astype(np.float32)  # v_y = y
+    air = SavedAir((np.full((n + 1, n, n), 0.25, np.float32), y_faces.copy(), np.zeros((n, n, n + 1), np.float32)),
+                   np.array([-0.5, 0.0, -0.5]), 1.0 / n)
+    store_run(service.storage, job, {0: np.zeros((3, 3), np.float32)}, air=air)
+    sample = service.client.get(f"/v1/jobs/{job}/particles", headers=alice).json()["air"]
+    points, velocities = np.reshape(sample["points"], (-1, 3)), np.reshape(sample["velocities"], (-1, 3))
+    assert len(points) == 5**3 and points.min(0).tolist() == [-0.4, 0.1, -0.4] and points.max(0).tolist() == [0.4, 0.9, 0.4]
+    np.testing.assert_allclose(velocities[:, 0], 0.25, atol=1e-6)
+    np.testing.assert_allclose(velocities[:, 1], points[:, 1], atol=1e-5)  # the air rises faster higher up, as saved
+    np.testing.assert_allclose(velocities[:, 2], 0.0, atol=1e-6)

@@ -3,7 +3,9 @@ against a real `fluidnexus serve` with its embedded worker running fluidcore's p
 tiny synthetic scene: sign in (a wrong key first), upload (a bad upload first, and a frame range
 past the clip, refused with nothing stored), reconstruct, chain a prediction onto the running
 reconstruction, play the results in sync and list their MP4s, refuse a ball outside the box,
-run a wind what-if branched at a chosen frame and a ball what-if, and play each.
+run a wind what-if branched at a chosen frame and a ball what-if, and play each: the videos a
+job did not render before it ended (orbit, side-by-side, other cameras) are rendered as the
+players ask for them, shown as "rendering…", then played in step.
 
 One journey in one test: the reconstruction it waits for is what every later step needs.
 Screenshots of every screen go to docs/screens/ (README shows them) when
@@ -101,6 +103,13 @@ def drop(page, path: Path) -> None:  # type: ignore[no-untyped-def]
     page.locator("#drop-zone").dispatch_event("drop", {"dataTransfer": page.evaluate_handle(
         """([name, text]) => { const d = new DataTransfer(); d.items.add(new File([text], name)); return d; }""",
         [path.name, path.read_text()])})
+
+
+def wait_rendered(page) -> None:  # type: ignore[no-untyped-def]
+    """Until no player waits for a video rendered on request (a render job on the server's worker)."""
+    page.wait_for_function("() => document.querySelectorAll('#players figure').length > 0 && "
+                           "!document.querySelector('#players figure.rendering')", timeout=JOB_TIMEOUT_MS, polling=500)
+    sync_api.expect(page.locator("#players .player-status", has_text="Could not")).to_have_count(0)
 
 
 def play_first_video(page) -> None:  # type: ignore[no-untyped-def]
@@ -225,8 +234,10 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.set_viewport_size({"width": 1366, "height": 900})
     wait_succeeded(page, 2)
 
-    # results: players of one length in sync, plots from the manifest, downloads of the MP4s too
+    # results: players of one length in sync, plots from the manifest, downloads of the MP4s too;
+    # the job published its input view, the other camera and the orbit are rendered as the players ask
     row(page, "reconstruct").get_by_role("button", name="Results").click()
+    wait_rendered(page)
     play_first_video(page)
     players_in_sync(page)
     sync_api.expect(page.locator("#plots figure")).to_have_count(4)
@@ -280,8 +291,18 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     for nth, shot in ((0, "whatif-results.png"), (1, "whatif-branch-results.png")):
         page.get_by_role("button", name="Jobs").click()
         short_id = row(page, "interact", nth).locator(".job-id").text_content()
+        job_id = row(page, "interact", nth).get_attribute("data-job-id")
         row(page, "interact", nth).get_by_role("button", name="Results").click()
         sync_api.expect(page.locator("#results-title")).to_have_text(f"Results of interact {short_id}")
+        # a what-if renders no video before it ends: the players ask for theirs, say so, then play them
+        sync_api.expect(page.locator("#players figure.rendering .player-status").first).to_contain_text("rendering")
+        wait_rendered(page)
+        videos = {v["name"]: v for v in server.client.get(f"/v1/jobs/{job_id}/videos").json()["items"]}
+        rendered = {name for name, v in videos.items() if v["artifact"]}
+        assert {"orbit", *(["side_by_side"] if nth == 1 else [])} < rendered  # and the input view
+        assert all(videos[name]["render_job"]["state"] == "succeeded" for name in rendered), videos
+        renders = server.client.get("/v1/jobs", params={"type": "render", "parent_job_id": job_id}).json()["items"]
+        assert sorted(r["params"]["video"] for r in renders) == sorted(rendered)  # one render per video asked for
         if nth == 0:  # the ball, from the run's last frame: next to the factual prediction
             sync_api.expect(page.locator("#results-summary")).to_contain_text("next to the factual prediction")
             sync_api.expect(page.locator("#players select").nth(1)).to_contain_text("factual: camera")
@@ -403,4 +424,129 @@ def test_controls_are_labelled_and_reachable_by_keyboard(static_web: str, browse
     assert page.evaluate("() => document.querySelectorAll('[onclick], div[role=button], span[role=button]').length") == 0
     page.keyboard.press("Tab")
     sync_api.expect(page.get_by_role("button", name="Sign in")).to_be_focused()
+    page.close()
+
+
+def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None:  # type: ignore[no-untyped-def]
+    """The particles answer's `air` (GET /v1/jobs/{id}/particles, faked here) reaches the 3D what-if
+    view: one yellow arrow per sampled point, drawn on the canvas and counted in the summary; a run
+    without the air says so and draws none."""
+    import json
+
+    import numpy as np
+
+    lattice = np.stack(np.meshgrid(*[np.linspace(-0.4, 0.4, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    air = {"points": lattice.ravel().tolist(), "velocities": np.tile([0.0, 0.3, 0.1], len(lattice)).tolist()}
+    job = {"id": "job-air", "type": "predict", "state": "succeeded", "scene_id": None, "parent_job_id": "job-rec", "params": {}}
+
+    def particles(with_air: bool) -> str:
+        return json.dumps({
+            "job_id": job["id"], "frame": 1, "frames": [0, 1], "total": 3, "positions": [0.0, 0.1, 0.0] * 3,
+            "scene": {"box_lo": [-0.5, -0.5, -0.5], "box_hi": [0.5, 0.5, 0.5], "up": [0.0, 1.0, 0.0],
+                      "source": {"center": [0.0, -0.4, 0.0], "radius": 0.05}, "dt": 1 / 30},
+            "air": air if with_air else None,
+        })
+
+    def answer(body: str):  # a route handler of one argument (one of two is handed the request as well)
+        return lambda route: route.fulfill(body=body, content_type="application/json")
+
+    yellow = """() => {  // pixels of the air's colour (0xf1c40f): nothing else in the view is yellow
+        const source = document.getElementById('scene3d');
+        const copy = document.createElement('canvas');
+        copy.width = source.width; copy.height = source.height;
+        const context = copy.getContext('2d');
+        context.drawImage(source, 0, 0);
+        const data = context.getImageData(0, 0, copy.width, copy.height).data;
+        let count = 0;
+        for (let i = 0; i < data.length; i += 4) if (data[i] > 150 && data[i + 1] > 120 && data[i + 2] < 80) count++;
+        return count;
+    }"""
+    for with_air in (True, False):
+        page = browser.new_page()
+        page.route("**/v1/jobs?limit=100", lambda route: route.fulfill(json={"items": [job]}))
+        page.route("**/v1/jobs/job-air/particles*", answer(particles(with_air)))
+        page.goto(static_web)
+        page.evaluate("""async () => { document.getElementById('view-whatif').hidden = false;
+                                       await (await import('/js/whatif.js')).showWhatif('job-air'); }""")
+        summary = page.locator("#whatif-summary")
+        if with_air:
+            sync_api.expect(summary).to_contain_text("Yellow arrows: the air's velocity at 125 of 125 sampled points (fastest 0.316 units/s)")
+            assert page.evaluate(yellow) > 50
+        else:
+            sync_api.expect(summary).to_contain_text("This run does not simulate the air (still air): no air arrows.")
+            assert page.evaluate(yellow) == 0
+        page.close()
+
+
+def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_source_hint(  # type: ignore[no-untyped-def]
+    static_web: str, browser, sqlite_service, scene_dir: dict, screens: Path,
+) -> None:
+    """A reconstruction from one view whose source depth was a guess: the what-if view reads the
+    stretch of the input ray the video allows (GET /v1/scenes/{id}, the in-process API behind the
+    page), says where it runs, and moving the slider along it fills the source hint; a hint outside
+    the box is refused in the form, and the button queues a new reconstruction of the scene with
+    the hint as its source and the first one's other params."""
+    from datetime import UTC, datetime
+    from urllib.parse import urlsplit
+
+    import numpy as np
+
+    from api_support import reconstruct, upload
+    from fluidcore.runs import SourceEstimateRecord
+    from service.models import JobState
+    from service_support import store_run
+
+    api = sqlite_service
+    auth = api.key("alice")
+    scene_id = upload(api, auth, scene_dir).json()["id"]
+    job_id = reconstruct(api, auth, scene_id, quality="preview").json()["id"]
+    near, far = (0.0, 0.1, 0.5), (0.0, 0.1, -0.5)  # the run's box is x, z in -0.5..0.5, y in 0..1
+    estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=(near, far), pixels={"cam0": (16.0, 20.0, 2.0)})
+    store_run(api.storage, job_id, {0: np.array([[0.0, 0.2, 0.0], [0.1, 0.3, 0.0]])}, source_estimate=estimate)
+    api.set_job(job_id, state=JobState.SUCCEEDED, finished_at=datetime.now(UTC))
+
+    def to_api(route) -> None:  # type: ignore[no-untyped-def]
+        """The page's /v1 requests answered by the in-process API."""
+        request, url = route.request, urlsplit(route.request.url)
+        answer = api.client.request(request.method, url.path + (f"?{url.query}" if url.query else ""),
+                                    headers={k: v for k, v in request.headers.items() if k.lower() in ("authorization", "content-type")},
+                                    content=request.post_data_buffer)
+        route.fulfill(status=answer.status_code, body=answer.content, headers={"content-type": answer.headers.get("content-type", "text/plain")})
+
+    page = browser.new_page(viewport={"width": 1366, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.route("**/v1/**", to_api)
+    page.goto(static_web)
+    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
+    page.keyboard.press("Enter")
+    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page.evaluate(f"location.hash = '#whatif/{job_id}'")
+
+    sync_api.expect(page.locator("#source-form")).to_be_visible()
+    sync_api.expect(page.locator("#source-depth")).to_contain_text("from (0, 0.1, 0.5) (nearest) to (0, 0.1, -0.5) (farthest)")
+    sync_api.expect(page.locator("#source-depth")).to_contain_text("put it at (0, 0.1, 0), radius 0.05")
+    slider, hint = page.get_by_label("Source centre along the input ray"), page.get_by_label("Source hint for a new reconstruction")
+    assert float(slider.input_value()) == pytest.approx(0.5)  # the run's source, halfway along
+    sync_api.expect(page.get_by_role("button", name="Reconstruct with this source")).to_be_disabled()  # no hint yet
+    slider.fill("0.25")
+    sync_api.expect(hint).to_have_value("0, 0.1, 0.25")
+    hint.fill("0, 0.1, 0.9")
+    sync_api.expect(page.locator("#source-problems")).to_contain_text("outside the scene box")
+    sync_api.expect(page.get_by_role("button", name="Reconstruct with this source")).to_be_disabled()
+    slider.focus()
+    page.keyboard.press("End")  # from the keyboard: the farthest point the view allows
+    sync_api.expect(hint).to_have_value("0, 0.1, -0.5")
+    slider.fill("0.75")
+    sync_api.expect(hint).to_have_value("0, 0.1, -0.25")
+    page.locator("#scene3d").scroll_into_view_if_needed()
+    page.screenshot(path=screens / "whatif-source-depth.png", full_page=True)
+    page.get_by_role("button", name="Reconstruct with this source").click()
+    sync_api.expect(page.locator("#notice")).to_contain_text("queued with your source hint")
+    sent = api.client.get("/v1/jobs", params={"type": "reconstruct"}, headers=auth).json()["items"]
+    assert len(sent) == 2 and sent[0]["scene_id"] == scene_id
+    assert sent[0]["params"]["source"]["center"] == pytest.approx([0.0, 0.1, -0.25])
+    assert sent[0]["params"]["source"].get("radius") is None  # measured again at the new depth
+    assert {k: v for k, v in sent[0]["params"].items() if k != "source"} == {k: v for k, v in sent[1]["params"].items() if k != "source"}
+    assert not errors, errors
     page.close()

@@ -13,14 +13,19 @@ import pytest
 from fastapi.testclient import TestClient
 
 from fluidcore.exports import EXPORTERS
+from fluidcore.interaction import InteractionParams, parse_interaction
+from fluidcore.predict import run_interact
 from fluidcore.runs import Run
+from fluidcore.video import probe
 from predict_scenes import plume_run
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Job, JobState
 from service_support import keyed_client, scene_files, upload_parts
 from worker.execution import _published_as
-from worker.runners import RunInputs, interact
+from worker.runners import RunInputs, interact, render
+
+BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}
 
 
 @pytest.fixture
@@ -47,7 +52,7 @@ def test_from_frame_must_be_a_finished_frame_of_the_parent(client, tmp_path: Pat
         assert response.status_code == 422 and message in response.text, response.text
 
 
-def test_interact_runner_branches_and_returns_side_by_side_and_exports(tmp_path: Path) -> None:
+def test_interact_runner_branches_and_returns_its_input_view_and_exports(tmp_path: Path) -> None:
     parent = plume_run(tmp_path / "parent", frames=4)
     inputs = RunInputs(
         job_id="j", job_type=JobType.INTERACT, run_dir=tmp_path / "run", render_dir=tmp_path / "out", device="cpu",
@@ -57,14 +62,32 @@ def test_interact_runner_branches_and_returns_side_by_side_and_exports(tmp_path:
     files = interact(inputs)
     run = Run.open(tmp_path / "run")
     assert run.frames() == [2, 3] and run.manifest["settings"]["branch_frame"] == 1
-    published = {path.name: _published_as(path)[:2] for path in files}
-    assert published["side_by_side.mp4"] == ("videos", "side_by_side")
-    assert published["orbit.mp4"] == ("videos", "orbit")
-    exports = {name for name, (folder, kind) in published.items() if (folder, kind) == ("exports", "export")}
+    published = {path.name: _published_as(path)[:3] for path in files}
+    videos = {name: kind for name, kind in published.items() if kind[0] == "videos"}
+    assert videos == {}  # a what-if renders its videos on request
+    exports = {name for name, (folder, kind, _) in published.items() if (folder, kind) == ("exports", "export")}
     assert len(exports) == len(EXPORTERS) + 1 and {"splats_000003.ply", "smoke_000002.vdb", "smoke_000003.vdb"} <= exports
 
 
-def test_interact_runner_moves_progress_through_the_render_stage(tmp_path: Path) -> None:
+@pytest.mark.parametrize("video", ["orbit", "side_by_side"])
+def test_render_runner_renders_one_video_of_the_parent_run_with_progress_per_frame(tmp_path: Path, video: str) -> None:
+    parent = plume_run(tmp_path / "parent", frames=4)
+    what_if = run_interact(parent, tmp_path / "what_if", InteractionParams(ball=parse_interaction(None, BALL).ball), frames=2)
+    seen: list[tuple[float, str]] = []
+    inputs = RunInputs(
+        job_id="r", job_type=JobType.RENDER, run_dir=tmp_path / "run", render_dir=tmp_path / "out", device="cpu",
+        params={"video": video}, progress=lambda fraction, stage: seen.append((fraction, stage)),
+        should_cancel=lambda: False, parent_run=what_if,
+    )
+    files = render(inputs)
+    assert files == [tmp_path / "out" / f"{video}.mp4"] and _published_as(files[0])[:2] == ("videos", video)
+    assert probe(files[0]).n_frames == 2
+    # per rendered frame: the orbit's 2; the side-by-side's 2 what-if and 2 factual (a prediction from the parent's end)
+    assert [f for f, _ in seen] == [(i + 1) / len(seen) for i in range(len(seen))] and len(seen) == 2 * (1 + (video == "side_by_side"))
+    assert {stage for _, stage in seen} == {"render"} and not (tmp_path / "run").exists()  # a render writes no run
+
+
+def test_interact_runner_ends_its_progress_with_the_export_stage(tmp_path: Path) -> None:
     parent = plume_run(tmp_path / "parent", frames=4)
     seen: list[tuple[float, str]] = []
     inputs = RunInputs(
@@ -75,5 +98,4 @@ def test_interact_runner_moves_progress_through_the_render_stage(tmp_path: Path)
     interact(inputs)
     fractions = [f for f, _ in seen]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0  # never backwards, full at the end
-    rendering = [f for f, stage in seen if stage == "render"]
-    assert len(set(rendering)) > 4 and rendering[0] < 0.9  # moves per rendered frame, not stuck near the end
+    assert [stage for _, stage in seen][-2:] == ["render", "export"]  # no video to render: straight to the exports

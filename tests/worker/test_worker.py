@@ -53,6 +53,32 @@ def test_reconstruct_runs_to_success_and_publishes_artifacts(world: World) -> No
     assert world.executor().run(job_id) is None  # a duplicate delivery of a finished job does nothing
 
 
+def test_a_render_job_publishes_its_video_with_its_parents_artifacts(world: World) -> None:
+    """A render job (a video asked for on request) gets the parent's run chain like any
+    continuation, writes no run of its own, and adds its video to the parent's artifacts under
+    the parent's keys; a second render of the same video replaces the row, never a second one."""
+    parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
+    assert world.executor().run(parent) == "succeeded"
+    before = set(world.artifacts(parent))
+    seen: list[RunInputs] = []
+
+    def render(inputs: RunInputs) -> list[Path]:
+        seen.append(inputs)
+        return FAKE_RUNNERS["render"](inputs)
+
+    for attempt in range(2):
+        job_id = world.job("render", parent_job_id=parent, params={"video": "side_by_side"})
+        assert world.executor(f"r{attempt}", {**FAKE_RUNNERS, "render": render}).run(job_id) == "succeeded"
+        assert world.get(job_id).progress == 1.0 and world.artifacts(job_id) == {}
+        assert world.storage.list(f"{run_prefix(job_id)}/") == []  # no run of its own
+    assert seen[0].parent_run is not None and seen[0].parent_run.name == parent
+    artifacts = world.artifacts(parent)
+    assert set(artifacts) - before == {"videos/side_by_side.mp4"}
+    row = artifacts["videos/side_by_side.mp4"]
+    assert (row.kind, row.camera, row.key) == ("side_by_side", None, f"jobs/{parent}/videos/side_by_side.mp4")
+    assert world.storage.stat(row.key).size == row.size > 0
+
+
 def test_continuation_gets_the_parent_run_from_storage(world: World) -> None:
     parent = world.job(scene_id=world.scene(), params={"frames": [0, 2]})
     world.executor("a").run(parent)

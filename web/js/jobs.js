@@ -34,6 +34,7 @@ function paramSummary(job) {
   if (job.type === "reconstruct") {
     parts.push(p.quality);
     if (p.frames) parts.push(`frames ${p.frames[0]}–${p.frames[1] - 1}`);
+    if (p.source) parts.push(`source ${vector(p.source.center)}${p.source.radius ? ` r ${num(p.source.radius)}` : ""}`);
   } else if (p.frames) parts.push(`${p.frames} new frames`);
   if (p.from_frame != null) parts.push(`from frame ${p.from_frame}`);
   if (p.wind) parts.push(`wind ${num(p.wind.strength)} ${p.wind.profile || ""} toward ${vector(p.wind.direction)}`.replace("  ", " "));
@@ -130,7 +131,7 @@ function renderTable(items) {
 
 async function poll() {
   try {
-    renderTable(await refreshJobs());
+    renderTable((await refreshJobs()).filter((job) => job.type !== "render")); // a video's render shows in its player
     $("jobs-error").textContent = "";
   } catch (error) {
     $("jobs-error").textContent = `Could not update the job list: ${error.message}`;

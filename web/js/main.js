@@ -107,6 +107,9 @@ function init() {
   initWhatif((job) => {
     notice(`What-if ${shortId(job.id)} queued, with the factual prediction it plays next to. Open its Results when it has succeeded.`);
     go("#jobs");
+  }, (job) => {
+    notice(`Reconstruction ${shortId(job.id)} queued with your source hint.`);
+    go("#jobs");
   });
   window.addEventListener("hashchange", route);
   if (getKey()) startPolling();

@@ -1,31 +1,66 @@
 // Results view: MP4 players side by side and in sync (input view, any camera, the orbit; for a
 // what-if, next to the factual prediction from the same frame), per-frame plots from the run
 // manifest, and downloads of everything the job published (videos, exports, states, manifest).
+// A reconstruction publishes its input views, a prediction or what-if no video; any other video
+// (a camera, the orbit, a what-if's side-by-side) is rendered when a player or a download asks for
+// it (POST /v1/jobs/{id}/videos/{name}):
+// the player says "rendering… N %" until the server has stored it, then plays it in step.
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
 const SYNC_TOLERANCE_S = 0.08;
+const RENDER_POLL_MS = 1000;
 let syncLoop = null;
 let plots = [];
+const renders = new Map(); // "job/name" -> {done: Promise<url>, listeners}: one request per video, however many players ask
 
-/** Video choices of one job: [{label, url, camera}] with the orbit last. */
-function videoChoices(artifacts, prefix) {
-  const name = (a) => (a.kind === "video" ? `camera ${a.camera}` : a.kind.replaceAll("_", " "));
-  return artifacts.filter((a) => a.kind === "video" || a.kind === "orbit" || a.kind === "side_by_side")
-    .map((a) => ({ label: `${prefix}${name(a)}`, url: a.presigned_url, camera: a.kind === "video" ? a.camera : null, kind: a.kind }))
+/** The URL of a video of `jobId`: at once when stored, else once the render the server starts
+ * (or already runs) for it has stored it; `onProgress(fraction)` while it renders. */
+function requestVideo(jobId, name, onProgress) {
+  const key = `${jobId}/${name}`;
+  let entry = renders.get(key);
+  if (!entry) {
+    entry = { listeners: new Set() };
+    entry.done = (async () => {
+      for (;;) {
+        const video = await api(`/v1/jobs/${jobId}/videos/${encodeURIComponent(name)}`, { method: "POST" });
+        if (video.artifact) return video.artifact.presigned_url;
+        let job = video.render_job;
+        while (!["succeeded", "failed", "cancelled"].includes(job.state)) {
+          entry.listeners.forEach((listener) => listener(job.progress));
+          await new Promise((resolve) => setTimeout(resolve, RENDER_POLL_MS));
+          job = await api(`/v1/jobs/${job.id}`);
+        }
+        if (job.state !== "succeeded") throw new Error(job.error || `the render was ${job.state}`);
+      }
+    })();
+    entry.done.finally(() => renders.delete(key)).catch(() => {}); // once stored, the video list names it
+    renders.set(key, entry);
+  }
+  if (onProgress) entry.listeners.add(onProgress);
+  return entry.done;
+}
+
+const videoLabel = (v) => (v.kind === "video" ? `camera ${v.camera}` : v.kind.replaceAll("_", " "));
+
+/** Video choices of one job: [{label, url, name, jobId, camera, kind}] with the orbit last;
+ * `url` is null for a video not rendered yet. */
+function videoChoices(videos, prefix, jobId) {
+  return videos.map((v) => ({ label: `${prefix}${videoLabel(v)}`, url: v.artifact ? v.artifact.presigned_url : null,
+    name: v.name, jobId, camera: v.kind === "video" ? v.camera : null, kind: v.kind }))
     .sort((a, b) => (a.camera === null) - (b.camera === null));
 }
 
 /** The players to show: [{title, choices, initial}]. */
 function playerPlan(job, manifest, own, factual) {
   const input = (manifest.input_views || [])[0];
-  const mine = videoChoices(own, job.type === "interact" ? "what-if: " : "");
+  const mine = videoChoices(own, job.type === "interact" ? "what-if: " : "", job.id);
   const pick = (choices, camera) => Math.max(0, choices.findIndex((c) => c.camera === camera));
   const orbit = (choices) => Math.max(0, choices.findIndex((c) => c.kind === "orbit"));
   if (factual) {
-    const theirs = videoChoices(factual, "factual: ");
+    const theirs = videoChoices(factual.videos, "factual: ", factual.jobId);
     return [
       { title: "What-if, input view", choices: mine, initial: pick(mine, input) },
       { title: "Factual prediction, input view", choices: theirs, initial: pick(theirs, input) },
@@ -43,7 +78,7 @@ function playerPlan(job, manifest, own, factual) {
   ];
 }
 
-function player({ title, choices, initial }, index) {
+function player({ title, choices, initial }, index, onRendered) {
   const figure = document.createElement("figure");
   const video = document.createElement("video");
   video.muted = true;
@@ -55,11 +90,35 @@ function player({ title, choices, initial }, index) {
   choices.forEach((choice, i) => select.append(new Option(choice.label, String(i))));
   select.value = String(initial);
   const label = Object.assign(document.createElement("label"), { htmlFor: select.id, textContent: title });
+  const status = Object.assign(document.createElement("p"), { className: "player-status" });
+  status.setAttribute("role", "status");
   video.loop = true; // a shorter video starts again rather than stopping while the others play
-  const show = () => {
+  let shown = 0; // the latest choice wins over an earlier one still rendering
+  const show = async () => {
+    const choice = choices[Number(select.value)];
+    const mine = ++shown;
+    status.textContent = "";
+    if (!choice.url) {
+      figure.classList.add("rendering");
+      video.removeAttribute("src");
+      video.load();
+      status.textContent = "rendering… 0 %";
+      try {
+        choice.url = await requestVideo(choice.jobId, choice.name, (fraction) => {
+          if (mine === shown) status.textContent = `rendering… ${Math.round(fraction * 100)} %`;
+        });
+        onRendered();
+      } catch (error) {
+        if (mine === shown) status.textContent = `Could not render it: ${error.message}`;
+        return;
+      }
+      if (mine !== shown) return;
+      figure.classList.remove("rendering");
+      status.textContent = "";
+    }
     const leader = document.querySelector("#players video");
     const time = leader && leader !== video ? leader.currentTime : 0;
-    video.src = choices[Number(select.value)].url;
+    video.src = choice.url;
     video.currentTime = time;
   };
   video.addEventListener("loadedmetadata", () => { // portrait videos get a taller frame than landscape ones
@@ -69,7 +128,7 @@ function player({ title, choices, initial }, index) {
   if (choices.length) show();
   const caption = document.createElement("figcaption");
   caption.append(label, select);
-  figure.append(video, caption);
+  figure.append(video, status, caption);
   return figure;
 }
 
@@ -141,15 +200,39 @@ function drawPlots(manifest) {
   if (keys.includes("particles")) plot("Particles", t, [["particles", column("particles")], ["gaussians", column("gaussians")]], "count");
 }
 
-/** Every file the artifacts API lists, in its order: videos, exports, states, the manifest. */
-function downloads(artifacts) {
-  $("downloads").replaceChildren(...artifacts.map((a) => {
+/** Every file the artifacts API lists, in its order: videos, exports, states, the manifest; then
+ * the videos not rendered yet, each a button that renders it and lists it with the rest. */
+function downloads(jobId, artifacts, videos) {
+  const items = artifacts.map((a) => {
     const li = document.createElement("li");
     const link = Object.assign(document.createElement("a"), { href: a.presigned_url, textContent: a.name });
     link.download = a.name.split("/").pop();
     li.append(link, ` (${(a.size / 1024).toFixed(1)} KiB)`);
     return li;
-  }));
+  });
+  const missing = videos.filter((v) => !v.artifact).map((v) => {
+    const li = document.createElement("li");
+    const button = Object.assign(document.createElement("button"), { type: "button", className: "secondary",
+      textContent: `Render ${v.name}.mp4` });
+    button.addEventListener("click", async () => {
+      button.disabled = true;
+      try {
+        await requestVideo(jobId, v.name, (fraction) => { button.textContent = `Rendering ${v.name}.mp4… ${Math.round(fraction * 100)} %`; });
+        await refreshDownloads(jobId);
+      } catch (error) {
+        button.disabled = false;
+        button.textContent = `Render ${v.name}.mp4 (failed: ${error.message})`;
+      }
+    });
+    li.append(button);
+    return li;
+  });
+  $("downloads").replaceChildren(...items, ...missing);
+}
+
+async function refreshDownloads(jobId) {
+  const [artifacts, videos] = await Promise.all([api(`/v1/jobs/${jobId}/artifacts`), api(`/v1/jobs/${jobId}/videos`)]);
+  if ($("downloads").dataset.jobId === jobId) downloads(jobId, artifacts.items, videos.items);
 }
 
 /** The factual prediction beside a what-if: a succeeded predict job on the same parent, same frame count. */
@@ -167,13 +250,14 @@ export async function showResults(jobId) {
   $("results-title").textContent = "Results";
   $("results-summary").textContent = "Loading…";
   $("players").replaceChildren();
+  $("downloads").dataset.jobId = jobId;
   try {
     const job = await api(`/v1/jobs/${jobId}`);
-    const own = (await api(`/v1/jobs/${jobId}/artifacts`)).items;
-    const manifestItem = own.find((a) => a.kind === "manifest");
+    const [own, videos] = await Promise.all([api(`/v1/jobs/${jobId}/artifacts`), api(`/v1/jobs/${jobId}/videos`)]);
+    const manifestItem = own.items.find((a) => a.kind === "manifest");
     const manifest = manifestItem ? await api(manifestItem.url) : { frames: [] };
     const twin = await factualFor(job);
-    const factual = twin ? (await api(`/v1/jobs/${twin.id}/artifacts`)).items : null;
+    const factual = twin ? { jobId: twin.id, videos: (await api(`/v1/jobs/${twin.id}/videos`)).items } : null;
     $("results-title").textContent = `Results of ${describeJob(job)}`;
     const range = manifest.frame_range ? `frames ${manifest.frame_range[0]}–${manifest.frame_range[1] - 1}` : "";
     $("results-summary").textContent = `${job.state}; ${range}; input views ${(manifest.input_views || []).join(", ")}`
@@ -181,9 +265,10 @@ export async function showResults(jobId) {
         : job.params.from_frame != null ? `; branched at frame ${job.params.from_frame}: the factual | what-if player shows the run without the intervention.`
           : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
             : "; no succeeded factual prediction with the same frames yet.");
-    $("players").replaceChildren(...playerPlan(job, manifest, own, factual).map(player));
+    const rendered = () => refreshDownloads(jobId).catch(() => {});
+    $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
-    downloads(own);
+    downloads(jobId, own.items, videos.items);
     startSync();
   } catch (error) {
     $("results-error").textContent = `Could not load the results: ${error.message}`;

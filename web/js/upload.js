@@ -5,6 +5,7 @@ import { $, showList } from "./dom.js";
 import { uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
 import { mp4Frames } from "./mp4.js";
+import { insideBox, parseSource } from "./source.js";
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
 
@@ -100,22 +101,6 @@ function frameRangeProblems(videos) {
   if (end !== null && end > shortest.frames) return [`End frame ${end} is past the video: ${limit}.`];
   if (start >= shortest.frames) return [`First frame ${start} is past the video: ${limit}.`];
   return [];
-}
-
-/** "x, y, z[, r]" -> {value: {center, radius?}} (empty text: {value: null}) or {error}; the API's SourceHint. */
-function parseSource(text) {
-  if (!text.trim()) return { value: null };
-  const numbers = text.split(",").map((part) => (part.trim() ? Number(part) : NaN));
-  if (![3, 4].includes(numbers.length) || !numbers.every(Number.isFinite) || (numbers.length === 4 && numbers[3] <= 0)) {
-    return { error: `Smoke source: expected x, y, z or x, y, z, radius (radius > 0) in world units, got "${text}".` };
-  }
-  const value = { center: numbers.slice(0, 3) };
-  if (numbers.length === 4) value.radius = numbers[3];
-  return { value };
-}
-
-function insideBox(point, box) {
-  return point.every((c, k) => box.lo[k] <= c && c <= box.hi[k]);
 }
 
 function render() {

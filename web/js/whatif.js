@@ -1,10 +1,15 @@
 // What-if view: wind and ball controls drawn over a 3D view of the reconstructed particles and
-// the scene box. The form refuses a ball outside the box (naming the box's limits) before
-// anything is sent; the server checks everything again (fluidcore.interaction).
+// the scene box, and, for a run that simulates the air, arrows of the air's velocity sampled from
+// the saved frame (the particles answer's `air`). The form refuses a ball outside the box (naming
+// the box's limits) before anything is sent; the server checks everything again
+// (fluidcore.interaction). For a reconstruction from one view, the view also draws the stretch of
+// the input ray its source could lie on (GET /v1/scenes/{id}: geometry.source.depth), and a slider
+// along it fills the source hint of a new reconstruction of the scene.
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
+import { fractionAlong, hintText, insideBox, parseSource, pointAlong } from "./source.js";
 import {
   ArrowHelper, Box3, Box3Helper, BufferAttribute, BufferGeometry, Color, Group, Mesh, MeshBasicMaterial,
   OrbitControls, PerspectiveCamera, Points, PointsMaterial, Scene, SphereGeometry, Vector3, WebGLRenderer,
@@ -19,11 +24,16 @@ const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
 const WIND_HORIZON = 15;
 const WIND_SHIFT = 0.25;
 const RETRY_MS = 3000;
+const AIR_COLOR = 0xf1c40f; // yellow: red is the ball, blue the wind, green the source
+// An arrow per air sample at least this fraction of the fastest one: slower air is clutter.
+const AIR_MIN_SHARE = 0.05;
 
 let view = null; // {renderer, scene, camera, controls, overlay}
 let run = null; // {jobId, box: {lo, hi}, up, source, frames, dt}
 let retry = null;
 let onSubmitted = () => {};
+let onReconstruct = () => {};
+let depth = null; // {jobId, sceneId, params, range: [near, far], center, radius, cue}: one view's source
 
 /** The values in the form, as the API's interact params. */
 function formParams() {
@@ -99,9 +109,9 @@ function createView() {
   const camera = new PerspectiveCamera(40, 4 / 3, 0.001, 1000);
   const controls = new OrbitControls(camera, canvas);
   controls.listenToKeyEvents(canvas);
-  const overlay = new Group();
-  scene.add(overlay);
-  const current = { renderer, scene, camera, controls, overlay, points: null, box: null };
+  const overlay = new Group(), sourceLayer = new Group(), air = new Group();
+  scene.add(overlay, sourceLayer, air);
+  const current = { renderer, scene, camera, controls, overlay, sourceLayer, air, points: null, box: null };
   controls.addEventListener("change", () => renderer.render(scene, camera));
   return current;
 }
@@ -125,6 +135,39 @@ function showParticles(data) {
   camera.position.copy(centre).addScaledVector(side.normalize(), 1.6 * size).addScaledVector(up, 0.5 * size);
   controls.target.copy(centre);
   controls.update();
+}
+
+/** The speed (units/s) at each of the air's sampled points. */
+function airSpeeds(air) {
+  const speeds = [];
+  for (let i = 0; i < air.velocities.length; i += 3) speeds.push(Math.hypot(...air.velocities.slice(i, i + 3)));
+  return speeds;
+}
+
+/** The air's arrows from the particles answer's `air` ({points, velocities}, flat xyz lists),
+ * longest for the fastest air (an eighth of the box's diagonal); returns how many were drawn. */
+function showAir(air, box) {
+  view.air.clear();
+  if (!air) return 0;
+  const size = new Vector3(...box.hi).sub(new Vector3(...box.lo)).length();
+  const speeds = airSpeeds(air);
+  const fastest = Math.max(0, ...speeds);
+  if (!(fastest > 0)) return 0;
+  speeds.forEach((speed, k) => {
+    if (speed < AIR_MIN_SHARE * fastest) return;
+    const dir = new Vector3(...air.velocities.slice(3 * k, 3 * k + 3)).divideScalar(speed);
+    const length = (size / 8) * (speed / fastest);
+    view.air.add(new ArrowHelper(dir, new Vector3(...air.points.slice(3 * k, 3 * k + 3)), length, AIR_COLOR, 0.3 * length, 0.12 * length));
+  });
+  return view.air.children.length;
+}
+
+/** In words: what the arrows show, or that the run's air is still. */
+function airSummary(air, arrows) {
+  if (!air) return " This run does not simulate the air (still air): no air arrows.";
+  const speeds = airSpeeds(air);
+  const fastest = Math.max(0, ...speeds);
+  return ` Yellow arrows: the air's velocity at ${arrows} of ${speeds.length} sampled points (fastest ${fmt(fastest)} units/s).`;
 }
 
 /** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
@@ -210,8 +253,9 @@ async function loadParticles(jobId) {
       frames: data.frames, dt: data.scene.dt };
     showLimits(run.box);
     if (view) showParticles(data);
+    const arrows = view ? showAir(data.air, run.box) : 0;
     $("whatif-summary").textContent += ` Showing ${data.positions.length / 3} of ${data.total} particles at frame ${data.frame}; `
-      + "the what-if continues after the run's last frame, or after the branch frame you choose.";
+      + "the what-if continues after the run's last frame, or after the branch frame you choose." + airSummary(data.air, arrows);
     validate();
     drawOverlay();
   } catch (error) {
@@ -225,6 +269,9 @@ const showError = (error) => { $("whatif-error").textContent = error.message; };
 
 export async function showWhatif(jobId) {
   run = null;
+  depth = null;
+  $("source-form").hidden = true;
+  if (view) { view.sourceLayer.clear(); view.renderer.render(view.scene, view.camera); }
   $("whatif-error").textContent = "";
   $("box-limits").textContent = ""; // filled again when this run's box has loaded
   view = view || createView();
@@ -235,6 +282,86 @@ export async function showWhatif(jobId) {
     : `${describeJob(job)} is ${job.state}; what-ifs sent now run when it succeeds.`;
   if (!view) $("whatif-summary").textContent += " This browser has no WebGL, so the 3D view stays empty.";
   await loadParticles(jobId).catch(showError);
+  if (job.type === "reconstruct" && job.state === "succeeded") await loadSourceDepth(job).catch(showSourceError);
+}
+
+const CUES = {
+  "box axis": "where the ray passes nearest the box's vertical axis, a guess",
+  floor: "resting on the floor the camera looks down on",
+  "generated views": "triangulated with the generated views",
+  given: "at the hint's centre",
+};
+
+/** The scene's source as its reconstruction `job` found it; the depth panel when one view left depth open. */
+async function loadSourceDepth(job) {
+  const source = (await api(`/v1/scenes/${job.scene_id}`)).geometry.source;
+  if (!source || source.job_id !== job.id || !source.depth || !source.depth.range) return;
+  depth = { jobId: job.id, sceneId: job.scene_id, params: job.params, range: source.depth.range,
+    center: source.center, radius: source.radius, cue: source.depth.cue };
+  const [near, far] = depth.range;
+  $("source-depth").textContent = `One view cannot tell how far away the source is: the video allows its centre anywhere `
+    + `on the input ray inside the box, from ${point(near)} (nearest) to ${point(far)} (farthest), the green line. `
+    + `This reconstruction put it at ${point(depth.center)}, radius ${fmt(depth.radius)} (${CUES[depth.cue] || depth.cue}). `
+    + "Slide it to where you know it is, or type a hint, then reconstruct the scene with it.";
+  $("source-along").value = String(fractionAlong(depth.range, depth.center));
+  $("source-hint").value = "";
+  $("source-error").textContent = "";
+  $("source-form").hidden = false;
+  checkHint();
+  drawSource();
+}
+
+const point = (v) => `(${v.map(fmt).join(", ")})`;
+const showSourceError = (error) => { $("source-error").textContent = error.message; };
+
+/** The hint in the field, or null; its problems listed (and the button off) meanwhile. */
+function checkHint() {
+  const parsed = parseSource($("source-hint").value);
+  const problems = parsed.error ? [parsed.error] : [];
+  if (parsed.value && run && !insideBox(parsed.value.center, run.box)) {
+    problems.push(`Smoke source ${point(parsed.value.center)} is outside the scene box ${point(run.box.lo)} to ${point(run.box.hi)}.`);
+  }
+  if (!parsed.error && !parsed.value) problems.push("Slide along the ray or type a source hint first.");
+  showList("source-problems", problems);
+  $("source-submit").disabled = problems.length > 0;
+  return problems.length ? null : parsed.value;
+}
+
+/** The input ray's stretch (green, pointing away from the camera), the source used (yellow), the hint (green). */
+function drawSource() {
+  if (!view || !depth || !run) return;
+  const { sourceLayer, renderer, scene, camera } = view;
+  sourceLayer.clear();
+  const near = new Vector3(...depth.range[0]), far = new Vector3(...depth.range[1]);
+  const length = far.distanceTo(near);
+  if (length > 0) {
+    const head = Math.min(0.3 * length, 0.05 * run.box.hi.reduce((sum, h, i) => sum + h - run.box.lo[i], 0));
+    sourceLayer.add(new ArrowHelper(far.clone().sub(near).normalize(), near, length, 0x2ecc71, head, 0.5 * head));
+  }
+  const sphere = (center, radius, color) => {
+    const mesh = new Mesh(new SphereGeometry(radius, 20, 14), new MeshBasicMaterial({ color, transparent: true, opacity: 0.6 }));
+    mesh.position.set(...center);
+    sourceLayer.add(mesh);
+  };
+  sphere(depth.center, depth.radius, 0xf1c40f);
+  const hint = parseSource($("source-hint").value).value;
+  if (hint) sphere(hint.center, hint.radius || depth.radius, 0x2ecc71);
+  renderer.render(scene, camera);
+}
+
+/** A new reconstruction of the scene, with the reconstruction's own params and the hint as its source. */
+async function reconstructWithHint(event) {
+  event.preventDefault();
+  $("source-error").textContent = "";
+  const source = depth && checkHint();
+  if (!source) return;
+  try {
+    const job = await api("/v1/jobs", { method: "POST",
+      body: { type: "reconstruct", scene_id: depth.sceneId, params: { ...depth.params, source } } });
+    onReconstruct(job);
+  } catch (error) {
+    $("source-error").textContent = `Refused: ${error.message}`;
+  }
 }
 
 export function leaveWhatif() { clearTimeout(retry); }
@@ -263,8 +390,16 @@ async function submit(event) {
   }
 }
 
-export function initWhatif(submitted) {
+export function initWhatif(submitted, reconstructed) {
   onSubmitted = submitted;
+  onReconstruct = reconstructed;
+  $("source-along").addEventListener("input", () => {
+    if (depth) $("source-hint").value = hintText(pointAlong(depth.range, Number($("source-along").value)));
+    checkHint();
+    drawSource();
+  });
+  $("source-hint").addEventListener("input", () => { checkHint(); drawSource(); });
+  $("source-form").addEventListener("submit", reconstructWithHint);
   $("whatif-form").addEventListener("input", () => { validate(); drawOverlay(); });
   $("whatif-form").addEventListener("submit", submit);
 }
