@@ -254,6 +254,7 @@ def _rollout(
         seed=visual.seed,
         ball=applied.ball,
         profile=profile,
+        opacity_concentration=visual.opacity_concentration,
     )
 
 
