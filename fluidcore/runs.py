@@ -116,6 +116,7 @@ class VisualSettings(BaseModel):
     velocity_radius: float
     per_physical: int
     seed: int
+    opacity_concentration: bool = False  # opacity follows the smoke's concentration; older runs: fixed
 
 
 class ViewRecord(BaseModel):

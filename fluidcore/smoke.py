@@ -6,17 +6,24 @@ Reconstruction (Algorithm S1) and prediction (S2) carry a `SmokeState` from fram
 run folder stores it as a numpy `fluidcore.runs.FrameState` (torch-free, so the API and the
 exporter read runs without torch). `from_frame` / `to_frame` are the one conversion between
 the two: both algorithms resume from and write the same files through it.
+
+`concentration` is the smoke concentration the physical particles give at any point, and
+`Appearance.diluted` the one rule by which a visual Gaussian follows it: a parcel of fixed smoke
+mass that expands as its smoke thins (prediction, `Quality.opacity_concentration`).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from fluidcore.physics import AirState, ParticleState
+from fluidcore.physics import AirState, PBFConfig, ParticleState
+from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.render import Gaussians
 from fluidcore.runs import FrameState, RunError, SavedAir
 
@@ -43,6 +50,16 @@ class Appearance:
             torch.cat([self.opacity_logits, other.opacity_logits]),
             torch.cat([self.colors, other.colors]),
         )
+
+    def diluted(self, before: torch.Tensor, after: torch.Tensor) -> Appearance:
+        """The Gaussians after the smoke they carry went from concentration `before` to `after`
+        (per Gaussian), each a parcel of fixed smoke mass: its volume grows as 1/c, so its extent
+        by (before / after)^(1/3) on every axis, and its optical depth -log(1 - opacity) through
+        the centre (concentration x path length) by (after / before)^(2/3)."""
+        ratio = (after / before).clamp(1.0 / MAX_RATIO, MAX_RATIO)
+        log_scales = self.log_scales - torch.log(ratio)[:, None] / 3.0
+        depth = F.softplus(self.opacity_logits) * ratio.pow(2.0 / 3.0)
+        return Appearance(log_scales, self.quats, depth_logits(depth), self.colors)
 
     def select(self, rows: torch.Tensor) -> Appearance:
         """The Gaussians picked by `rows` (a boolean mask or indices, repeats allowed)."""
@@ -111,6 +128,42 @@ class SmokeState:
         leave it, and a Gaussian out there would float on with nothing to carry it."""
         inside = ((self.means >= self.means.new_tensor(lo)) & (self.means <= self.means.new_tensor(hi))).all(dim=1)
         return SmokeState(self.particles, self.means[inside], self.appearance.select(inside))
+
+
+# Optical depths are kept within [MIN_DEPTH, MAX_DEPTH]: opacity within [1e-4, 1 - 3e-7], which
+# float32 still tells from 0 and 1, however far the smoke is diluted or piled up.
+MIN_DEPTH = 1.0e-4
+MAX_DEPTH = 15.0
+# A concentration changes at most this many times over: more than the particles resolve (1 down to
+# the floor of one particle's share, 0.012 for the 2 h neighbourhood at rho0 = 2, is 80 times), so
+# the clamp only keeps extents and depths finite.
+MAX_RATIO = 1.0e4
+
+
+def depth_logits(depth: torch.Tensor) -> torch.Tensor:
+    """Opacity logits of optical depths (opacity = 1 - exp(-depth)): the inverse of softplus,
+    log(e^d - 1), in the form that does not overflow."""
+    d = depth.clamp(MIN_DEPTH, MAX_DEPTH)
+    return d + torch.log(-torch.expm1(-d))
+
+
+def concentration(points: torch.Tensor, positions: torch.Tensor, radius: float, config: PBFConfig) -> torch.Tensor:
+    """Smoke concentration at `points` (Q, 3): the physical particles' number density there over
+    the rest number density 8 rho0 / h^3 the inlet seeds them at (fluidcore.physics: density 1 =
+    8 particles per h^3), 1 = smoke as dense as it leaves the source.
+
+    The number density is a Poly6 average over `radius` (the neighbourhood a visual Gaussian
+    moves with, `Quality.velocity_radius`; the PBF kernel h alone sees a preview plume's sparse
+    particles one at a time). It is at least one particle's share at the kernel's centre: less
+    smoke than one particle carries is not resolved, and a Gaussian no particle reaches keeps a
+    finite, positive concentration.
+    """
+    rest = 8.0 * config.rho0 / config.h**3
+    peak = 315.0 / (64.0 * math.pi * radius**3)  # Poly6 of support `radius` at r = 0, integrating to 1
+    qi, pj = neighbour_pairs(points, positions, radius)
+    r2 = (points.index_select(0, qi) - positions.index_select(0, pj)).pow(2).sum(1) / radius**2
+    n = points.new_zeros(points.shape[0]).index_add(0, qi, peak * (1.0 - r2).clamp(min=0.0).pow(3))
+    return n.clamp(min=peak) / rest
 
 
 def visual_layer(saved: FrameState, device: str | torch.device) -> tuple[torch.Tensor, Appearance]:

@@ -39,10 +39,12 @@ def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
 
 
 def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC,
-              quality: dict | None = None) -> Path:
+              quality: dict | None = None, visual: VisualSettings | None = None, physics: str = "scalarflow") -> Path:
     """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
     (`quality`: what its settings record as the quality, e.g. the fields a test needs; with
-    `air_cells` there the plume is simulated with the air, and every frame saves it)."""
+    `air_cells` there the plume is simulated with the air, and every frame saves it; `visual`:
+    how its Gaussians move, one per particle with fixed opacity unless given; `physics`: the
+    physics mode it records, a preset's unless "auto")."""
     simulator = simulator_of(spec, int((quality or {}).get("air_cells", 0)))
     state = simulator.new_state()
     simulator.stabilize(state, 20)
@@ -58,7 +60,11 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         channels=1,
         background_color=[1.0],
         scene=scene_of(spec),
-        settings=ReconstructSettings(quality=quality or {}, visual=VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)),
+        settings=ReconstructSettings(
+            quality=quality or {},
+            visual=visual or VisualSettings(velocity_radius=2.0, per_physical=1, seed=0),
+            physics={"mode": physics},
+        ),
     )
     for t in range(frames):
         if t > 0:

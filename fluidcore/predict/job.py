@@ -259,6 +259,7 @@ def _rollout(
         seed=visual.seed,
         ball=applied.ball,
         profile=profile,
+        opacity_concentration=visual.opacity_concentration,
     )
 
 

@@ -5,7 +5,11 @@ field exactly as during reconstruction (`fluidcore.reconstruct.physical.visual_m
 kernel-interpolated displacement, forward Euler), so a prediction continues the reconstruction
 without a visual jump; Gaussians are born with every new physical particle and take the fitted
 appearance of the reconstruction's Gaussians nearest the source (`source_template`), because
-newborn smoke should look like the smoke the video showed coming out of it. A ball pushes the
+newborn smoke should look like the smoke the video showed coming out of it. With
+`opacity_concentration` (the reconstruction's `Quality.opacity_concentration`) each Gaussian
+follows the concentration of the smoke it carries from frame to frame, instead of keeping the
+opacity and extent last fitted (`fluidcore.smoke.Appearance.diluted`: smoke that spreads
+thins and widens, its mass kept). A ball pushes the
 visual Gaussians out of itself as it does the physical particles. All randomness is a function
 of (seed, frame), so a resumed rollout computes what an uninterrupted one does.
 """
@@ -25,7 +29,7 @@ from fluidcore.predict.interventions import Ball
 from fluidcore.predict.priors import HeightProfile
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
 from fluidcore.runs import Scene
-from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.smoke import Appearance, SmokeState, concentration
 
 TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newborn Gaussians copy
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)
@@ -36,7 +40,8 @@ class Rollout:
 
     `template` is the appearance newborn Gaussians copy (one row picked at random per birth);
     `velocity_radius` (world units) is the kernel radius of the velocity interpolation that
-    carries the Gaussians, `per_physical` how many are born per new physical particle.
+    carries the Gaussians (and of the concentration their opacity follows with
+    `opacity_concentration`), `per_physical` how many are born per new physical particle.
     """
 
     def __init__(
@@ -49,6 +54,7 @@ class Rollout:
         seed: int,
         ball: Ball | None = None,
         profile: HeightProfile | None = None,
+        opacity_concentration: bool = False,
     ) -> None:
         if len(template) == 0 and per_physical > 0:
             raise JobInputError("template: no Gaussians to copy the appearance of newborn smoke from")
@@ -59,6 +65,7 @@ class Rollout:
         self.seed = seed
         self.ball = ball
         self.profile = profile
+        self.opacity_concentration = opacity_concentration
         self._static_spheres = tuple(simulator.spheres)
 
     def advance(self, smoke: SmokeState, index: int, t: int) -> SmokeState:
@@ -80,7 +87,12 @@ class Rollout:
             means, _ = push_out(means, sim.spheres, state.time)
         if not bool(torch.isfinite(means).all()):
             raise FloatingPointError(f"visual Gaussians became NaN or Inf at frame {t}")
-        moved = SmokeState(state, means, smoke.appearance.cat(born)).cropped(sim.box.lo, sim.box.hi)
+        appearance = smoke.appearance
+        if self.opacity_concentration:
+            n, radius = len(smoke.means), self.velocity_radius
+            then = concentration(smoke.means, before.positions[before.alive], radius, sim.config)
+            appearance = appearance.diluted(then, concentration(means[:n], p, radius, sim.config))
+        moved = SmokeState(state, means, appearance.cat(born)).cropped(sim.box.lo, sim.box.hi)
         return moved if self.profile is None else self.profile.hold(moved)
 
     def _spheres(self, index: int) -> tuple[Sphere, ...]:

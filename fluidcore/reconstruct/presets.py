@@ -74,6 +74,12 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
+    # In prediction each visual Gaussian follows the concentration of the smoke it carries
+    # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
+    # particles spread) instead of keeping its fitted opacity and extent. On: future +0.04 dB on
+    # ScalarFlow, +0.08 on D, +0.09 on F (every seed of 0-2 gained; docs/bench_generalise.md,
+    # "Opacity that follows the concentration"). The fit itself is not tied to it (that lost).
+    opacity_concentration: bool = True
     # The air around the smoke (fluidcore.physics.air.AirGrid): cells on the box's long side, 0 = still
     # air (the default until issue 23's measurements on both dev scenes and ScalarFlow). The
     # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
@@ -99,7 +105,12 @@ class Quality:
     def visual_settings(self) -> dict[str, Any]:
         """How the visual Gaussians move and are born: recorded in a reconstruction's manifest
         ("visual") so a prediction continues them alike without reading the preset back."""
-        return {"velocity_radius": self.velocity_radius, "per_physical": self.visual_per_physical, "seed": self.seed}
+        return {
+            "velocity_radius": self.velocity_radius,
+            "per_physical": self.visual_per_physical,
+            "seed": self.seed,
+            "opacity_concentration": self.opacity_concentration,
+        }
 
     def with_overrides(self, **overrides: Any) -> Quality:
         """The preset with fields replaced; `weights` may be a mapping of just the loss weights

@@ -20,7 +20,7 @@ from fluidcore.interaction import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
-from fluidcore.runs import Run, RunError
+from fluidcore.runs import Run, RunError, VisualSettings
 from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
@@ -161,6 +161,29 @@ def test_newborn_smoke_looks_like_the_reconstructed_smoke_at_the_source(parent: 
     # the parent's, so newborns end near, not exactly at, the 0.9 they copied.
     assert (colors[-born:] > 0.6).all()
     assert np.mean(np.abs(colors[:-born] - 0.25) < 0.1) > 0.9
+
+
+def test_a_prediction_follows_the_concentration_only_where_the_reconstruction_asked(tmp_path: Path) -> None:
+    """A parent recorded with opacity_concentration is continued with each Gaussian following its
+    smoke's concentration; one recorded without (every run before it) keeps each Gaussian's look.
+    Identified ("auto") physics: no appearance prior moves the look besides."""
+    fixed = plume_run(tmp_path / "fixed", frames=3, warmup=25, physics="auto")
+    visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0, opacity_concentration=True)
+    following = plume_run(tmp_path / "following", frames=3, warmup=25, visual=visual, physics="auto")
+    looks = {}
+    for name, source in (("fixed", fixed), ("following", following)):
+        run = Run.open(job.run_predict(source, tmp_path / f"predicted_{name}", frames=4))
+        assert run.settings.visual.opacity_concentration is (name == "following")
+        first, last = run.read_frame(3).gaussians, run.read_frame(6).gaussians
+        n = len(first["opacity_logits"])  # the Gaussians alive at both ends come first, in order
+        looks[name] = (last["opacity_logits"][:n] - first["opacity_logits"][:n], last["log_scales"][:n] - first["log_scales"][:n])
+        assert np.isfinite(last["opacity_logits"]).all() and np.isfinite(last["log_scales"]).all()
+    assert not looks["fixed"][0].any() and not looks["fixed"][1].any()
+    opacity, extent = looks["following"]
+    assert np.abs(opacity).max() > 1e-3
+    # a parcel of fixed mass: where it grew it got lighter, and the other way round
+    changed = np.abs(extent[:, 0]) > 1e-4
+    assert changed.any() and (np.sign(opacity[changed]) == -np.sign(extent[changed, 0])).all()
 
 
 def _recoloured(saved, center):  # noqa: ANN001, ANN202

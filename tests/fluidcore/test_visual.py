@@ -10,13 +10,18 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
+from fluidcore.cameras import Camera
+from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source
+from fluidcore.predict.rollout import Rollout
 from fluidcore.reconstruct.presets import LossWeights, PresetError, Quality, get
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance
-from fluidcore.render import Gaussians
-from fluidcore.smoke import Appearance
+from fluidcore.render import Gaussians, render
+from fluidcore.runs import VisualSettings
+from fluidcore.smoke import Appearance, SmokeState, concentration
 
 RATES = {"color": 0.05, "scale": 0.2, "opacity": 0.05, "rotation": 0.01}
 
@@ -89,3 +94,100 @@ def test_the_ties_are_quality_fields_that_round_trip_and_take_partial_weight_ove
     assert Quality.from_json(json.loads(json.dumps(quality.to_json(), allow_nan=False))) == quality
     with pytest.raises(PresetError, match="loss weights"):
         get("preview").with_overrides(weights={"colour": 1.0})
+
+
+# -- opacity that follows the smoke's concentration (issue 23, item 5) -------------------------
+
+H = 0.02  # kernel radius of the small clouds below
+CONFIG = PBFConfig(h=H, alpha=0.0, drag=0.0)  # no gravity, buoyancy or drag: only the motion given moves them
+
+
+def _cloud(n: int, spread: float, seed: int = 0) -> torch.Tensor:
+    return torch.randn((n, 3), generator=torch.Generator().manual_seed(seed)) * spread
+
+
+def _one_gaussian(opacity: float) -> Appearance:
+    return Appearance(torch.full((1, 3), math.log(0.5 * H)), torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+                      torch.logit(torch.tensor([opacity])), torch.zeros((1, 1)))
+
+
+def _expanding_rollout(opacity_concentration: bool) -> tuple[SmokeState, SmokeState]:
+    """A cloud of smoke particles flying apart (the source seeds nothing) with one visual
+    Gaussian at its centre: the start and the state 10 frames later."""
+    positions = _cloud(300, H)
+    state = ParticleState.from_positions(positions, 0.5 * positions / H)  # each moves away from the centre
+    simulator = Simulator(CONFIG, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), Source((0.0, -0.9, 0.0), 0.01, rate=0))
+    one = _one_gaussian(0.6)
+    rollout = Rollout(simulator, one.select(torch.zeros(0, dtype=torch.long)), velocity_radius=2 * H, per_physical=0,
+                      seed=0, opacity_concentration=opacity_concentration)
+    start = SmokeState(state.clone(), torch.zeros((1, 3)), one)
+    smoke = SmokeState(state, torch.zeros((1, 3)), one)
+    for index in range(10):
+        smoke = rollout.advance(smoke, index, index + 1)
+    return start, smoke
+
+
+def _darkness(appearance: Appearance, means: torch.Tensor) -> float:
+    """How much a black Gaussian darkens the white background at its centre's pixel."""
+    pose = np.eye(4)
+    pose[2, 3] = 0.5  # the Gaussian 0.5 in front of the camera
+    camera = Camera("test", 200.0, 200.0, 16.0, 16.0, 32, 32, pose)
+    image = render(appearance.gaussians(means), camera, torch.ones(1), depth=False).image
+    return 1.0 - float(image[16, 16, 0])
+
+
+def _live(smoke: SmokeState) -> torch.Tensor:
+    return smoke.particles.positions[smoke.particles.alive]
+
+
+def test_a_gaussian_whose_particles_spread_out_renders_lighter():
+    start, diluted = _expanding_rollout(opacity_concentration=True)
+    _, frozen = _expanding_rollout(opacity_concentration=False)
+    before = concentration(start.means, _live(start), 2 * H, CONFIG)
+    after = concentration(diluted.means, _live(diluted), 2 * H, CONFIG)
+    assert float(after) < 0.5 * float(before)  # the cloud did spread around the Gaussian
+    assert torch.equal(frozen.appearance.opacity_logits, start.appearance.opacity_logits)  # off: as before
+    # a parcel of fixed mass: extent x (before / after)^(1/3), optical depth x (after / before)^(2/3)
+    ratio = float(after / before)
+    expected = 1.0 - (1.0 - 0.6) ** (ratio ** (2.0 / 3.0))
+    assert float(torch.sigmoid(diluted.appearance.opacity_logits)) == pytest.approx(expected, rel=1e-3)
+    grown = diluted.appearance.log_scales - start.appearance.log_scales
+    assert torch.allclose(grown, torch.full_like(grown, -math.log(ratio) / 3.0), atol=1e-4)
+    assert _darkness(diluted.appearance, diluted.means) < 0.8 * _darkness(start.appearance, start.means)
+
+
+def test_concentration_is_one_at_the_rest_density_and_falls_as_particles_spread():
+    # particles on a cubic lattice at the rest number density 8 rho0 / h^3
+    spacing = H / (8.0 * CONFIG.rho0) ** (1.0 / 3.0)
+    axis = torch.arange(-12, 13, dtype=torch.float32) * spacing
+    lattice = torch.stack(torch.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    centre = torch.zeros((1, 3))
+    assert float(concentration(centre, lattice, 2 * H, CONFIG)) == pytest.approx(1.0, rel=0.05)
+    assert float(concentration(centre, 2.0 * lattice, 2 * H, CONFIG)) == pytest.approx(1.0 / 8.0, rel=0.1)
+    alone = concentration(torch.tensor([[5.0, 5.0, 5.0]]), lattice, 2 * H, CONFIG)  # no particle within reach
+    assert math.isfinite(float(alone)) and 0.0 < float(alone) < 0.05
+
+
+@pytest.mark.parametrize("ratio", [0.0, 1e-30, 1e-3, 1.0, 1e3, 1e30, float("inf")])
+def test_diluted_opacity_stays_in_0_1_and_finite(ratio):
+    logits = torch.tensor([-30.0, -5.0, 0.0, 5.0, 30.0])
+    n = len(logits)
+    appearance = Appearance(torch.zeros((n, 3)), torch.zeros((n, 4)), logits, torch.zeros((n, 1)))
+    diluted = appearance.diluted(torch.ones(n), torch.full((n,), ratio))
+    out = diluted.opacity_logits
+    opacity = torch.sigmoid(out)
+    assert bool(torch.isfinite(out).all()) and bool(torch.isfinite(diluted.log_scales).all())
+    assert bool((opacity > 0).all()) and bool((opacity < 1).all())
+    if 1e-3 <= ratio <= 1e3:  # within the clamps, the order of the opacities is kept
+        assert bool((out[1:] >= out[:-1]).all())
+
+
+def test_runs_recorded_before_the_concentration_tie_load_and_continue_without_it():
+    old = {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}  # what a prediction reads of its parent
+    assert VisualSettings.model_validate(old).opacity_concentration is False
+    recorded = get("preview").to_json()
+    del recorded["opacity_concentration"]
+    assert Quality.from_json(recorded).name == "preview"  # an older quality record still loads
+    for flag in (True, False):
+        quality = get("preview").with_overrides(opacity_concentration=flag)
+        assert VisualSettings.model_validate(quality.visual_settings()).opacity_concentration is flag
