@@ -15,7 +15,9 @@ computed in the same run):
               a fit far above the novel views means the 3D is wrong where no camera looks), and
               the reconstruction's own per-frame fit and one-step forecast of the input view
     future    prediction from frame B-1, frames B..B+F-1, every camera with truth
-              baselines: blank, freeze (the input view's frame B-1 held, on every view)
+              baselines: blank, freeze (the input view's frame B-1 held, on every view); and the
+              plume width in the input view at frame B+30 (120 on dev scene D): the smoke's extent
+              across the image row at the truth plume's mid-height, prediction vs truth
     velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
               at the truth's sample points (voxels with density > 0.05, or the synth's particles),
               at every saved frame of the observed and predicted windows; baseline: zero velocity
@@ -62,6 +64,10 @@ from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # no
 TASKS = ("nvs", "input", "future", "velocity", "whatif", "rise")
 RISE_OBSERVED = 10  # frames of the short reconstruction the rise task continues
 RISE_AT = 60  # frames after the observed window's start at which the plume's top is compared
+PLUME_WIDTH_AFTER = 30  # frames after B: issue 23's plume width is measured at frame 120 of dev scene D (B = 90)
+# a pixel is smoke where a channel differs from the background colour by more than this (of 255):
+# 5 % of full scale, above 8-bit rounding and the soft edge of the renders; set once, not per scene
+SMOKE_LEVEL = 13
 Predictor = Callable[[Any, list[int], tuple[int, int]], Any]  # (camera, frames, size) -> uint8 (T, H, W, 3)
 
 
@@ -177,6 +183,8 @@ class Protocol:
             out["tasks"]["future"] = self.score(self.gt, self.gt.views(), future, {
                 "method": self._render([predicted]), "freeze": self._freeze(self.window[1] - 1), "blank": self._blank(recon),
             })
+            at = min(self.window[1] + PLUME_WIDTH_AFTER, self.window[1] + n_future - 1)
+            out["tasks"]["future"]["plume_width"] = self.plume_width(recon, predicted, at)
         if "velocity" in tasks:
             out["tasks"]["velocity"] = self.velocity([recon, *([predicted] if predicted else [])])
         if "whatif" in tasks:
@@ -296,6 +304,19 @@ class Protocol:
             _log(f"  {view}: " + ", ".join(f"{k} {v['psnr']:.2f}" for k, v in per_view[view].items()))
         return {"frames": frames, "views": per_view, "mean": _means(per_view, predictors)}
 
+    def plume_width(self, recon: Any, predicted: Any, t: int) -> dict:
+        """The prediction's and the truth's smoke width across the input view at frame t, in the
+        row at the truth plume's mid-height (`plume_widths`); the background is the colour the
+        reconstruction estimated from the input view (the blank baseline's)."""
+        camera = self.gt.cameras[self.input_view]
+        size = self._size(camera)
+        method = self._render([predicted])(camera, [t], size)[0]
+        truth = self.gt.truth(self.input_view, [t], size)[0]
+        background = self._blank(recon)(camera, [t], size)[0, 0, 0]
+        widths = plume_widths(method, truth, background)
+        _log(f"  plume width at frame {t} ({self.input_view}): {widths}")
+        return {"frame": t, "view": self.input_view, **widths}
+
     def velocity(self, runs: Sequence[Any]) -> dict:
         """End-point error per saved truth frame the runs hold, against zero velocity."""
         import numpy as np
@@ -378,6 +399,35 @@ class Protocol:
         ratio = (top - source) / (truth - source)
         return {"frame": at, "observed_frames": RISE_OBSERVED, "top_above_source": top - source,
                 "truth_top_above_source": truth - source, "ratio": ratio}
+
+
+def smoke_mask(frame: Any, background: Any) -> Any:
+    """(H, W) bool: where a uint8 (H, W, 3) frame differs from the background colour (3,) by more
+    than SMOKE_LEVEL in some channel."""
+    import numpy as np
+
+    difference = np.abs(np.asarray(frame, np.int16) - np.asarray(background, np.int16).reshape(1, 1, 3))
+    return difference.max(axis=-1) > SMOKE_LEVEL
+
+
+def plume_widths(method: Any, truth: Any, background: Any) -> dict:
+    """Widths in pixels (leftmost to rightmost smoke pixel) of the method's and the truth's smoke
+    in one image row: the truth plume's mid-height, halfway between its highest and lowest smoke
+    row; ratio = method / truth (None where the truth has no smoke in that row or at all)."""
+    import numpy as np
+
+    truth_mask, method_mask = smoke_mask(truth, background), smoke_mask(method, background)
+    rows = np.flatnonzero(truth_mask.any(axis=1))
+    if not len(rows):
+        return {"row": None, "method": None, "truth": None, "ratio": None}
+    row = int(rows[0] + rows[-1]) // 2
+
+    def width(mask: Any) -> int:
+        cols = np.flatnonzero(mask[row])
+        return int(cols[-1] - cols[0] + 1) if len(cols) else 0
+
+    widths = {"method": width(method_mask), "truth": width(truth_mask)}
+    return {"row": row, **widths, "ratio": widths["method"] / widths["truth"] if widths["truth"] else None}
 
 
 def _means(per_view: dict[str, Any], names: Sequence[str], keep: Sequence[bool] | None = None) -> dict[str, Any]:
@@ -494,6 +544,10 @@ def print_table(result: dict) -> None:
     signals = (result["tasks"].get("input") or {}).get("reconstruction")
     if signals:
         print(f"{'input (own)':<16} " + ", ".join(f"{k} {v:.2f}" for k, v in signals.items()) + " (working resolution, all frames)")
+    width = (result["tasks"].get("future") or {}).get("plume_width")
+    if width and width["ratio"] is not None:
+        print(f"{'plume width':<16} frame {width['frame']} {width['view']}: {width['method']} px vs truth "
+              f"{width['truth']} px (ratio {width['ratio']:.2f}, row {width['row']})")
     velocity = result["tasks"].get("velocity")
     for part, v in ((velocity or {}).get("summary") or {}).items():
         print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f})")

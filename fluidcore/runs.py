@@ -173,6 +173,7 @@ class ContinuationSettings(BaseModel):
     wind: WindParams | None = None
     ball: BallParams | None = None
     air_cells: int = 0  # the air grid the rollout simulates (fluidcore.physics.air.AirGrid); 0 = still air
+    air_vorticity: float = 0.0  # its vorticity confinement (AirGrid's epsilon; 0 = off)
 
 
 Settings = ReconstructSettings | ContinuationSettings

@@ -149,6 +149,29 @@ class AirGrid:
                                     f"starts at {self.box.lo} with cells of {self.spacing:g}")
         return air
 
+    def resample(self, air: AirState) -> AirState:
+        """`air` if it lies on this grid, else its velocity sampled trilinearly at this grid's faces
+        (the border value outside its grid) and projected: a continuation on a finer or coarser
+        grid than its parent's goes on from the parent's air instead of from still air."""
+        if math.isclose(air.spacing, self.spacing, rel_tol=1e-6) and all(
+                math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9 * self.spacing) for a, b in zip(air.origin, self.box.lo)):
+            return self.check(air)
+        for axis, face in enumerate(air.faces):
+            if face.dim() != 3 or not bool(torch.isfinite(face).all()):
+                raise PhysicsInputError(f"air.faces[{axis}] must be a finite 3-D array")
+        if not (math.isfinite(air.spacing) and air.spacing > 0.0):
+            raise PhysicsInputError(f"air.spacing must be a number > 0, got {air.spacing!r}")
+        device = air.device
+        origin = torch.tensor(air.origin, dtype=torch.float32, device=device)
+        faces = []
+        for a in range(3):
+            world = self.box_origin(device) + self.spacing * self._face_coords(a, device)
+            shape = [n + (b == a) for b, n in enumerate(self.shape)]
+            faces.append(self._velocity(air.faces, (world - origin) / air.spacing)[:, a].reshape(shape))
+        moved = AirState(tuple(faces), self.box.lo, self.spacing)  # type: ignore[arg-type]
+        self.project(moved)
+        return moved
+
     # --- sampling ----------------------------------------------------------------------------
 
     def velocity_at(self, air: AirState, points: Tensor) -> Tensor:
@@ -358,11 +381,13 @@ class AirGrid:
         return self._coords[key]
 
 
-def scene_air(box: Box, config: PBFConfig, cells: int, force: ForceField | None = None) -> AirGrid | None:
+def scene_air(box: Box, config: PBFConfig, cells: int, force: ForceField | None = None,
+              vorticity: float = 0.0) -> AirGrid | None:
     """The air grid of a scene with `cells` cells on its box's long side (0: None, still air), its
-    floor where the scene's gravity points: reconstruction (S1) and prediction (S2) build the
-    same grid, so a continuation steps the air its parent saved."""
-    return AirGrid(box, cells, down=config.gravity, force=force) if cells else None
+    floor where the scene's gravity points, and vorticity confinement `vorticity` (AirGrid's
+    epsilon): reconstruction (S1) and prediction (S2) build it from the same settings, so a
+    continuation steps the air its parent saved (`AirGrid.resample` when the cells differ)."""
+    return AirGrid(box, cells, down=config.gravity, force=force, vorticity=vorticity) if cells else None
 
 
 def floor_face(down: Vec3) -> tuple[int, int]:

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import Simulator
-from fluidcore.physics.air import scene_air
+from fluidcore.physics.air import AirGrid, scene_air
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
@@ -183,7 +183,7 @@ def _write(
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = _visual_settings(parent)
-    air_cells = _air_cells(parent)
+    air_cells, air_vorticity = _air_settings(parent)
     run = Run.create(
         out_dir,
         kind=request.kind,
@@ -206,11 +206,12 @@ def _write(
             wind=params.wind,
             ball=params.ball,
             air_cells=air_cells,
+            air_vorticity=air_vorticity,
         ),
         parent=parent.path,
     )
     run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
-    rollout = _rollout(scene, start, params, visual_settings, device, profile, air_cells)
+    rollout = _rollout(scene, start, params, visual_settings, device, profile, air_cells, air_vorticity)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
     for t in range(run.next_frame(), frame_range[1]):
         if context.should_cancel():
@@ -235,17 +236,21 @@ def _rollout(
     device: str,
     profile: HeightProfile | None,
     air_cells: int = 0,
+    air_vorticity: float = 0.0,
 ) -> Rollout:
     """The simulator of the parent's scene with the interventions, ready to continue `start`.
 
     New frame 0 is the step that begins at the start state's time; the interventions' frame
     numbers are counted from there. With `air_cells` the air is an `AirGrid` that the wind
     pushes (instead of the wind's uniformly accelerated air); it continues the air saved with
-    `start` (still air when the parent frame holds none: a run written before the air was saved).
+    `start` (still air when the parent frame holds none: a run written before the air was saved),
+    resampled onto this grid when the parent's lies on another.
     """
     config, box, source = scene.simulator_parts()
     applied = interventions(params, config, source, scene.up, start.particles.time)
-    air = scene_air(box, config, air_cells, applied.force) or applied.air
+    air = scene_air(box, config, air_cells, applied.force, air_vorticity) or applied.air
+    if isinstance(air, AirGrid) and start.particles.air is not None:
+        start.particles.air = air.resample(start.particles.air)
     return Rollout(
         Simulator(config, box, source, force=applied.force, air=air, device=device),
         source_template(start, source.center),
@@ -258,13 +263,14 @@ def _rollout(
     )
 
 
-def _air_cells(parent: Run) -> int:
-    """The air grid's cells a continuation of `parent` simulates with (0: still air): a
-    reconstruction's quality says it, a continuation passes it on; older runs have none."""
+def _air_settings(parent: Run) -> tuple[int, float]:
+    """The air grid's cells (0: still air) and vorticity confinement a continuation of `parent`
+    simulates with: a reconstruction's quality says them, a continuation passes them on; older
+    runs have none."""
     settings = parent.settings
     if isinstance(settings, ReconstructSettings):
-        return int(settings.quality.get("air_cells", 0))
-    return settings.air_cells
+        return int(settings.quality.get("air_cells", 0)), float(settings.quality.get("air_vorticity", 0.0))
+    return settings.air_cells, settings.air_vorticity
 
 
 def _visual_settings(parent: Run) -> VisualSettings:

@@ -271,7 +271,7 @@ class Reconstructor:
         self.device = torch.device(device)
         # with quality.air_cells the air is part of the state: stepped from the fitted particles of
         # each frame, saved with it, and continued by every prediction and branch of the run
-        air = scene_air(rec.box, rec.config, rec.quality.air_cells)
+        air = scene_air(rec.box, rec.config, rec.quality.air_cells, vorticity=rec.quality.air_vorticity)
         self.simulator = Simulator(rec.config, rec.box, rec.source, air=air, device=self.device)
 
     def open_run(self, out_dir) -> Run:

@@ -84,6 +84,7 @@ class Quality:
     # air (the default until issue 23's measurements on both dev scenes and ScalarFlow). The
     # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = 0
+    air_vorticity: float = 0.0  # the air's vorticity confinement (AirGrid's epsilon; 0 = off)
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

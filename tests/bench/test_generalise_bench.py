@@ -18,7 +18,7 @@ import pytest
 from skimage.metrics import structural_similarity
 
 import fluidnexus.cli  # noqa: F401, I001 - first: the CLI registers every benchmark module
-from bench.generalise import Protocol
+from bench.generalise import SMOKE_LEVEL, Protocol, plume_widths
 from bench.gt_scenes import PhiFlowScene, ScalarFlowScene, SynthScene, open_scene
 from fluidcore import synth, video
 
@@ -211,6 +211,7 @@ def test_bench_runs_end_to_end_on_a_synth_scene(synth_dir: Path, tmp_path: Path)
     result = json.loads(out.stdout)
     assert set(result["tasks"]) == {"nvs", "input", "future", "velocity"}
     assert result["tasks"]["future"]["frames"] == [4, 5]
+    assert result["tasks"]["future"]["plume_width"]["frame"] == 5  # B + 30 clipped to the last predicted frame
     assert set(result["tasks"]["nvs"]["views"]) == {"view_00", "view_02"}
     assert result["tasks"]["velocity"]["summary"]["observed"]["zero_epe"] > 0
     assert set(result["tasks"]["input"]["reconstruction"]) == {"fit", "forecast"}
@@ -262,3 +263,21 @@ def test_the_effect_score_is_the_cosine_of_predicted_and_true_effects_over_the_l
         assert score["cosine"] == pytest.approx(expected, abs=0.1)  # clipping to 0..255 bends it a little
     nothing = protocol.effect(variant, frames, _kept(predictor(own_factual)), _kept(predictor(own_factual)))
     assert nothing["cosine"] is None
+
+
+def test_plume_width_is_the_smoke_extent_in_the_row_at_the_truth_plumes_mid_height() -> None:
+    """Hand-made frames: a truth plume of 11 columns over rows 10..30 (mid-height row 20); a
+    narrower prediction with a stray wisp in that row is measured from its leftmost to its
+    rightmost smoke pixel; faint differences below SMOKE_LEVEL are background."""
+    background = np.array([10, 20, 30], np.uint8)
+    truth = np.broadcast_to(background, (40, 50, 3)).copy()
+    truth[10:31, 20:31] = 200
+    truth[0:40, 0:5] = background + SMOKE_LEVEL  # not smoke: does not move the mid-height
+    method = np.broadcast_to(background, (40, 50, 3)).copy()
+    method[15:25, 22:27] = 200
+    assert plume_widths(method, truth, background) == {"row": 20, "method": 5, "truth": 11, "ratio": 5 / 11}
+    method[20, 40] = 255
+    assert plume_widths(method, truth, background)["method"] == 19
+    empty = np.broadcast_to(background, (40, 50, 3)).copy()
+    assert plume_widths(method, empty, background)["ratio"] is None
+    assert plume_widths(empty, truth, background)["ratio"] == 0.0

@@ -3,6 +3,7 @@ without it is today's simulator."""
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -285,3 +286,34 @@ def test_a_prediction_simulates_the_air_its_reconstruction_asks_for_and_passes_i
     last = plain.frames()[-1]
     a, b = plain.read_frame(last), with_air.read_frame(last)
     assert a.positions.shape == b.positions.shape and not np.array_equal(a.positions[a.alive], b.positions[b.alive])
+
+
+def test_air_resampled_onto_a_finer_grid_keeps_its_flow() -> None:
+    """A continuation on another grid than its parent's starts from the parent's air: a uniform
+    sideways breeze (divergence-free, parallel to the closed floor) stays that breeze."""
+    coarse, fine = AirGrid(BOX, 16), AirGrid(BOX, 24)
+    air = coarse.still()
+    air.faces[0].fill_(0.2)
+    moved = fine.resample(air)
+    assert fine.check(moved) is moved and coarse.resample(air) is air
+    assert torch.allclose(moved.faces[0], torch.full_like(moved.faces[0], 0.2), atol=1e-4)
+    assert float(moved.faces[1].abs().max()) < 1e-4 and float(moved.faces[2].abs().max()) < 1e-4
+
+
+def test_a_prediction_keeps_the_air_settings_and_continues_a_coarser_parents_air(tmp_path: Path) -> None:
+    """Quality.air_vorticity reaches the prediction and its continuations; a parent whose quality
+    asks for another grid than its frames' air was saved on (an older run continued at a finer
+    grid) is continued from its air resampled, not refused."""
+    airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16, "air_vorticity": 0.3})
+    with_air = Run.open(run_predict(airy, tmp_path / "p1", frames=3))
+    chained = Run.open(run_predict(with_air.path, tmp_path / "p2", frames=2))
+    assert (with_air.settings.air_cells, with_air.settings.air_vorticity) == (16, 0.3)
+    assert (chained.settings.air_cells, chained.settings.air_vorticity) == (16, 0.3)
+    manifest = Path(airy) / "manifest.json"
+    data = json.loads(manifest.read_text())
+    data["settings"]["quality"]["air_cells"] = 24
+    manifest.write_text(json.dumps(data))
+    finer = Run.open(run_predict(airy, tmp_path / "p3", frames=3))
+    air = finer.read_frame(finer.frames()[-1]).air
+    assert finer.settings.air_cells == 24 and air is not None
+    assert air.faces[0].shape == tuple(n + (a == 0) for a, n in enumerate(AirGrid(with_air.scene.simulator_parts()[1], 24).shape))
