@@ -78,6 +78,7 @@ def _draw_wind(image: np.ndarray, camera: Camera, wind: WindParams, anchor: Sequ
 LABEL_HEIGHT = 0.03  # text cap height as a fraction of the image's long side: 35 px on ScalarFlow's 1160 px views
 LABEL_MIN_SCALE = 0.35  # OpenCV font scale below which its strokes merge (about 8 px letters)
 LABEL_PAD = 2  # pixels of dark box around the text
+LABEL_FIT_TRIES = 4  # shrinks of a label measured wider than its room (OpenCV rounds glyphs to pixels: 0.35 gives 89 px where 1.0 gives 267)
 
 
 def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | None = None) -> None:
@@ -91,10 +92,14 @@ def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | N
     font = cv2.FONT_HERSHEY_SIMPLEX
     (unit_w, unit_h), _ = cv2.getTextSize(text, font, 1.0, 1)
     wanted = LABEL_HEIGHT * max(height_px, width_px) / unit_h
-    fits = (min(width, width_px) - 2 * LABEL_PAD - 2) / unit_w
-    scale = min(max(LABEL_MIN_SCALE, wanted), fits)  # inside the image first, readable second
-    thickness = max(1, round(scale))
-    (text_w, text_h), baseline = cv2.getTextSize(text, font, scale, thickness)
+    room = min(width, width_px) - 3 * LABEL_PAD - 2  # text starts 2 pads in; its box ends a pad and a pixel short of the edge
+    scale = min(max(LABEL_MIN_SCALE, wanted), room / unit_w)  # inside the image first, readable second
+    for _ in range(LABEL_FIT_TRIES):  # glyph sizes are rounded to pixels, so width is not linear in scale
+        thickness = max(1, round(scale))
+        (text_w, text_h), baseline = cv2.getTextSize(text, font, scale, thickness)
+        if text_w <= room:
+            break
+        scale *= room / (text_w + 1)
     x = min(max(origin[0], 2 * LABEL_PAD), max(2 * LABEL_PAD, width_px - text_w - 2 * LABEL_PAD))
     y = min(max(origin[1], 2 * LABEL_PAD) + text_h, height_px - baseline - 2 * LABEL_PAD)
     cv2.rectangle(image, (x - LABEL_PAD, y - text_h - LABEL_PAD), (x + text_w + LABEL_PAD, y + baseline), (0, 0, 0), thickness=-1)
