@@ -147,3 +147,42 @@ def test_runs_from_before_the_flow_term_refit_without_it():
     manifest = get("preview").to_json()
     del manifest["weights"]["flow"]
     assert Quality.from_json(manifest).weights.flow == 0.0
+
+
+def test_the_flow_corrects_the_air_towards_it_and_the_air_stays_divergence_free():
+    """Quality.air_flow's correction (FlowObservation.shortfall + AirGrid.nudge): still air under
+    a cloud of particles whose input view saw a uniform flow is moved towards the flow lifted to
+    3D (in the image plane, not along the view ray), by more with a larger relaxation, and the
+    projection after it leaves the divergence below the solver's tolerance."""
+    from fluidcore.physics import Box
+    from fluidcore.physics.air import AirGrid
+
+    camera = _camera()
+    field = _uniform_field(camera, SHIFT, 1.0)
+    dt = 1.0 / 30.0
+    generator = torch.Generator().manual_seed(0)
+    points = torch.tensor([0.0, 0.5, 0.0]) + 0.06 * torch.randn(400, 3, generator=generator)
+    observation = FlowObservation(field, 0, points, 0.05)
+    grid = AirGrid(Box((-0.5, 0.0, -0.5), (0.5, 1.0, 0.5)), 16)
+    lacking = observation.shortfall(grid.velocity_at(grid.still(), points), dt)
+    # the shortfall of still air is the flow itself, in world units / s at the particles' depth
+    image = lacking @ observation.image_axes.T
+    flow_speed = observation.length.float() / dt
+    np.testing.assert_allclose(image.norm(dim=-1).numpy(), flow_speed.numpy(), rtol=1e-4)
+    ray = torch.tensor(camera.world_to_camera[2, :3], dtype=torch.float32)
+    assert float((lacking @ ray).abs().max()) < 1e-4 * float(flow_speed.max())
+    errors = []
+    for relax in (0.3, 0.8):
+        air = grid.still()
+        stats = grid.nudge(air, points, lacking, observation.weight.float(), relax)
+        assert stats.divergence_after <= grid.tolerance * stats.divergence_before
+        assert float(grid.divergence(air).abs().max()) <= grid.tolerance * stats.divergence_before * 1.001
+        moved = grid.velocity_at(air, points).mean(0) @ observation.image_axes.float().T
+        target = lacking.mean(0) @ observation.image_axes.float().T
+        assert float(moved @ target) > 0.0, "the air must move along the flow"
+        errors.append(float((moved - target).norm() / target.norm()))
+    assert errors[1] < errors[0] < 1.0
+    # nothing observed (confidence 0): the air stays as it was
+    air = grid.still()
+    grid.nudge(air, points, lacking, torch.zeros(len(points)), 0.8)
+    assert all(float(f.abs().max()) == 0.0 for f in air.faces)
