@@ -15,9 +15,6 @@ particle (`AirGrid.velocity_at`); the air feels the smoke through buoyancy. One 
   4. pressure projection: the floor (the box face gravity points through) and the solid balls are
      no-through walls, the other five faces are open (pressure 0 just outside, air flows in and out).
 
-The reconstruction may correct the stepped air by observed velocities (`AirGrid.nudge`: splatted
-onto the faces with the buoyancy's kernel, blended, projected again; `Quality.air_flow`).
-
 The grid is a MAC grid (normal velocities on cell faces) over the scene box with `cells` cells
 on its longest side and cubic cells. The pressure solve is conjugate gradients preconditioned
 by the exact inverse of the ball-free Laplacian, applied by fast diagonalisation (the 1-D
@@ -220,35 +217,6 @@ class AirGrid:
         for face in air.faces:
             checks.finite_result(face, "air velocity")
         return stats
-
-    def nudge(self, air: AirState, points: Tensor, velocity: Tensor, weight: Tensor, relax: float,
-              spheres: Sequence[Sphere] = (), time: float = 0.0) -> AirStats:
-        """Correct `air` in place by velocities `velocity` (N, 3) observed at `points` (N, 3) with
-        confidence `weight` (N,) in [0, 1], then project it (walls as in `project`).
-
-        Each face moves by `relax` x the confidence-weighted mean of the corrections splatted onto
-        it with the buoyancy's trilinear kernel (`splat`); the mean divides by at least one
-        particle's worth of weight, so a face only a corner of one particle reaches moves by that
-        fraction rather than by the whole correction. `velocity` is a correction (what the air
-        lacks), not a target: a zero component leaves the air's own value there."""
-        self.check(air)
-        points = checks.points(points, "points").to(air.device)
-        velocity = checks.points(velocity, "velocity").to(air.device)
-        weight = weight.to(device=air.device, dtype=points.dtype)
-        if velocity.shape != points.shape or weight.shape != points.shape[:1]:
-            raise PhysicsInputError(f"velocity must be (N, 3) and weight (N,) for {points.shape[0]} points, got "
-                                    f"{tuple(velocity.shape)} and {tuple(weight.shape)}")
-        if not (math.isfinite(relax) and 0.0 <= relax <= 1.0):
-            raise PhysicsInputError(f"relax must be in [0, 1], got {relax!r}")
-        coords = self._grid_coords(points)
-        faces = []
-        for a, face in enumerate(air.faces):
-            index = coords - face_offset(a, coords)
-            total = splat(index, face.shape, weight * velocity[:, a])
-            mass = splat(index, face.shape, weight)
-            faces.append(face + relax * total / mass.clamp_min(1.0))
-        air.faces = tuple(faces)  # type: ignore[assignment]
-        return self.project(air, spheres, time)
 
     def project(self, air: AirState, spheres: Sequence[Sphere] = (), time: float = 0.0) -> AirStats:
         """Make `air` divergence-free in place, with the floor and the spheres at `time` as walls and
@@ -507,9 +475,9 @@ def sample(field: Tensor, index: Tensor) -> Tensor:
     return out.view(-1)
 
 
-def splat(index: Tensor, shape: Sequence[int], values: Tensor | None = None) -> Tensor:
-    """Trilinear splat of `values` (N,; unit weights when None) at fractional indices (N, 3) onto a
-    grid of `shape`: the adjoint of `sample` (weights beyond the border land on the border cells)."""
+def splat(index: Tensor, shape: Sequence[int]) -> Tensor:
+    """Trilinear splat of unit weights at fractional indices (N, 3) onto a grid of `shape`: the
+    adjoint of `sample` (weights beyond the border land on the border cells)."""
     sizes = torch.tensor(shape, device=index.device)
     index = torch.minimum(index.clamp_min(0.0), (sizes - 1).to(index.dtype))
     base = torch.minimum(index.floor().long(), (sizes - 2).clamp_min(0))
@@ -518,7 +486,7 @@ def splat(index: Tensor, shape: Sequence[int], values: Tensor | None = None) -> 
     strides = (shape[1] * shape[2], shape[2], 1)
     for corner in range(8):
         bits = [(corner >> a) & 1 for a in range(3)]
-        weight = torch.ones_like(frac[:, 0]) if values is None else values.to(frac.dtype)
+        weight = torch.ones_like(frac[:, 0])
         flat = torch.zeros_like(base[:, 0])
         for a, bit in enumerate(bits):
             weight = weight * (frac[:, a] if bit else 1.0 - frac[:, a])

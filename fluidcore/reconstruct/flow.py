@@ -142,17 +142,6 @@ class FlowObservation:
         self.image_axes = torch.tensor(camera.world_to_camera[:2, :3], dtype=p_prev.dtype, device=p_prev.device)
         self.kernel_radius = kernel_radius
 
-    def shortfall(self, velocity: torch.Tensor, dt: float) -> torch.Tensor:
-        """What `velocity` (N, 3, world units / s, e.g. the air's at the particles) lacks to keep up
-        with the flow over one frame of `dt` seconds, as a world velocity (N, 3): the flow's
-        direction in the image plane, lifted to 3D along the camera's image axes, times how far
-        the image-plane displacement along it falls short of the flow's length, over dt. The same
-        lower bound as the loss term: nothing across the flow, nothing along the view ray, nothing
-        where the velocity already keeps up; confidence not applied (it is `weight`)."""
-        along = ((dt * velocity) @ self.image_axes.T * self.direction).sum(-1)
-        short = (self.length - along).clamp_min(0.0) / dt
-        return (short[:, None] * self.direction) @ self.image_axes
-
     def __call__(self, p: torch.Tensor) -> torch.Tensor:
         """mean over particles of confidence x (how far the image-plane displacement along the
         flow falls short of the flow, world units at the particle's depth)^2 / h^2."""

@@ -42,7 +42,7 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
-from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source, interpolate_velocity
+from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
 from fluidcore.physics.air import scene_air
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
@@ -100,7 +100,7 @@ class Reconstruction:
     symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
-    flow: FlowField | None = None  # optical flow of the first input view (None when neither its loss nor the air uses it)
+    flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     def scene(self) -> Scene:
         return Scene(
@@ -225,8 +225,7 @@ def prepare(
         symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
         if weight > 0 and pseudo_views and not extra_views:
             pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
-    wants_flow = quality.weights.flow > 0 or (quality.air_flow > 0 and quality.air_cells > 0)
-    flow = input_flow(first.camera, first.frames, first.background, first.noise) if wants_flow else None
+    flow = input_flow(first.camera, first.frames, first.background, first.noise) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
         views=(*targets, *pseudo, *extra_views),
@@ -344,11 +343,8 @@ class Reconstructor:
         loss_fn = self._image_loss(index, iterations, chooser)
         flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, p_prev, config.h)
         p, terms = fit_positions(
-            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility,
-            flow if q.weights.flow > 0 else None,
+            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility, flow
         )
-        if flow is not None and q.air_flow > 0 and state.air is not None:
-            self._correct_air(state, p.detach(), flow)
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
@@ -369,14 +365,6 @@ class Reconstructor:
         smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
-
-    def _correct_air(self, state: ParticleState, positions: torch.Tensor, flow: FlowObservation) -> None:
-        """Relax the air just stepped to frame t towards the flow from t-1 to t where the smoke is
-        (Quality.air_flow): the shortfall of the air at the fitted particles, observed where each
-        was at t-1, splatted onto the faces at t and projected (AirGrid.nudge)."""
-        grid = self.simulator.air
-        lacking = flow.shortfall(grid.velocity_at(state.air, positions), self.rec.config.dt)
-        grid.nudge(state.air, positions, lacking, flow.weight, self.rec.quality.air_flow, self.simulator.spheres, state.time)
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""

@@ -85,12 +85,6 @@ class Quality:
     # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = 0
     air_vorticity: float = 0.0  # the air's vorticity confinement (AirGrid's epsilon; 0 = off)
-    # After each frame's fit, relax the air towards the input view's optical flow where the smoke is
-    # (AirGrid.nudge with FlowObservation.shortfall): the fraction of the image-plane shortfall
-    # removed per frame, 0 = off. 0.5 weighs the stepped air and the observed motion alike (no
-    # scene's numbers chose it). Measured, not kept: future -0.26 dB on D and -0.28 dB on F, seed 0
-    # (docs/bench_generalise.md, "The air corrected by the optical flow").
-    air_flow: float = 0.0
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02
