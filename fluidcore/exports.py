@@ -38,6 +38,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -160,23 +161,38 @@ def splat_vertices(gaussians: dict[str, np.ndarray]) -> np.ndarray:
     return vertices
 
 
-def _write_npz(run: Run, state: FrameState, path: Path) -> None:
+@dataclass
+class ExportFrame:
+    """One frame of a run as the writers read it. Its density grid (with the velocity) is splatted
+    once, when a first format asks, and shared by the others: a job's last frame goes out as
+    density npz, density and velocity NRRD and VDB from one grid (0.08 s each on dev scene F's
+    55 x 80 x 55 grid)."""
+
+    run: Run
+    state: FrameState
+
+    @cached_property
+    def grid(self) -> DensityGrid:
+        return frame_density(self.run, self.state)
+
+
+def _write_npz(frame: ExportFrame, path: Path) -> None:
     with path.open("wb") as file:
-        np.savez(file, **state.export())
+        np.savez(file, **frame.state.export())
 
 
-def _write_ply(run: Run, state: FrameState, path: Path) -> None:
+def _write_ply(frame: ExportFrame, path: Path) -> None:
     from plyfile import PlyData, PlyElement
 
-    PlyData([PlyElement.describe(splat_vertices(state.gaussians), "vertex")]).write(str(path))
+    PlyData([PlyElement.describe(splat_vertices(frame.state.gaussians), "vertex")]).write(str(path))
 
 
-def _write_density(run: Run, state: FrameState, path: Path) -> None:
-    grid = frame_density(run, state)
+def _write_density(frame: ExportFrame, path: Path) -> None:
+    grid = frame.grid
     with path.open("wb") as file:
         np.savez(
             file, density=grid.density, origin=grid.origin, spacing=np.asarray(grid.spacing),
-            particle_mass=np.asarray(grid.particle_mass), rest_density=np.asarray(run.scene.physics.rho0),
+            particle_mass=np.asarray(grid.particle_mass), rest_density=np.asarray(frame.run.scene.physics.rho0),
             velocity=grid.velocity, velocity_source=np.asarray(grid.velocity_source),
         )
 
@@ -208,18 +224,18 @@ def _nrrd(grid: DensityGrid, values: np.ndarray, path: Path) -> None:
         file.write(data.astype("<f4").tobytes(order="F"))  # NRRD: the first axis varies fastest
 
 
-def _write_nrrd(run: Run, state: FrameState, path: Path) -> None:
-    grid = frame_density(run, state)
+def _write_nrrd(frame: ExportFrame, path: Path) -> None:
+    grid = frame.grid
     _nrrd(grid, grid.density, path)
 
 
-def _write_velocity(run: Run, state: FrameState, path: Path) -> None:
-    grid = frame_density(run, state)
+def _write_velocity(frame: ExportFrame, path: Path) -> None:
+    grid = frame.grid
     _nrrd(grid, grid.velocity, path)
 
 
-def _write_vdb(run: Run, state: FrameState, path: Path) -> None:
-    grid = frame_density(run, state)
+def _write_vdb(frame: ExportFrame, path: Path) -> None:
+    grid = frame.grid
     # velocity active where there is smoke: what motion blur reads, and a sequence of dense air
     # grids would cost 12 bytes a voxel of the whole box in every frame
     velocity = np.where(grid.density[..., None] > 0, grid.velocity, 0.0)
@@ -229,7 +245,7 @@ def _write_vdb(run: Run, state: FrameState, path: Path) -> None:
 @dataclass(frozen=True)
 class Exporter:
     suffix: str
-    write: Callable[[Run, FrameState, Path], None]
+    write: Callable[[ExportFrame, Path], None]
     media_type: str
     stem: str  # what the file holds, the start of its numbered name (export_name)
     every_frame: bool = False  # a job publishes every frame (a sequence), not only the last
@@ -256,10 +272,10 @@ def _held(run: Run, run_dir: str | os.PathLike[str]) -> str:
     return f"{run_dir} (frames {f'{frames[0]}..{frames[-1]}' if frames else 'none yet'})"
 
 
-def _write(run: Run, frame: int, fmt: str, out: Path) -> Path:
+def _write(frame: ExportFrame, fmt: str, out: Path) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_output(out, suffix=EXPORTERS[fmt].suffix) as temporary:
-        EXPORTERS[fmt].write(run, run.read_frame(frame), temporary)
+        EXPORTERS[fmt].write(frame, temporary)
     return out
 
 
@@ -276,7 +292,7 @@ def export_frame(run_dir: str | os.PathLike[str], frame: int, fmt: str, out: str
     run = _open(run_dir, fmt)
     if frame not in run.frames():
         raise ExportError(f"frame {frame} is not a finished frame of {_held(run, run_dir)}")
-    return _write(run, frame, fmt, Path(out))
+    return _write(ExportFrame(run, run.read_frame(frame)), fmt, Path(out))
 
 
 def export_name(frame: int, fmt: str) -> str:
@@ -301,16 +317,21 @@ def export_sequence(
         raise ExportError(f"frames {start}:{end}: frame {missing[0]} is not a finished frame of {_held(run, run_dir)}")
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ExportError(f"out: {out_dir} is a file; a sequence goes into a folder")
-    return [_write(run, t, fmt, Path(out_dir) / export_name(t, fmt)) for t in range(start, end)]
+    return [_write(ExportFrame(run, run.read_frame(t)), fmt, Path(out_dir) / export_name(t, fmt)) for t in range(start, end)]
 
 
 def export_artifacts(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> list[Path]:
     """What a finished job publishes next to its videos, into `out_dir`: the run's last frame in
     every registered format, and every frame (the last MAX_SEQUENCE_FRAMES) in the formats that
-    VFX tools import as sequences (`every_frame`); other frames are one `fluidnexus export` away."""
+    VFX tools import as sequences (`every_frame`); other frames are one `fluidnexus export` away.
+    Each frame is read once and its formats share its density grid (`ExportFrame`)."""
     last = last_frame(run_dir)
-    first = max(Run.open(run_dir).frames()[0], last + 1 - MAX_SEQUENCE_FRAMES)
-    return [
-        path for fmt, exporter in EXPORTERS.items()
-        for path in export_sequence(run_dir, (first if exporter.every_frame else last, last + 1), fmt, out_dir)
-    ]
+    run = Run.open(run_dir)
+    first = max(run.frames()[0], last + 1 - MAX_SEQUENCE_FRAMES)
+    written = []
+    for t in range(first, last + 1):
+        frame = ExportFrame(run, run.read_frame(t))
+        for fmt, exporter in EXPORTERS.items():
+            if exporter.every_frame or t == last:
+                written.append(_write(frame, fmt, Path(out_dir) / export_name(t, fmt)))
+    return written
