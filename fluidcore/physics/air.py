@@ -143,18 +143,21 @@ class AirGrid:
                                         f"got {tuple(face.shape)}")
             if not bool(torch.isfinite(face).all()):
                 raise PhysicsInputError(f"air.faces[{axis}] contains NaN or Inf")
-        if not (math.isclose(air.spacing, self.spacing, rel_tol=1e-6)
-                and all(math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9 * self.spacing) for a, b in zip(air.origin, self.box.lo))):
+        if not self._holds(air):
             raise PhysicsInputError(f"air lies on a grid at {tuple(air.origin)} with cells of {air.spacing:g}; this grid "
                                     f"starts at {self.box.lo} with cells of {self.spacing:g}")
         return air
+
+    def _holds(self, air: AirState) -> bool:
+        """Whether `air` lies on this grid: the same corner and cell size (its shape is `check`'s)."""
+        return math.isclose(air.spacing, self.spacing, rel_tol=1e-6) and all(
+            math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9 * self.spacing) for a, b in zip(air.origin, self.box.lo))
 
     def resample(self, air: AirState) -> AirState:
         """`air` if it lies on this grid, else its velocity sampled trilinearly at this grid's faces
         (the border value outside its grid) and projected: a continuation on a finer or coarser
         grid than its parent's goes on from the parent's air instead of from still air."""
-        if math.isclose(air.spacing, self.spacing, rel_tol=1e-6) and all(
-                math.isclose(a, b, rel_tol=1e-6, abs_tol=1e-9 * self.spacing) for a, b in zip(air.origin, self.box.lo)):
+        if self._holds(air):
             return self.check(air)
         for axis, face in enumerate(air.faces):
             if face.dim() != 3 or not bool(torch.isfinite(face).all()):
