@@ -341,20 +341,10 @@ def estimate_source(
         views.append((camera, found, up2d, 1.0))
         sx, sy = cameras[name].width / mask.shape[2], cameras[name].height / mask.shape[1]
         pixels[name] = (found[0] * sx, found[1] * sy, found[2] * sx)
-    real, used = len(views), {}
-    if real == 1:
-        input_camera, (u, v, _), _, _ = views[0]
-        input_direction = pixel_ray(input_camera, u, v)[1]
-    for view in generated if real == 1 else ():
-        camera = view.camera.scaled(view.masks.shape[2], view.masks.shape[1])
-        try:
-            found = source_in_view(view.masks, image_up(camera, box_center, up_v))
-        except EstimationError:  # no smoke (or a view along the up axis): it says nothing of the source
-            continue
-        if np.linalg.norm(np.cross(pixel_ray(camera, found[0], found[1])[1], input_direction)) < GENERATED_MIN_ANGLE:
-            continue
-        views.append((camera, found, None, float(view.weight)))
-        used[view.camera.name] = float(view.weight)
+    real = len(views)
+    crossing = [] if real != 1 else crossing_views(generated, pixel_ray(views[0][0], *views[0][1][:2])[1], box_center, up_v)
+    views += [(camera, found, None, float(view.weight)) for view, camera, found in crossing]
+    used = {view.camera.name: float(view.weight) for view, _, _ in crossing}
     rays = [pixel_ray(camera, found[0], found[1]) for camera, found, _, _ in views]
     origins, directions = np.array([o for o, _ in rays]), np.array([d for _, d in rays])
     weights = np.array([w for *_, w in views])
@@ -373,6 +363,25 @@ def estimate_source(
     radii = [r * float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3]) / camera.fx for camera, (_, _, r), _, _ in views]
     return SourceEstimate(center=center, radius=weighted_median(radii, weights), pixels=pixels, depth_cue=cue,
                           depth_range=depth_range, generated=used if cue != "given" else {})
+
+
+def crossing_views(
+    generated: Sequence[GeneratedView], input_direction: np.ndarray, box_center: np.ndarray, up: np.ndarray
+) -> list[tuple[GeneratedView, Camera, tuple[float, float, float]]]:
+    """The generated views that can tell the depth along the one input ray (direction
+    `input_direction`): each with its camera at its masks' size and its source (u, v, r) there.
+    A view that shows no smoke says nothing of the source; one whose ray runs within
+    GENERATED_MIN_ANGLE of the input ray barely crosses it."""
+    crossing = []
+    for view in generated:
+        camera = view.camera.scaled(view.masks.shape[2], view.masks.shape[1])
+        try:
+            found = source_in_view(view.masks, image_up(camera, box_center, up))
+        except EstimationError:  # no smoke (or a view along the up axis)
+            continue
+        if np.linalg.norm(np.cross(pixel_ray(camera, found[0], found[1])[1], input_direction)) >= GENERATED_MIN_ANGLE:
+            crossing.append((view, camera, found))
+    return crossing
 
 
 def weighted_median(values: Sequence[float], weights: Sequence[float]) -> float:

@@ -187,9 +187,10 @@ def prepare(
     (a refinement fits its refined input views only).
     """
     targets, channels = list(inputs.targets), inputs.channels
-    masks = {  # the first second's smoke: what the source estimate and the smoke colour read
-        v.camera.name: init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise) for v in targets
-    }
+    def first_second(view: ViewTarget) -> np.ndarray:  # the smoke the source estimate and the smoke colour read
+        return init.smoke_mask(view.frames[: init.source_frames(fps, len(view.frames))], view.background, view.noise)
+
+    masks = {v.camera.name: first_second(v) for v in targets}
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)
@@ -199,7 +200,7 @@ def prepare(
     estimate_record = None
     if source is None or source.radius is None:
         generated = [  # the novel-view model's views close the depth one input view leaves open
-            init.GeneratedView(v.camera, init.smoke_mask(v.frames[: init.source_frames(fps, len(v.frames))], v.background, v.noise), v.weight)
+            init.GeneratedView(v.camera, first_second(v), v.weight)
             for v in extra_views if v.kind == "generated"
         ]
         estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
