@@ -83,11 +83,12 @@ class PBFConfig:
     vorticity: float = 0.0  # vorticity-confinement epsilon, world units / s^2 per unit curl (0 = off)
     max_speed: float | None = None  # world units / s; None = h / dt (one kernel radius per step)
     max_correction: float = 0.5  # largest solver correction per iteration, fraction of h
+    entrainment: float = 0.0  # the plume's spreading rate db/dz (fluidcore.physics.entrainment; 0 = off)
 
     def __post_init__(self) -> None:
         for name in ("rho0", "dt", "h", "length_scale", "max_correction"):
             _finite(getattr(self, name), name, positive=True)
-        for name in ("drag", "relaxation", "s_corr_k", "s_corr_dq", "xsph", "vorticity"):
+        for name in ("drag", "relaxation", "s_corr_k", "s_corr_dq", "xsph", "vorticity", "entrainment"):
             _finite(getattr(self, name), name, non_negative=True)
         _finite(self.alpha, "alpha")
         object.__setattr__(self, "gravity", _vec3(self.gravity, "gravity"))

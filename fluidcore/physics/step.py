@@ -7,7 +7,8 @@ Order (Macklin & Mueller 2013, Algorithm 1, with the smoke model's forces):
   4. density-constraint iterations on p (they spread what a sphere piled onto its surface)
   5. spheres push particles out again (exact contact)
   6. v = (p - x) / dt, then drag (needs the density just solved), XSPH, vorticity,
-     sliding along spheres, and the speed limit.
+     sliding along spheres, and the speed limit;
+  7. entrainment moves p outward (`fluidcore.physics.entrainment`; a displacement, v keeps step 6's).
 Drag is applied after the solve, as a velocity filter, because it needs the density of the
 new positions, which the solver has just computed: no extra neighbour pass. The speed limit
 bounds velocities; a particle's displacement per step is then at most the limit x dt plus
@@ -17,12 +18,12 @@ the solver's capped corrections (max_correction x h per iteration).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
-from fluidcore.physics import coupling, forces, fused
+from fluidcore.physics import coupling, entrainment, forces, fused
 from fluidcore.physics.checks import points
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Sphere
 from fluidcore.physics.forces import AirField, ForceField
@@ -84,12 +85,16 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
     """
     p = x + config.dt * cap_length(v + config.dt * acceleration(x, config, time, force), config.speed_limit)
     if not fast or cache is not None:
-        return correct(x, p, config, time=time, air=air, spheres=spheres, fast=fast, cache=cache)
-    order = cell_table(p, config.h).order
-    out = correct(x[order], p[order], config, time=time, air=air, spheres=spheres, fast=True)
-    inverse = torch.empty_like(order)
-    inverse[order] = torch.arange(order.shape[0], device=order.device)
-    return Advanced(out.positions[inverse], out.velocities[inverse], out.density[inverse], out.iterations)
+        out = correct(x, p, config, time=time, air=air, spheres=spheres, fast=fast, cache=cache)
+    else:
+        order = cell_table(p, config.h).order
+        out = correct(x[order], p[order], config, time=time, air=air, spheres=spheres, fast=True)
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(order.shape[0], device=order.device)
+        out = Advanced(out.positions[inverse], out.velocities[inverse], out.density[inverse], out.iterations)
+    if config.entrainment == 0.0:
+        return out
+    return replace(out, positions=entrainment.spread(out.positions, out.velocities, config))
 
 
 def acceleration(x: Tensor, config: PBFConfig, time: float, force: ForceField | None) -> Tensor:
