@@ -85,13 +85,16 @@ def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str,
     row: dict[str, Any] = {"scene": str(gt.root), "view": view, "frames": list(window), "truth_kind": truth_kind,
                            "truth": {"center": truth[0].tolist(), "radius": truth[1]}}
     for name, mode in (("image", IMAGE_ESTIMATE_PHYSICS), (physics, physics)):
-        center, radius = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode)
-        row[name] = {"center": center.tolist(), "radius": radius, **errors(camera, center, radius, truth)}
+        center, radius, chosen = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode)
+        row[name] = {"center": center.tolist(), "radius": radius, **errors(camera, center, radius, truth),
+                     "physics": chosen}
     return row
 
 
-def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int, int], quality: str, physics: str) -> tuple[np.ndarray, float]:
-    """The source `prepare` starts a reconstruction of `videos` from (centre, radius), world units."""
+def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int, int], quality: str,
+                    physics: str) -> tuple[np.ndarray, float, dict]:
+    """The source `prepare` starts a reconstruction of `videos` from (centre, radius, world units),
+    and the manifest's record of the physics it chose (what identification found)."""
     from fluidcore import video
     from fluidcore.cameras import capture_box, render_size
     from fluidcore.reconstruct.loop import prepare, read_inputs
@@ -103,13 +106,14 @@ def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int,
                for name, path in videos.items()}
     inputs = read_inputs(cameras, decoded, frame_range=window, quality=preset)
     rec = prepare(cameras, inputs, fps=gt.fps, quality=preset, box=capture_box(gt.cameras_path, cameras), physics=physics)
-    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius)
+    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius), rec.physics
 
 
 def rig_source(gt: ScalarFlowScene, view: str, window: tuple[int, int], quality: str) -> tuple[np.ndarray, float]:
     """ScalarFlow's source triangulated from every camera of the rig (input video + held-out clips)."""
     videos = {name: gt.input_path(view) if name == view else gt.truth_path(name) for name in [view, *gt.views()]}
-    return prepared_source(gt, videos, window, quality, IMAGE_ESTIMATE_PHYSICS)
+    center, radius, _ = prepared_source(gt, videos, window, quality, IMAGE_ESTIMATE_PHYSICS)
+    return center, radius
 
 
 def errors(camera: Any, center: np.ndarray, radius: float, truth: tuple[np.ndarray, float]) -> dict[str, float]:

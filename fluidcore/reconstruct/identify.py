@@ -20,13 +20,14 @@ what the video shows frame after frame:
 Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
 (a second or two) and compares what the image fit cannot change later: where smoke is. The
 search is coarse to fine (five buoyancies in log steps around one read off the video's rise
-speed; then the source's radius within 0.8-1.25x of the image estimate of
+speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains widens
+it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the image estimate of
 `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom edge, and its height
 half a radius either way, since a smoke edge biases both; then two finer buoyancy steps),
 bounded by MAX_EVALUATIONS rollouts. The radius range stays narrow: given half to twice, the
-silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow
-(a plume model without entrainment matches a narrow stem with a small source), and the
-image estimate is within 13% on both dev scenes.
+silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow,
+and with the spreading rate searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F),
+where the image estimate is within 24% on both dev scenes.
 
 The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
 not searched on its own), and the inflow rate follows from it: the source seeds what its inlet carries at rest
@@ -62,6 +63,9 @@ FLOOR_FRACTION = 0.5  # buoyancy floor: this fraction of drag x observed rise sp
 BUOYANCY_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)  # stage-1 grid around the video's estimate
 SOURCE_SIZES = (0.8, 1.0, 1.25)  # source radius factors (stage 2a); why not wider: docs/bench_generalise.md, "Where the source is, measured"
 SOURCE_LIFTS = (-0.5, 0.5)  # then the centre moves along up from there, in radii of the estimate (stage 2b)
+# Spreading rates db/dz tried (stage 1b, fluidcore.physics.entrainment): MTT's 6/5 alpha_e for an
+# entrainment coefficient alpha_e of 0 (the paper's column), 0.05 and 0.1 (laboratory plumes).
+SPREADING_RATES = (0.0, 0.06, 0.12)
 REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
 
 
@@ -124,6 +128,7 @@ class Identified:
     evaluations: int
     source_center: list[float]  # world
     source_radius: float
+    entrainment: float  # the plume's spreading rate db/dz (fluidcore.physics.entrainment)
     prior: dict  # the starting values (preset) and what stayed the prior's
 
     def to_json(self) -> dict:
@@ -166,7 +171,8 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
     return int(min(max(round(config.inlet_capacity(radius, speed)), 1), budget))
 
 
-Candidate = tuple[float, float, float]  # (buoyancy, source lift along up in radii, source radius factor)
+Candidate = tuple[float, float, float, float]  # (buoyancy, source lift along up in radii, source radius factor,
+# spreading rate db/dz)
 
 
 class _Search:
@@ -188,8 +194,8 @@ class _Search:
 
     def parts(self, candidate: Candidate) -> tuple[PBFConfig, Source]:
         """The simulator's config and source of a candidate (inflow at its terminal speed)."""
-        buoyancy, lift, radius_factor = candidate
-        config = with_buoyancy(self.config, buoyancy, self.up)
+        buoyancy, lift, radius_factor, spreading = candidate
+        config = replace(with_buoyancy(self.config, buoyancy, self.up), entrainment=spreading)
         speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
         radius = self.source.radius * radius_factor
         center = np.asarray(self.source.center) + lift * self.source.radius * self.up
@@ -236,6 +242,7 @@ def identify(
     budget: int,
     device: torch.device | str = "cpu",
     prior_name: str = "",
+    spreading_rates: Sequence[float] = SPREADING_RATES,
 ) -> Identified:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
 
@@ -243,7 +250,8 @@ def identify(
     on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
     buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
     not pin it down. `config` and `source` are the prior (the preset in this scene's units, the estimated
-    source); `budget` caps the particles seeded per step.
+    source); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
+    spreading rates tried, the first one before the others (`(0.0,)`: no entrainment).
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
@@ -253,32 +261,34 @@ def identify(
     floor = buoyancy_floor(speed_obs, config.drag)
     base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
     search = _Search(observation, config, box, source, up_v, budget, device)
-    best = _best(search, [(base * f, 0.0, 1.0) for f in BUOYANCY_FACTORS], floor)
+    best = _best(search, [(base * f, 0.0, 1.0, spreading_rates[0]) for f in BUOYANCY_FACTORS], floor)
     a = best[0]
+    best = _best(search, [(a, 0.0, 1.0, rate) for rate in spreading_rates], floor)
+    spreading = best[3]
     # A resized source keeps resting on the smoke's bottom edge (init.source_in_view): its centre
     # moves up by (size - 1) radii; only then is the height searched on its own.
-    best = _best(search, [(a, size - 1.0, size) for size in SOURCE_SIZES], floor)
-    a, lift, size = best
-    best = _best(search, [(a, lift + step, size) for step in SOURCE_LIFTS], floor)
+    best = _best(search, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor)
+    a, lift, size, _ = best
+    best = _best(search, [(a, lift + step, size, spreading) for step in SOURCE_LIFTS], floor)
     for step in REFINE:
-        a, lift, size = best
-        best = _best(search, [(a / step, lift, size), (a * step, lift, size)], floor)
+        a, lift, size, spreading = best
+        best = _best(search, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
     misfit, age = search.misfit(best)
     _, fitted = search.parts(best)
     prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
              "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
              "source": {"center": list(source.center), "radius": source.radius}}
     return Identified(max(best[0], floor), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
-                      len(search.scores), list(fitted.center), fitted.radius, prior)
+                      len(search.scores), list(fitted.center), fitted.radius, best[3], prior)
 
 
 def _best(search: _Search, grid: list[Candidate], floor: float) -> Candidate:
     """The candidate with the least misfit over everything scored so far, after scoring the grid
     (buoyancies clamped to the floor) while fewer than MAX_EVALUATIONS rollouts ran."""
-    for buoyancy, lift, size in grid:
+    for buoyancy, lift, size, spreading in grid:
         if len(search.scores) >= MAX_EVALUATIONS:
             break
-        search.misfit((max(buoyancy, floor, 1e-6), lift, size))
+        search.misfit((max(buoyancy, floor, 1e-6), lift, size, spreading))
     return min(search.scores, key=lambda k: search.scores[k][0])
 
 
@@ -320,6 +330,8 @@ def scene_physics(
     budget: int,
     seed: int,
     device: torch.device | str = "cpu",
+    *,
+    entrainment: bool,
 ) -> ScenePhysics:
     """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
     background and noise), with the source estimated at (center, radius).
@@ -327,7 +339,8 @@ def scene_physics(
     The kernel radius is a resolution choice in the scene's own units (its box's height over
     KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
     "auto", in world units, so no length scale of another dataset enters them; a preset name
-    keeps that preset's buoyancy (the paper's setting for its datasets). Either way the source seeds what its inlet carries
+    keeps that preset's buoyancy (the paper's setting for its datasets). `entrainment`: whether the
+    identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's column. Either way the source seeds what its inlet carries
     at rest density (`inlet_rate`, capped by `budget`) at the buoyancy's terminal speed.
     """
     from fluidcore.reconstruct.init import smoke_mask
@@ -344,8 +357,9 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, box, source, up, budget, device, prior_name)
-        config = with_buoyancy(prior, found.buoyancy, up)
+        found = identify(observation, prior, box, source, up, budget, device, prior_name,
+                         SPREADING_RATES if entrainment else (0.0,))
+        config = replace(with_buoyancy(prior, found.buoyancy, up), entrainment=found.entrainment)
         source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps
         record["identified"] = found.to_json()
@@ -355,5 +369,5 @@ def scene_physics(
     speed = config.terminal_speed
     source = replace(source, rate=inlet_rate(source.radius, speed, config, budget), velocity=tuple(float(c) for c in speed * up))
     record.update({"buoyancy": buoyancy, "inflow_speed": speed, "inflow_rate": source.rate, "drag": config.drag,
-                   "rho0": config.rho0, "stabilization_steps": steps})
+                   "rho0": config.rho0, "entrainment": config.entrainment, "stabilization_steps": steps})
     return ScenePhysics(config, source, steps, record)

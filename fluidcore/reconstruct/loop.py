@@ -35,7 +35,7 @@ import math
 import random
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -101,6 +101,15 @@ class Reconstruction:
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
+
+    @property
+    def fit_config(self) -> PBFConfig:
+        """The physics the fit steps with: the scene's without entrainment. The plume's spreading
+        (`PBFConfig.entrainment`, identified from the input view) is for the free simulation
+        that continues the fit; inside the fit it spread the particles along the input ray, which
+        one view does not pin back (dev scene F, seed 0: novel views 32.20 -> 31.31 dB with it,
+        docs/bench_generalise.md, "Entrainment")."""
+        return replace(self.config, entrainment=0.0)
 
     def scene(self) -> Scene:
         return Scene(
@@ -216,7 +225,8 @@ def prepare(
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
     chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device)
+                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device,
+                           entrainment=quality.entrainment)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
     pseudo, symmetry = [], None
@@ -272,8 +282,8 @@ class Reconstructor:
         self.device = torch.device(device)
         # with quality.air_cells the air is part of the state: stepped from the fitted particles of
         # each frame, saved with it, and continued by every prediction and branch of the run
-        air = scene_air(rec.box, rec.config, rec.quality.air_cells, vorticity=rec.quality.air_vorticity)
-        self.simulator = Simulator(rec.config, rec.box, rec.source, air=air, device=self.device)
+        air = scene_air(rec.box, rec.fit_config, rec.quality.air_cells, vorticity=rec.quality.air_vorticity)
+        self.simulator = Simulator(rec.fit_config, rec.box, rec.source, air=air, device=self.device)
 
     def open_run(self, out_dir) -> Run:
         rec = self.rec
@@ -311,7 +321,7 @@ class Reconstructor:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
         """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
-        rec, q, config = self.rec, self.rec.quality, self.rec.config
+        rec, q, config = self.rec, self.rec.quality, self.rec.fit_config
         index = t - rec.frame_range[0]
         seed = q.seed * 1_000_003 + t
         generator = torch.Generator().manual_seed(seed)

@@ -85,6 +85,12 @@ class Quality:
     # reconstruction steps it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = 0
     air_vorticity: float = 0.0  # the air's vorticity confinement (AirGrid's epsilon; 0 = off)
+    # Identify the plume's spreading rate (entrainment, fluidcore.physics.entrainment) from the input
+    # view and simulate it in every continuation; off: the paper's column (spreading rate 0). Off by
+    # default: on, the predicted plume's width comes within 20% of the truth's on both dev scenes and
+    # D's future gains 0.3 dB, but the wind what-ifs lose (F 0.9 dB; docs/bench_generalise.md,
+    # "Entrainment").
+    entrainment: bool = False
     lr_position: float = 0.02  # in units of h per iteration
     lr_color: float = 0.02
     lr_scale: float = 0.02

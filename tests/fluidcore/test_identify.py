@@ -29,10 +29,11 @@ def rising() -> synth.SynthScene:
     return synth.generate(synth.SynthSpec(frames=45, width=72, height=96, views=1, buoyancy_scale=1.7))
 
 
-def _prepare(scene: synth.SynthScene, physics: str):
+def _prepare(scene: synth.SynthScene, physics: str, **overrides):
     spec = scene.spec
     box = spec.box()
-    quality = get("preview").with_overrides(long_side=96, particles_per_frame=spec.particles_per_step, symmetry_views=0)
+    quality = get("preview").with_overrides(long_side=96, particles_per_frame=spec.particles_per_step, symmetry_views=0,
+                                            **overrides)
     inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), quality=quality)
     return prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics=physics)
 
@@ -130,3 +131,54 @@ def test_worker_passes_the_physics_to_the_job(monkeypatch: pytest.MonkeyPatch, t
     runners.reconstruct(inputs)
     assert seen["physics"] == "scalarflow"
     assert seen["source"].center == (0.0, 0.1, 0.0) and seen["source"].radius is None
+
+
+
+def _silhouettes(scene: synth.SynthScene, rate: float):
+    """45 frames of a plume simulated with entrainment spreading at `rate`, as one camera's smoke
+    masks (each particle's pixel grown by about a kernel radius), and its source."""
+    from dataclasses import replace
+
+    from scipy import ndimage
+
+    from fluidcore.physics import Simulator
+
+    spec, camera = scene.spec, scene.cameras[INPUT]
+    source = spec.source()
+    simulator = Simulator(replace(spec.config(), entrainment=rate), spec.box(), source)
+    state = simulator.new_state()
+    masks = np.zeros((45, camera.height, camera.width), dtype=bool)
+    for t in range(45):
+        simulator.step(state)
+        uv, depth = camera.project_numpy(state.positions[state.alive].numpy())
+        col, row = uv[:, 0].astype(int), uv[:, 1].astype(int)
+        ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < camera.width) & (row < camera.height)
+        masks[t, row[ok], col[ok]] = True
+        masks[t] = ndimage.binary_dilation(masks[t], iterations=2)
+    return Observation.from_masks(camera, masks, 2, np.asarray(source.center), np.array([0.0, 1.0, 0.0])), source
+
+
+def test_identification_tells_a_spreading_plume_from_a_column(rising: synth.SynthScene) -> None:
+    """Silhouettes of a column (no entrainment) get no spreading; those of a plume made with
+    MTT's rate (0.12) get some (at 96 px the search takes 0.06 for it: the coarse cells blur
+    the difference between the two rates it can choose from)."""
+    spec = rising.spec
+    found = {}
+    for rate in (0.0, 0.12):
+        observation, source = _silhouettes(rising, rate)
+        found[rate] = identify(observation, spec.config(), spec.box(), source, (0.0, 1.0, 0.0),
+                               spec.particles_per_step).entrainment
+    assert found[0.0] == 0.0
+    assert found[0.12] > 0.0
+
+
+def test_without_entrainment_the_scene_keeps_the_papers_column(rising: synth.SynthScene) -> None:
+    """`Quality.entrainment` off (the default): no spreading rate is tried, and the scene every continuation
+    simulates has none; the fit itself never spreads (`Reconstruction.fit_config`)."""
+    column = _prepare(rising, "auto")  # the default
+    assert column.config.entrainment == 0.0 and column.settings().physics["entrainment"] == 0.0
+    assert column.settings().physics["identified"]["entrainment"] == 0.0
+    searched = _prepare(rising, "auto", entrainment=True)
+    assert searched.settings().physics["identified"]["evaluations"] > column.settings().physics["identified"]["evaluations"]
+    assert searched.scene().physics.entrainment == searched.config.entrainment
+    assert searched.fit_config.entrainment == 0.0
