@@ -88,7 +88,8 @@ class Quality:
     # Identify the plume's spreading rate (entrainment, fluidcore.physics.entrainment) from the input
     # view and simulate it in every continuation; off: the paper's column (spreading rate 0). Off by
     # default: on, the predicted plume's width comes within 20% of the truth's on both dev scenes and
-    # D's future gains 0.3 dB, but the wind what-ifs lose (F 0.9 dB; docs/bench_generalise.md,
+    # D's future gains 0.3 dB, but the wind what-ifs lose (F 0.9 dB); with the air grid too
+    # (air_cells 32) the wind gains instead, but F's ball loses 0.6 dB (docs/bench_generalise.md,
     # "Entrainment").
     entrainment: bool = False
     lr_position: float = 0.02  # in units of h per iteration
