@@ -11,13 +11,14 @@ them up, and the air grid (`fluidcore.physics.air`), at a few cells across the p
 narrow jet over it (docs/bench_generalise.md: its horizontal speeds are millimetres a second).
 
 The closure, per step: the live particles are cut into horizontal slabs one kernel radius h
-thick along up; each slab's centre (mean horizontal position), size b (rms horizontal distance
-from that centre) and rise speed w (mean velocity along up, at least 0) are taken, and every
-particle is moved outward from its slab's centre by dt x rate x w x r / b (r its horizontal
-offset). Each slab's rms radius then grows at rate x w, that is by `rate` per unit of height
-risen: MTT's linear spreading, self-similar (the profile's shape is kept, only stretched). It
-is a displacement, not a velocity: it does not accumulate in the particles' momentum (drag
-would have to undo it every step), and the visual Gaussians, which ride on the particles'
+thick along up; each slab's centre (mean horizontal position), mean velocity (its rise speed w
+the part along up, at least 0) and size b (rms offset from the centre across that velocity) are
+taken, and every particle is moved outward by dt x rate x w x r / b, r its offset from the
+slab's centre across the slab's mean flow (horizontal when the plume rises straight). Each
+slab's rms radius then grows at rate x w, that is by `rate` per unit of height risen: MTT's
+linear spreading, self-similar (the profile's shape is kept, only stretched). It is a
+displacement, not a velocity: it does not accumulate in the particles' momentum (drag would
+have to undo it every step), and the visual Gaussians, which ride on the particles'
 displacement, spread with it.
 
 The slabs are along up, not along a plume's own axis: a plume bent by a wind spreads by its
@@ -43,23 +44,23 @@ def spread(positions: Tensor, velocities: Tensor, config: PBFConfig) -> Tensor:
         return positions
     up = -positions.new_tensor(config.gravity)
     up = up / torch.linalg.vector_norm(up).clamp_min(1e-30)
-    height = positions.detach() @ up
+    level = positions @ up
+    height = level.detach()
     low, span = height.min(), float(height.max() - height.min())
     thickness = max(config.h, span / MAX_SLABS)
     slab = ((height - low) / thickness).long().clamp(0, MAX_SLABS - 1)
-    n = int(slab.max()) + 1
-    count = torch.zeros(n, dtype=positions.dtype, device=positions.device).index_add(
-        0, slab, torch.ones_like(height)).clamp_min(1.0)
-    level = positions @ up
+    count = torch.bincount(slab).to(positions.dtype).clamp_min(1.0)
+
+    def slab_mean(values: Tensor) -> Tensor:
+        """Mean over each slab of per-particle `values` (N,) or (N, 3)."""
+        total = values.new_zeros((count.shape[0], *values.shape[1:])).index_add(0, slab, values)
+        return total / count.view(-1, *([1] * (values.dim() - 1)))
+
     across = positions - level[:, None] * up  # the horizontal part
-    zeros = torch.zeros(n, 3, dtype=positions.dtype, device=positions.device)
-    centre = zeros.index_add(0, slab, across) / count[:, None]
-    flow = zeros.index_add(0, slab, velocities) / count[:, None]
+    flow = slab_mean(velocities)
     axis = flow / torch.linalg.vector_norm(flow, dim=1, keepdim=True).clamp_min(1e-12)
-    offset = across - centre[slab]
+    offset = across - slab_mean(across)[slab]
     offset = offset - (offset * axis[slab]).sum(1, keepdim=True) * axis[slab]  # across the slab's flow only
-    size2 = torch.zeros(n, dtype=positions.dtype, device=positions.device).index_add(
-        0, slab, (offset * offset).sum(1)) / count
-    size = torch.sqrt(size2 + (1e-6 * config.h) ** 2)
+    size = torch.sqrt(slab_mean((offset * offset).sum(1)) + (1e-6 * config.h) ** 2)
     rise = (flow @ up).clamp_min(0.0)
     return positions + (config.dt * rate) * (rise / size)[slab, None] * offset

@@ -92,8 +92,6 @@ def advance(x: Tensor, v: Tensor, config: PBFConfig, *, time: float, force: Forc
         inverse = torch.empty_like(order)
         inverse[order] = torch.arange(order.shape[0], device=order.device)
         out = Advanced(out.positions[inverse], out.velocities[inverse], out.density[inverse], out.iterations)
-    if config.entrainment == 0.0:
-        return out
     return replace(out, positions=entrainment.spread(out.positions, out.velocities, config))
 
 

@@ -20,9 +20,9 @@ what the video shows frame after frame:
 Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
 (a second or two) and compares what the image fit cannot change later: where smoke is. The
 search is coarse to fine (five buoyancies in log steps around one read off the video's rise
-speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains widens
-it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the image estimate of
-`fluidcore.reconstruct.init.estimate_source`, resting on the same bottom edge, and its height
+speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
+widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
+image estimate of `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom edge, and its height
 half a radius either way, since a smoke edge biases both; then two finer buoyancy steps),
 bounded by MAX_EVALUATIONS rollouts. The radius range stays narrow: given half to twice, the
 silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow,
@@ -171,8 +171,8 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
     return int(min(max(round(config.inlet_capacity(radius, speed)), 1), budget))
 
 
-Candidate = tuple[float, float, float, float]  # (buoyancy, source lift along up in radii, source radius factor,
-# spreading rate db/dz)
+# (buoyancy, source lift along up in radii, source radius factor, spreading rate db/dz)
+Candidate = tuple[float, float, float, float]
 
 
 class _Search:
@@ -340,8 +340,9 @@ def scene_physics(
     KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
     "auto", in world units, so no length scale of another dataset enters them; a preset name
     keeps that preset's buoyancy (the paper's setting for its datasets). `entrainment`: whether the
-    identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's column. Either way the source seeds what its inlet carries
-    at rest density (`inlet_rate`, capped by `budget`) at the buoyancy's terminal speed.
+    identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's
+    column. Either way the source seeds what its inlet carries at rest density (`inlet_rate`,
+    capped by `budget`) at the buoyancy's terminal speed.
     """
     from fluidcore.reconstruct.init import smoke_mask
 

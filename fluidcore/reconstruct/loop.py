@@ -107,7 +107,7 @@ class Reconstruction:
         """The physics the fit steps with: the scene's without entrainment. The plume's spreading
         (`PBFConfig.entrainment`, identified from the input view) is for the free simulation
         that continues the fit; inside the fit it spread the particles along the input ray, which
-        one view does not pin back (dev scene F, seed 0: novel views 32.20 -> 31.31 dB with it,
+        one view does not pin back (dev scene F, seed 0: novel views 32.20 -> 31.30 dB with it,
         docs/bench_generalise.md, "Entrainment")."""
         return replace(self.config, entrainment=0.0)
 

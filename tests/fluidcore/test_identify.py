@@ -10,16 +10,18 @@ synth's own seeding rate, the resolution the scene was made at.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import ndimage
 from typer.testing import CliRunner
 
 from fluidcore import synth
 from fluidcore.reconstruct import get, prepare, read_inputs
 from fluidcore.reconstruct.identify import Observation, PhysicsChoiceError, buoyancy_floor, identify, rise_speed
-from fluidcore.physics import PRESETS
+from fluidcore.physics import PRESETS, Simulator
 
 INPUT = "view_00"
 
@@ -133,16 +135,9 @@ def test_worker_passes_the_physics_to_the_job(monkeypatch: pytest.MonkeyPatch, t
     assert seen["source"].center == (0.0, 0.1, 0.0) and seen["source"].radius is None
 
 
-
 def _silhouettes(scene: synth.SynthScene, rate: float):
     """45 frames of a plume simulated with entrainment spreading at `rate`, as one camera's smoke
     masks (each particle's pixel grown by about a kernel radius), and its source."""
-    from dataclasses import replace
-
-    from scipy import ndimage
-
-    from fluidcore.physics import Simulator
-
     spec, camera = scene.spec, scene.cameras[INPUT]
     source = spec.source()
     simulator = Simulator(replace(spec.config(), entrainment=rate), spec.box(), source)
