@@ -1,12 +1,14 @@
 """Where the smoke comes from: the source a reconstruction starts from, against the truth (issue 22).
 
     fluidnexus bench source SCENE_DIR [SCENE_DIR ...] [--input-view view_02] [--observed 0:90]
-        [--quality preview] [--physics auto] [--threads 1] [--json]
+        [--quality preview] [--physics auto] [--seeds 0,1,2] [--threads 1] [--json]
 
 For each scene, only the input view's video is read (as a reconstruction reads it), and
 `fluidcore.reconstruct.loop.prepare` runs twice: with a preset's physics, which keeps the image
 estimate of the source (`fluidcore.reconstruct.init.estimate_source`), and with `--physics`
-(default auto), whose identification may move and resize it. Both are compared with the truth:
+(default auto), whose identification may move and resize it, once per `--seeds` seed (the
+source's particle seeding, which the identification's rollouts start from). Both are compared
+with the truth:
 
     radius ratio     estimated radius / true radius
     across, height   centre error perpendicular to the input ray, split into the part along the
@@ -45,6 +47,7 @@ def command(
     observed: str | None = typer.Option(None, "--observed", help="A:B, frames read (default: protocol.json, else 0:90)."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
     physics: str = typer.Option("auto", "--physics", help="Physics mode of the second estimate (auto identifies it)."),
+    seeds: str = typer.Option("0", "--seeds", help="Comma-separated seeds of the second estimate, e.g. 0,1,2."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
@@ -56,14 +59,15 @@ def command(
     with user_errors(ValueError):
         if threads is not None:
             torch.set_num_threads(threads)
+        seed_list = parse_seeds(seeds)
         rows = []
         for scene_dir in scene_dirs:
             gt = open_scene(scene_dir)
             protocol = gt.protocol or {}
             view = input_view or protocol.get("input_view", "view_02")
             window = parse_frames(observed) if observed else tuple(protocol.get("observed", DEFAULT_OBSERVED))
-            rows.append(scene_row(gt, view, (window[0], min(window[1], gt.n_frames)), quality, physics))
-        result = {"quality": quality, "physics": physics, "threads": torch.get_num_threads(),
+            rows.append(scene_row(gt, view, (window[0], min(window[1], gt.n_frames)), quality, physics, seed_list))
+        result = {"quality": quality, "physics": physics, "seeds": seed_list, "threads": torch.get_num_threads(),
                   "load_average": list(os.getloadavg()), "scenes": rows}
     if json_out:
         echo_json(result)
@@ -71,8 +75,24 @@ def command(
         print_table(result)
 
 
-def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str, physics: str) -> dict[str, Any]:
-    """The image estimate and the `physics` estimate of one scene's source, with their errors."""
+MAX_SEEDS = 10  # seeds one call may ask for: each is a `prepare` per scene
+
+
+def parse_seeds(text: str) -> list[int]:
+    """'0,1,2' -> [0, 1, 2]: distinct non-negative integers, at most MAX_SEEDS."""
+    try:
+        seeds = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise UserError(f"--seeds: comma-separated integers, got {text!r}") from None
+    if not seeds or len(seeds) > MAX_SEEDS or len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise UserError(f"--seeds: 1 to {MAX_SEEDS} distinct non-negative integers, got {text!r}")
+    return seeds
+
+
+def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str, physics: str,
+              seeds: list[int]) -> dict[str, Any]:
+    """The image estimate and the `physics` estimate of one scene's source (one per seed, under
+    "seeds"; the first seed's also under the mode's name), with their errors."""
     camera = gt.cameras.get(view)
     if camera is None:
         raise UserError(f"--input-view: no camera {view!r} in {gt.cameras_path}")
@@ -84,15 +104,18 @@ def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str,
         raise UserError(f"{gt.root}: no recorded source to compare with")
     row: dict[str, Any] = {"scene": str(gt.root), "view": view, "frames": list(window), "truth_kind": truth_kind,
                            "truth": {"center": truth[0].tolist(), "radius": truth[1]}}
-    for name, mode in (("image", IMAGE_ESTIMATE_PHYSICS), (physics, physics)):
-        center, radius, chosen = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode)
-        row[name] = {"center": center.tolist(), "radius": radius, **errors(camera, center, radius, truth),
-                     "physics": chosen}
+    def estimate(mode: str, seed: int) -> dict[str, Any]:
+        center, radius, chosen = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode, seed)
+        return {"center": center.tolist(), "radius": radius, **errors(camera, center, radius, truth), "physics": chosen}
+
+    row["image"] = estimate(IMAGE_ESTIMATE_PHYSICS, seeds[0])  # a preset keeps the image estimate: no seed enters it
+    row["seeds"] = {str(seed): estimate(physics, seed) for seed in seeds}
+    row[physics] = row["seeds"][str(seeds[0])]
     return row
 
 
 def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int, int], quality: str,
-                    physics: str) -> tuple[np.ndarray, float, dict]:
+                    physics: str, seed: int = 0) -> tuple[np.ndarray, float, dict]:
     """The source `prepare` starts a reconstruction of `videos` from (centre, radius, world units),
     and the manifest's record of the physics it chose (what identification found)."""
     from fluidcore import video
@@ -100,7 +123,7 @@ def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int,
     from fluidcore.reconstruct.loop import prepare, read_inputs
     from fluidcore.reconstruct.presets import get
 
-    preset = get(quality)
+    preset = get(quality).with_overrides(seed=seed)
     cameras = {name: camera.pinhole() for name, camera in gt.cameras.items()}
     decoded = {name: video.read_frames(path, window[0], window[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side))
                for name, path in videos.items()}
@@ -136,8 +159,8 @@ def print_table(result: dict) -> None:
     for row in result["scenes"]:
         name = Path(row["scene"]).name
         print(f"{name:<28} {'truth':<10} {row['truth']['radius']:8.4f}   ({row['truth_kind']})")
-        for key in ("image", result["physics"]):
-            e = row[key]
+        estimates = [("image", row["image"]), *((f"{result['physics']} s{seed}", e) for seed, e in row["seeds"].items())]
+        for key, e in estimates:
             print(f"{'':<28} {key:<10} {e['radius']:8.4f} {e['radius_ratio']:6.2f} {e['across']:7.3f} {e['height']:7.3f} {e['depth']:7.3f}")
 
 

@@ -281,3 +281,24 @@ def test_plume_width_is_the_smoke_extent_in_the_row_at_the_truth_plumes_mid_heig
     empty = np.broadcast_to(background, (40, 50, 3)).copy()
     assert plume_widths(method, empty, background)["ratio"] is None
     assert plume_widths(empty, truth, background)["ratio"] == 0.0
+
+
+def test_bench_source_identifies_once_per_seed_and_refuses_bad_seeds(synth_dir: Path) -> None:
+    """`bench source --seeds`: the image estimate once, the identified source per seed (the
+    issue's tables are means over seeds); malformed seeds are a usage error (exit code 2)."""
+    from typer.testing import CliRunner
+
+    from fluidnexus.cli import app
+
+    runner = CliRunner()
+    base = ["bench", "source", str(synth_dir), "--input-view", "view_01", "--observed", "0:6", "--threads", "1"]
+    result = runner.invoke(app, [*base, "--seeds", "0,1", "--json"])
+    assert result.exit_code == 0, result.output
+    row = json.loads(result.stdout)["scenes"][0]
+    assert set(row["seeds"]) == {"0", "1"} and row["auto"] == row["seeds"]["0"]
+    for estimate in (row["image"], *row["seeds"].values()):
+        assert np.isfinite(estimate["radius_ratio"]) and estimate["radius_ratio"] > 0
+    assert all(e["physics"]["mode"] == "auto" for e in row["seeds"].values())
+    for bad in ("0,0", "x", "-1", ",".join(map(str, range(11)))):
+        refused = runner.invoke(app, [*base, "--seeds", bad])
+        assert refused.exit_code == 2 and "--seeds" in refused.output, (bad, refused.output)
