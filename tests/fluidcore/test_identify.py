@@ -20,7 +20,8 @@ from typer.testing import CliRunner
 
 from fluidcore import synth
 from fluidcore.reconstruct import get, prepare, read_inputs
-from fluidcore.reconstruct.identify import Observation, PhysicsChoiceError, buoyancy_floor, identify, rise_speed
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, PhysicsChoiceError, _Search, buoyancy_floor,
+                                           identify, rise_speed)
 from fluidcore.physics import PRESETS, Simulator
 
 INPUT = "view_00"
@@ -135,15 +136,15 @@ def test_worker_passes_the_physics_to_the_job(monkeypatch: pytest.MonkeyPatch, t
     assert seen["source"].center == (0.0, 0.1, 0.0) and seen["source"].radius is None
 
 
-def _silhouettes(scene: synth.SynthScene, rate: float):
-    """45 frames of a plume simulated with entrainment spreading at `rate`, as one camera's smoke
-    masks (each particle's pixel grown by about a kernel radius), and its source."""
+def _silhouettes(scene: synth.SynthScene, rate: float, frames: int = 45):
+    """`frames` frames of a plume simulated with entrainment spreading at `rate`, as one camera's
+    smoke masks (each particle's pixel grown by about a kernel radius), and its source."""
     spec, camera = scene.spec, scene.cameras[INPUT]
     source = spec.source()
     simulator = Simulator(replace(spec.config(), entrainment=rate), spec.box(), source)
     state = simulator.new_state()
-    masks = np.zeros((45, camera.height, camera.width), dtype=bool)
-    for t in range(45):
+    masks = np.zeros((frames, camera.height, camera.width), dtype=bool)
+    for t in range(frames):
         simulator.step(state)
         uv, depth = camera.project_numpy(state.positions[state.alive].numpy())
         col, row = uv[:, 0].astype(int), uv[:, 1].astype(int)
@@ -177,3 +178,50 @@ def test_without_entrainment_the_scene_keeps_the_papers_column(rising: synth.Syn
     assert searched.settings().physics["identified"]["evaluations"] > column.settings().physics["identified"]["evaluations"]
     assert searched.scene().physics.entrainment == searched.config.entrainment
     assert searched.fit_config.entrainment == 0.0
+
+
+def _search(scene: synth.SynthScene, observation: Observation, source) -> _Search:
+    spec = scene.spec
+    return _Search(observation, spec.config(), spec.box(), source, np.array([0.0, 1.0, 0.0]), spec.particles_per_step, "cpu")
+
+
+def test_every_observed_frame_counts(rising: synth.SynthScene) -> None:
+    """The misfit reads the whole observed window, not its first 45 frames: erasing the smoke of
+    frames 45..59 changes it (the later frames, nearest the prediction, pin the rise down best:
+    docs/bench_generalise.md, "Identification from the whole window")."""
+    observation, source = _silhouettes(rising, 0.0, frames=60)
+    erased = replace(observation, cells=observation.cells.copy())
+    erased.cells[45:] = False
+    candidate = (float(rising.spec.config().body_acceleration[1]), 0.0, 1.0, 0.0)
+    whole, cut = _search(rising, observation, source).misfit(candidate), _search(rising, erased, source).misfit(candidate)
+    assert whole[0] < cut[0]  # the true physics covers the later frames' smoke, which the erased copy lacks
+
+
+def test_misfit_is_averaged_over_source_seedings(rising: synth.SynthScene) -> None:
+    """A candidate's misfit is the mean, age by age, of ROLLOUT_SEEDS rollouts seeded from the
+    job's seed on, so one seeding's luck does not pick the physics; the job's seed still sets them."""
+    observation, source = _silhouettes(rising, 0.0)
+    search = _search(rising, observation, source)
+    candidate = (float(rising.spec.config().body_acceleration[1]), 0.0, 1.0, 0.0)
+    config, seeded = search.parts(candidate)
+    curves = [search._age_scores(search._simulate(config, replace(seeded, seed=seeded.seed + k)), search.frames)
+              for k in range(ROLLOUT_SEEDS)]
+    misfit, age = search.misfit(candidate)
+    assert ROLLOUT_SEEDS > 1 and age == int(np.argmin(np.mean(curves, axis=0)))
+    assert misfit == pytest.approx(float(np.mean([c[age] for c in curves])))
+    assert len({round(float(c[age]), 9) for c in curves}) > 1  # the seedings differ: the mean is not one of them
+    later = _search(rising, observation, replace(source, seed=source.seed + 1)).misfit(candidate)
+    assert later != (misfit, age)
+
+
+def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.SynthScene) -> None:
+    """Widening the smoke of the frames after SOURCE_FRAMES (as a spreading head does) moves the
+    identified buoyancy, which reads the whole window, but not the source's size or height."""
+    spec = rising.spec
+    observation, source = _silhouettes(rising, 0.12, frames=90)
+    widened = replace(observation, cells=observation.cells.copy())
+    widened.cells[SOURCE_FRAMES:] = ndimage.binary_dilation(widened.cells[SOURCE_FRAMES:], iterations=2)
+    found = [identify(o, spec.config(), spec.box(), source, (0.0, 1.0, 0.0), spec.particles_per_step, spreading_rates=(0.0,))
+             for o in (observation, widened)]
+    assert found[0].buoyancy != found[1].buoyancy
+    assert found[0].source_radius == found[1].source_radius and found[0].source_center == found[1].source_center
