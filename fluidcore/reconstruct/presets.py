@@ -74,6 +74,9 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
+    # Knots of that shared opacity along the height, from the source to the box's top (1 = one
+    # opacity for the scene; fluidcore.reconstruct.visual.OpacityTie).
+    opacity_knots: int = 1
     # In prediction each visual Gaussian follows the concentration of the smoke it carries
     # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
     # particles spread) instead of keeping its fitted opacity and extent. On: future +0.04 dB on
