@@ -44,6 +44,9 @@ class LossWeights:
     # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
+MAX_OPACITY_KNOTS = 32  # a profile finer than this would shade single particles, not the plume's thinning
+
+
 @dataclass(frozen=True)
 class Quality:
     """Everything a reconstruction's cost depends on.
@@ -75,7 +78,7 @@ class Quality:
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
     # Knots of that shared opacity along the height, from the source to the box's top (1 = one
-    # opacity for the scene; fluidcore.reconstruct.visual.OpacityTie).
+    # opacity for the scene; fluidcore.reconstruct.visual.OpacityTie), at most MAX_OPACITY_KNOTS.
     opacity_knots: int = 1
     # In prediction each visual Gaussian follows the concentration of the smoke it carries
     # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
@@ -102,6 +105,11 @@ class Quality:
     lr_rotation: float = 0.01
     weights: LossWeights = field(default_factory=LossWeights)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        knots = self.opacity_knots
+        if isinstance(knots, bool) or not isinstance(knots, int) or not 1 <= knots <= MAX_OPACITY_KNOTS:
+            raise PresetError(f"opacity_knots must be an integer from 1 to {MAX_OPACITY_KNOTS}, got {knots!r}")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

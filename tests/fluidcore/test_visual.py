@@ -130,6 +130,9 @@ def test_the_ties_are_quality_fields_that_round_trip_and_take_partial_weight_ove
     assert Quality.from_json(json.loads(json.dumps(quality.to_json(), allow_nan=False))) == quality
     with pytest.raises(PresetError, match="loss weights"):
         get("preview").with_overrides(weights={"colour": 1.0})
+    for bad in (0, 33, 2.5, True):
+        with pytest.raises(PresetError, match="opacity_knots"):
+            get("preview").with_overrides(opacity_knots=bad)
 
 
 # -- opacity that follows the smoke's concentration (issue 23, item 5) -------------------------
