@@ -368,7 +368,7 @@ class Reconstructor:
             {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
             q.weights,
             ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
-            self._opacity_tie(),
+            OpacityTie(q.opacity_spread),
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
@@ -376,14 +376,6 @@ class Reconstructor:
         smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
-
-    def _opacity_tie(self) -> OpacityTie:
-        """The quality's opacity tie, its height profile running from the source to the box's top."""
-        rec, up = self.rec, np.asarray(self.rec.up, dtype=np.float64)
-        base = float(np.dot(rec.source.center, up))
-        top = float(np.maximum(np.multiply(rec.box.lo, up), np.multiply(rec.box.hi, up)).sum())  # the box's highest corner
-        return OpacityTie(rec.quality.opacity_spread, rec.quality.opacity_knots, tuple(map(float, up)), base,
-                          max(top, base + rec.config.h))
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""

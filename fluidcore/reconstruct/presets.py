@@ -44,9 +44,6 @@ class LossWeights:
     # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
-MAX_OPACITY_KNOTS = 32  # a profile finer than this would shade single particles, not the plume's thinning
-
-
 @dataclass(frozen=True)
 class Quality:
     """Everything a reconstruction's cost depends on.
@@ -77,9 +74,6 @@ class Quality:
     min_scale: float = 0.3
     max_scale: float = 1.0
     opacity_spread: float | None = 0.0
-    # Knots of that shared opacity along the height, from the source to the box's top (1 = one
-    # opacity for the scene; fluidcore.reconstruct.visual.OpacityTie), at most MAX_OPACITY_KNOTS.
-    opacity_knots: int = 1
     # In prediction each visual Gaussian follows the concentration of the smoke it carries
     # (fluidcore.smoke.Appearance.diluted: a parcel of fixed mass, lighter and wider as its
     # particles spread) instead of keeping its fitted opacity and extent. On: future +0.04 dB on
@@ -105,11 +99,6 @@ class Quality:
     lr_rotation: float = 0.01
     weights: LossWeights = field(default_factory=LossWeights)
     seed: int = 0
-
-    def __post_init__(self) -> None:
-        knots = self.opacity_knots
-        if isinstance(knots, bool) or not isinstance(knots, int) or not 1 <= knots <= MAX_OPACITY_KNOTS:
-            raise PresetError(f"opacity_knots must be an integer from 1 to {MAX_OPACITY_KNOTS}, got {knots!r}")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -13,8 +13,8 @@ docs/bench_generalise.md):
 * smoke of one kind under one light has one colour: all Gaussians share the scene's smoke
   colour, one fitted parameter;
 * the particles carry equal masses of smoke, so density shows through where they are: the
-  opacity is the scene's shared opacity, one value or a coarse profile along the height
-  (`OpacityTie.knots`), each Gaussian allowed `OpacityTie.spread` logits from it (0 by default);
+  opacity is the scene's one shared opacity, each Gaussian allowed `OpacityTie.spread` logits
+  from it (0 by default);
 * a Gaussian's extent stays between the spread of the SPH kernel that carries its particle's
   smoke and the kernel's support (`ScaleBounds`): neither a paint stroke thinner than the
   particles resolve nor a sheet wider than the particle it rides on.
@@ -111,66 +111,20 @@ class ScaleBounds:
 
 @dataclass(frozen=True)
 class OpacityTie:
-    """How the Gaussians' opacities are tied to the scene's shared opacity.
+    """How far (in logits) a Gaussian's opacity may stray from the scene's shared opacity."""
 
-    The shared opacity is `knots` logits evenly spaced in height along `up`, from `base` (the
-    source) to `top` (the box's top), linearly interpolated at each Gaussian's height and held
-    beyond the ends; one knot is one opacity for the scene. A height profile lets the fit say that
-    smoke thins as it rises and mixes with air, and it is a function of height alone, so it
-    shades the plume alike from every camera and cannot paint the input view. Each Gaussian may
-    stray `spread` logits from the profile (0: none; None: free per Gaussian).
-    """
+    spread: float | None  # 0: one opacity for all; None: free per Gaussian
 
-    spread: float | None  # 0: the profile alone; None: free per Gaussian
-    knots: int = 1
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)  # unit vector, world
-    base: float = 0.0  # height along `up` of the first knot, world units
-    top: float = 1.0  # height of the last knot
-
-    def __post_init__(self) -> None:
-        if self.knots < 1 or not self.top > self.base:
-            raise ValueError(f"opacity profile: knots >= 1 and top > base, got {self.knots}, {self.base}, {self.top}")
-
-    def weights(self, means: torch.Tensor) -> torch.Tensor:
-        """(G, knots) linear-interpolation weights of each Gaussian's height (means (G, 3))."""
-        if self.knots == 1:
-            return means.new_ones((len(means), 1))
-        height = means @ means.new_tensor(self.up)
-        position = ((height - self.base) / (self.top - self.base)).clamp(0.0, 1.0) * (self.knots - 1)
-        lower = position.floor().clamp(max=self.knots - 2).long()
-        upper_weight = position - lower
-        w = means.new_zeros((len(means), self.knots))
-        w.scatter_(1, lower[:, None], (1.0 - upper_weight)[:, None])
-        w.scatter_add_(1, (lower + 1)[:, None], upper_weight[:, None])
-        return w
-
-    def start(self, logits: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
-        """(knots,) profile to start a fit from: each knot the interpolation-weighted mean of the
-        `logits` (G,) of Gaussians at `means` (G, 3); a knot none reaches takes their plain mean.
-        One knot is that mean as a 0-dim tensor (the scene's one opacity, as before profiles)."""
-        mean = logits.mean() if len(logits) else logits.new_zeros(())
-        if self.knots == 1:
-            return mean
-        w = self.weights(means)
-        total = w.sum(0)
-        return torch.where(total > 1e-6, (w * logits[:, None]).sum(0) / total.clamp_min(1e-6), mean)
-
-    def logits(self, shared: torch.Tensor, free: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
-        """(G,) the Gaussians' opacity logits from the profile `shared` (knots,) and their free
-        parameters (G,) at `means` (G, 3)."""
+    def logits(self, shared: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
         if self.spread is None:
             return free
-        return self._at(shared, means) + self.spread * torch.tanh(free)
+        return shared + self.spread * torch.tanh(free)
 
-    def free(self, logits: torch.Tensor, shared: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
+    def free(self, logits: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
         """Inverse of `logits` (deviations beyond the spread start just inside it)."""
         if self.spread is None:
             return logits.clone()
-        return torch.atanh(((logits - self._at(shared, means)) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
-
-    def _at(self, shared: torch.Tensor, means: torch.Tensor) -> torch.Tensor:
-        """The profile `shared` (knots,) at `means` (G, 3): (G,), or the 0-dim one opacity as it is."""
-        return shared if self.knots == 1 else self.weights(means) @ shared
+        return torch.atanh(((logits - shared) / max(self.spread, 1e-6)).clamp(-0.99, 0.99))
 
 
 def fit_appearance(
@@ -184,20 +138,19 @@ def fit_appearance(
     bounds: ScaleBounds,
     opacity: OpacityTie,
 ) -> tuple[Appearance, float]:
-    """Adam on the shared smoke colour and opacity profile, and on the Gaussians' scale (within
-    `bounds`), opacity (within `opacity` of the profile) and rotation, positions (`means` (G, 3)) fixed.
+    """Adam on the shared smoke colour and opacity, and on the Gaussians' scale (within
+    `bounds`), opacity (within `opacity` of the shared one) and rotation, positions fixed.
 
     `image_loss(gaussians, iteration)` renders one (randomly chosen) view and returns its
     weighted photometric loss. The shared colour and opacity start from the previous frame's
-    Gaussians (the first len(previous) rows of `appearance`; all of them on the first frame).
-    Returns the fitted appearance (per Gaussian, as the renderer and the run folder take it)
-    and the last total loss.
+    means (`appearance`'s on the first frame). Returns the fitted appearance (per Gaussian, as
+    the renderer and the run folder take it) and the last total loss.
     """
-    n = len(previous) if len(previous) else len(appearance)
-    color = appearance.colors[:n].detach().mean(0).clone().requires_grad_(True)
+    start = previous if len(previous) else appearance
+    color = start.colors.detach().mean(0).clone().requires_grad_(True)
     free_scales = bounds.free(appearance.log_scales.detach()).requires_grad_(True)
-    shared_opacity = opacity.start(appearance.opacity_logits[:n].detach(), means[:n]).clone().requires_grad_(True)
-    free_opacity = opacity.free(appearance.opacity_logits.detach(), shared_opacity.detach(), means).requires_grad_(True)
+    shared_opacity = start.opacity_logits.detach().mean().clone().requires_grad_(True)
+    free_opacity = opacity.free(appearance.opacity_logits.detach(), shared_opacity.detach()).requires_grad_(True)
     quats = appearance.quats.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam(
         [
@@ -209,7 +162,7 @@ def fit_appearance(
     )
 
     def current() -> Appearance:
-        logits = opacity.logits(shared_opacity, free_opacity, means)
+        logits = opacity.logits(shared_opacity, free_opacity)
         return Appearance(bounds.log_scales(free_scales), quats, logits, color.expand(len(appearance), -1))
 
     last = float("nan")

@@ -88,51 +88,12 @@ def test_opacities_stay_within_the_spread_of_the_shared_one(spread):
         assert float(logits.max() - logits.min()) > spread  # the deviations were used, up to the tie
 
 
-def test_an_opacity_profile_interpolates_along_the_height_and_holds_beyond_its_ends():
-    tie = OpacityTie(0.0, knots=3, up=(0.0, 1.0, 0.0), base=0.1, top=0.5)
-    means = torch.tensor([[0.0, 0.0, 0.0], [0.3, 0.1, -0.2], [0.0, 0.2, 0.0], [0.0, 0.3, 0.0], [0.0, 0.45, 0.0], [0.0, 0.9, 0.0]])
-    shared = torch.tensor([2.0, 0.0, -1.0])
-    logits = tie.logits(shared, torch.zeros(len(means)), means)
-    assert torch.allclose(logits, torch.tensor([2.0, 2.0, 1.0, 0.0, -0.75, -1.0]), atol=1e-5)  # x and z do not enter
-    # each knot: the mean of the logits weighted by the interpolation weights its Gaussians give it
-    assert torch.allclose(tie.start(logits, means), torch.tensor([4.5 / 2.5, 0.3125 / 1.75, -1.5625 / 1.75]), atol=1e-5)
-    with pytest.raises(ValueError, match="opacity profile"):
-        OpacityTie(0.0, knots=0)
-
-
-def test_a_profile_lets_the_fit_thin_the_smoke_with_height_which_one_opacity_cannot():
-    """A stand-in loss wants dense smoke low and thin smoke high (a plume mixing with air): three
-    knots follow it, every Gaussian at one height still shares one opacity, and one knot cannot."""
-    n = 30
-    means = torch.zeros((n, 3))
-    means[:, 1] = torch.linspace(0.0, 1.0, n)
-    wanted = 2.0 - 4.0 * means[:, 1]  # logits from 2 at the base to -2 at the top
-
-    def painter(gaussians: Gaussians, k: int) -> torch.Tensor:
-        return (gaussians.opacity_logits - wanted).pow(2).mean()
-
-    start = _appearance(n, 0.01, torch.Generator().manual_seed(2))
-    first_frame = start.select(torch.zeros(n, dtype=torch.bool))
-    fitted = {}
-    for knots in (1, 3):
-        tie = OpacityTie(0.0, knots=knots, base=0.0, top=1.0)
-        fitted[knots], _ = fit_appearance(means, start, first_frame, painter, 300, {**RATES, "opacity": 0.1}, LossWeights(),
-                                          ScaleBounds(0.005, 0.02), tie)
-    one, profile = fitted[1].opacity_logits, fitted[3].opacity_logits
-    assert float(one.max() - one.min()) < 1e-5
-    assert float(profile[0] - profile[-1]) > 3.0 and float((profile - wanted).abs().max()) < 0.2
-    assert float((profile - wanted).pow(2).mean()) < 0.05 * float((one - wanted).pow(2).mean())
-
-
 def test_the_ties_are_quality_fields_that_round_trip_and_take_partial_weight_overrides():
-    quality = get("preview").with_overrides(opacity_spread=None, opacity_knots=4, weights={"scale": 8.0})
+    quality = get("preview").with_overrides(opacity_spread=None, weights={"scale": 8.0})
     assert quality.weights.scale == 8.0 and quality.weights.opacity == LossWeights().opacity
     assert Quality.from_json(json.loads(json.dumps(quality.to_json(), allow_nan=False))) == quality
     with pytest.raises(PresetError, match="loss weights"):
         get("preview").with_overrides(weights={"colour": 1.0})
-    for bad in (0, 33, 2.5, True):
-        with pytest.raises(PresetError, match="opacity_knots"):
-            get("preview").with_overrides(opacity_knots=bad)
 
 
 # -- opacity that follows the smoke's concentration (issue 23, item 5) -------------------------
