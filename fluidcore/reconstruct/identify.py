@@ -19,16 +19,16 @@ what the video shows frame after frame:
                 rollout per seeding answers for every age.
 
 Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
-(a second or two) and compares what the image fit cannot change later: where smoke is. The
-search is coarse to fine (five buoyancies in log steps around one read off the video's rise
-speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
+per seeding (a second or two) and compares what the image fit cannot change later: where smoke
+is. The search is coarse to fine (five buoyancies in log steps around one read off the video's
+rise speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
 widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
-image estimate of `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom edge, and its height
-half a radius either way, since a smoke edge biases both; then two finer buoyancy steps),
-bounded by MAX_EVALUATIONS rollouts. Each stage keeps the previous stages' choice unless one of
-its own candidates beats it. The rise is scored over the whole observed window (MAX_FRAMES), the
-source over its first SOURCE_FRAMES frames, before the plume's head spreads. The radius range stays narrow: given half to twice, the
-silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow,
+image estimate of `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom
+edge, and its height half a radius either way, since a smoke edge biases both; then two finer
+buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
+choice unless one of its own candidates beats it. The rise is scored over the whole observed
+window (MAX_FRAMES), the source over its first SOURCE_FRAMES frames, before the plume's head
+spreads. The radius range stays narrow: given half to twice, the silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow,
 and with the spreading rate searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F),
 where the image estimate is within 24% on both dev scenes.
 
@@ -69,7 +69,7 @@ MAX_FRAMES = 120
 # frames the silhouettes of F preferred its image radius to 0.8x of it (0.364 against 0.371,
 # mean of 6 seedings), over the first 45 0.8x by 0.289 against 0.336 (D: 0.343 against 0.357).
 SOURCE_FRAMES = 45
-MAX_EVALUATIONS = 20  # rollouts per identification, all stages together
+MAX_EVALUATIONS = 20  # candidates rolled out per identification (ROLLOUT_SEEDS times each), all stages together
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
 FLOOR_FRACTION = 0.5  # buoyancy floor: this fraction of drag x observed rise speed
