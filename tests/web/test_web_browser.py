@@ -279,10 +279,12 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#box-limits")).to_contain_text("Scene box")
     page.get_by_label("New frames to simulate").fill(str(NEW_FRAMES))
     page.get_by_label("Branch at frame").fill("")  # from the run's last frame
+    sync_api.expect(page.get_by_label("Branch at frame")).to_have_value("")  # the last what-if's 0 is gone
     page.get_by_label("Wind", exact=True).uncheck()
     page.get_by_label("Ball", exact=True).check()
     page.get_by_label("ball centre x").fill("0")  # the synthetic scene's box is centred on x = 0
     sync_api.expect(page.locator("#whatif-problems")).to_be_empty()
+    sync_api.expect(page.get_by_label("Branch at frame")).to_have_value("")  # still: the ball goes from the last frame
     page.screenshot(path=screens / "whatif-ball.png", full_page=True)
     page.get_by_role("button", name="Run what-if").click()
     sync_api.expect(page.locator("#notice")).to_contain_text("What-if")

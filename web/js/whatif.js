@@ -274,6 +274,7 @@ export async function showWhatif(jobId) {
   if (view) { view.sourceLayer.clear(); view.renderer.render(view.scene, view.camera); }
   $("whatif-error").textContent = "";
   $("box-limits").textContent = ""; // filled again when this run's box has loaded
+  $("wi-from").value = ""; // each opening starts from the run's last frame, not the branch sent before
   view = view || createView();
   await refreshJobs();
   const job = jobs.get(jobId) || (await api(`/v1/jobs/${jobId}`));
