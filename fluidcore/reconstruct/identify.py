@@ -28,9 +28,10 @@ edge, and its height half a radius either way, since a smoke edge biases both; t
 buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
 choice unless one of its own candidates beats it. The rise is scored over the whole observed
 window (MAX_FRAMES), the source over its first SOURCE_FRAMES frames, before the plume's head
-spreads. The radius range stays narrow: given half to twice, the silhouette misfit chose 0.57x the true radius on dev scene D and 0.69x the rig's on ScalarFlow,
-and with the spreading rate searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F),
-where the image estimate is within 24% on both dev scenes.
+spreads. The radius range stays narrow: given half to twice, the silhouette misfit chose 0.57x
+the true radius on dev scene D and 0.69x the rig's on ScalarFlow, and with the spreading rate
+searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F), where the image estimate is
+within 24% on both dev scenes.
 
 The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
 not searched on its own), and the inflow rate follows from it: the source seeds what its inlet carries at rest
