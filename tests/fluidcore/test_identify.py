@@ -20,8 +20,9 @@ from typer.testing import CliRunner
 
 from fluidcore import synth
 from fluidcore.reconstruct import get, prepare, read_inputs
-from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, PhysicsChoiceError, _Search, buoyancy_floor,
-                                           identify, rise_speed)
+from fluidcore.reconstruct import identify as identify_module
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Identified, Observation, PhysicsChoiceError, _Search,
+                                           buoyancy_floor, identify, inflow_rate_speed, inlet_rate, rise_speed)
 from fluidcore.physics import PRESETS, Simulator
 
 INPUT = "view_00"
@@ -35,8 +36,8 @@ def rising() -> synth.SynthScene:
 def _prepare(scene: synth.SynthScene, physics: str, **overrides):
     spec = scene.spec
     box = spec.box()
-    quality = get("preview").with_overrides(long_side=96, particles_per_frame=spec.particles_per_step, symmetry_views=0,
-                                            **overrides)
+    quality = get("preview").with_overrides(**{"long_side": 96, "particles_per_frame": spec.particles_per_step, "symmetry_views": 0,
+                                               **overrides})
     inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), quality=quality)
     return prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics=physics)
 
@@ -225,3 +226,28 @@ def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.
              for o in (observation, widened)]
     assert found[0].buoyancy != found[1].buoyancy
     assert found[0].source_radius == found[1].source_radius and found[0].source_center == found[1].source_center
+
+
+
+def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthScene, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The reconstruction's inlet is filled at the observed rise speed where that beats the
+    inflow's terminal speed (`inflow_rate_speed`); the inflow's speed stays the terminal one, and
+    a preset's scene has no observed speed to use. The identification is replaced by a known
+    answer (its own rate, at the terminal speed, is `_Search.parts`'s and tested above) so that
+    only this wiring is timed here."""
+    assert inflow_rate_speed(0.1, 0.3) == 0.3 and inflow_rate_speed(0.1, 0.0) == 0.1
+    assert inflow_rate_speed(0.1, float("nan")) == 0.1
+    source = rising.spec.source()
+    buoyancy, drag = 0.3, PRESETS["scalarflow"].drag
+    found = Identified(buoyancy, buoyancy / drag, 1, 5, 0.3, 3.0 * buoyancy / drag, 0.5 * buoyancy, 1,
+                       list(source.center), source.radius, 0.0, {})
+    monkeypatch.setattr(identify_module, "identify", lambda *args, **kwargs: found)
+    budget = 10_000  # no cap: the rates are the inlet's own
+    rec = _prepare(rising, "auto", particles_per_frame=budget)
+    speed = rec.config.terminal_speed
+    assert speed == pytest.approx(buoyancy / drag) and rec.source.velocity[1] == pytest.approx(speed)
+    assert rec.settings().physics["inflow_rate_speed"] == found.rise_speed
+    assert rec.source.rate == inlet_rate(source.radius, found.rise_speed, rec.config, budget)
+    assert rec.source.rate > 2 * inlet_rate(source.radius, speed, rec.config, budget)  # three times the speed, so three times the count
+    preset = _prepare(rising, "scalarflow", particles_per_frame=budget)
+    assert preset.settings().physics["inflow_rate_speed"] == preset.config.terminal_speed
