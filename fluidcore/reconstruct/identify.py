@@ -36,8 +36,8 @@ within 24% on both dev scenes.
 The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
 not searched on its own). The candidates' rollouts seed what their inlet carries at that speed at
 rest density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3); the reconstruction seeds the smoke volume the
-video shows leaving the inlet, at the observed rise speed where that is faster (`scene_physics`
-says why the two differ). Both are capped by the quality's particle budget. Drag and
+video shows leaving the inlet, at the observed rise speed where that is faster
+(`inflow_rate_speed` says why the two differ). Both are capped by the quality's particle budget. Drag and
 rest density stay the prior's (a silhouette says little about them); they are recorded as
 such. Smoke that rises in the video never gets zero buoyancy: candidates are positive by
 construction and `buoyancy_floor` bounds them below by the acceleration needed to hold the

@@ -228,7 +228,6 @@ def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.
     assert found[0].source_radius == found[1].source_radius and found[0].source_center == found[1].source_center
 
 
-
 def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthScene, monkeypatch: pytest.MonkeyPatch) -> None:
     """The reconstruction's inlet is filled at the observed rise speed where that beats the
     inflow's terminal speed (`inflow_rate_speed`); the inflow's speed stays the terminal one, and
@@ -239,8 +238,9 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     assert inflow_rate_speed(0.1, float("nan")) == 0.1
     source = rising.spec.source()
     buoyancy, drag = 0.3, PRESETS["scalarflow"].drag
-    found = Identified(buoyancy, buoyancy / drag, 1, 5, 0.3, 3.0 * buoyancy / drag, 0.5 * buoyancy, 1,
-                       list(source.center), source.radius, 0.0, {})
+    found = Identified(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
+                       rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
+                       source_center=list(source.center), source_radius=source.radius, entrainment=0.0, prior={})
     monkeypatch.setattr(identify_module, "identify", lambda *args, **kwargs: found)
     budget = 10_000  # no cap: the rates are the inlet's own
     rec = _prepare(rising, "auto", particles_per_frame=budget)
