@@ -1,6 +1,6 @@
 """The whole generalisation protocol on one scene folder with ground-truth videos (issue 12).
 
-    fluidnexus bench generalise SCENE_DIR [--input-view view_02 --observed 0:90] [--future 60]
+    fluidnexus bench generalise SCENE_DIR [--input-view view_02 --observed 0:90] [--future 60] [--source X,Y,Z[,R]]
         [--quality preview] [--set FIELD=JSON] [--score-every 3] [--score-long-side 240]
         [--tasks nvs,input,future,velocity,whatif,rise] [--figure per_frame.png] [--json]
 
@@ -86,6 +86,7 @@ def command(
     score_long_side: int | None = typer.Option(None, "--score-long-side", min=16, help="Score at this long side (default: full size)."),
     tasks: str = typer.Option(",".join(TASKS), "--tasks", help="Comma-separated subset of " + ",".join(TASKS) + "."),
     reconstruction: Path | None = typer.Option(None, "--reconstruction", help="Reuse this finished reconstruction run."),
+    source: str | None = typer.Option(None, "--source", help="X,Y,Z[,R]: give the reconstruction this source (world units), as a user who knows their rig would; a diagnostic, not the protocol."),
     out: Path | None = typer.Option(None, "--out", help="Keep the runs here (default: a temporary folder)."),
     figure: Path | None = typer.Option(None, "--figure", help="Write the per-frame PSNR figure (PNG) here."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
@@ -95,8 +96,12 @@ def command(
     import torch
 
     from fluidcore.jobs import parse_frames
+    from fluidcore.reconstruct.source_hint import parse_source
 
     with user_errors():
+        hint = None if source is None else parse_source(source)
+        if hint is not None and reconstruction is not None:
+            raise UserError("--source applies to a new reconstruction; --reconstruction reuses one that has its own")
         if threads is not None:
             torch.set_num_threads(threads)
         chosen = _tasks(tasks)
@@ -110,7 +115,7 @@ def command(
         if "future" in chosen and n_future < 1:
             raise UserError(f"--observed {observed}: no frame after it has ground truth to predict")
         folder = out or Path(tempfile.mkdtemp(prefix="bench-generalise-"))
-        protocol = Protocol(gt, input_view, input_path, window, score_every, score_long_side, folder)
+        protocol = Protocol(gt, input_view, input_path, window, score_every, score_long_side, folder, hint)
         result = protocol.run(chosen, n_future, reconstruction, quality, quality_overrides(set_), progress_bar=not json_out)
         result.update({"threads": torch.get_num_threads(), "load_average": list(os.getloadavg())})
         if figure is not None:
@@ -146,9 +151,10 @@ class Protocol:
 
     def __init__(
         self, gt: GroundTruth, input_view: str, input_path: Path, window: tuple[int, int],
-        score_every: int, score_long_side: int | None, folder: Path,
+        score_every: int, score_long_side: int | None, folder: Path, source: Any = None,
     ) -> None:
         self.gt, self.input_view, self.input_path, self.window = gt, input_view, input_path, window
+        self.source = source  # a SourceHint the reconstruction is given (--source), else None: estimated
         self.every, self.long_side, self.folder = score_every, score_long_side, folder
         self.seconds: dict[str, float] = {}
         self.cpu_seconds: dict[str, float] = {}  # this process's CPU time: comparable across machine loads
@@ -163,6 +169,7 @@ class Protocol:
             "observed": list(self.window), "score_every": self.every, "score_long_side": self.long_side,
             "quality": recon.settings.quality, "physics": recon.scene.to_json()["physics"],
             "source": recon.scene.to_json()["source"], "reconstruction": str(recon.path), "tasks": {},
+            "source_given": None if self.source is None else self.source.model_dump(mode="json"),
         }
         frames = self._frames(*self.window)
         held_out = [v for v in self.gt.views() if v != self.input_view]
@@ -216,7 +223,7 @@ class Protocol:
         _log(f"reconstructing {self.input_view} frames {self.window[0]}:{self.window[1]} at {preset.name}")
         self._timed("reconstruct", lambda: run_reconstruct(
             self.gt.cameras_path, {self.input_view: self.input_path}, path, quality=preset, frames=self.window,
-            progress_bar=progress_bar,
+            source=self.source, progress_bar=progress_bar,
         ))
         return path
 
