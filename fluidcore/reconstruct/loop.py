@@ -378,15 +378,20 @@ class Reconstructor:
         return smoke, losses
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
-        """One random view per iteration (probability ~ weight), coarse to fine over the iterations."""
+        """One random view per iteration (probability ~ weight), coarse to fine over the iterations;
+        symmetry pseudo-views at `Quality.symmetry_long_side` when it is set and smaller."""
         views = self.rec.views
         weights = [v.weight for v in views]
         stages = self.rec.quality.coarse_to_fine
+        symmetry_side = self.rec.quality.symmetry_long_side
         w = self.rec.quality.weights
 
         def loss(gaussians: Gaussians, k: int) -> torch.Tensor:
             view = chooser.choices(views, weights=weights)[0]
             fraction = stages[min(k * len(stages) // max(iterations, 1), len(stages) - 1)]
+            long_side = max(view.camera.width, view.camera.height)
+            if view.kind == "symmetry" and symmetry_side is not None and symmetry_side < long_side:
+                fraction = symmetry_side / long_side
             size = (max(8, round(view.camera.width * fraction)), max(8, round(view.camera.height * fraction)))
             camera, target, background = view.at(index, size)
             image = render(gaussians, camera, background, depth=False).image

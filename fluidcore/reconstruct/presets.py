@@ -65,6 +65,15 @@ class Quality:
     next_step_incompressibility: bool
     symmetry_views: int  # plume-symmetry pseudo-views around the up axis (0 = off; single input view only)
     symmetry_weight: float  # their total loss weight relative to the input view
+    # The long side (pixels) the symmetry pseudo-views are fitted at, where their working size is
+    # larger (None: the input view's coarse-to-fine, as the input view). A round source makes the
+    # plume's overall shape axisymmetric, not its puffs: at full resolution the prior copies the
+    # input view's puffs to every azimuth, as rings that show as beads from the side. Off by
+    # default: at 120 px (the one value tried, a quarter of preview's 480) ScalarFlow gained on every
+    # seed of 0-2 (novel views +0.10 dB, future +0.39) and D stayed within 0.1 dB, but F lost 0.15
+    # to 0.19 dB of novel views and 0.4 dB of its ball what-if on both seeds tried
+    # (docs/bench_generalise.md, "The symmetry prior at a quarter of the resolution").
+    symmetry_long_side: int | None = None
     initial_opacity: float = 0.3  # of a newborn visual Gaussian
     # The visual layer's ties to the particles (fluidcore.reconstruct.visual): a Gaussian's extent
     # (standard deviation per axis) stays within [min_scale, max_scale] kernel radii, from the

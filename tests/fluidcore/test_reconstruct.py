@@ -204,3 +204,43 @@ def test_the_source_estimate_and_the_depth_range_of_one_view_are_in_the_manifest
     camera = reopened.cameras()[INPUT]
     ray = (far - near) / np.linalg.norm(far - near)
     assert np.allclose(ray, (near - camera.center()) / np.linalg.norm(near - camera.center()), atol=1e-6)  # the input ray
+
+
+
+
+def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypatch):
+    """`Quality.symmetry_long_side`: every symmetry pseudo-view is rendered at that long side,
+    whatever the coarse-to-fine stage, while the input view keeps the stages; at or above the
+    working size, and with None (runs made before the field), the pseudo-views follow the stages."""
+    import random
+
+    from fluidcore.reconstruct import loop
+    from fluidcore.render import Gaussians
+
+    original, sizes = loop.render, []
+
+    def recording(gaussians, camera, background, depth):
+        sizes.append((camera.name, max(camera.width, camera.height)))
+        return original(gaussians, camera, background, depth=depth)
+
+    monkeypatch.setattr(loop, "render", recording)
+    for side in (24, 64, None):  # the scene is fitted at a long side of 64
+        rec = _prepare(scene, frames=2, symmetry_long_side=side)
+        working = {v.camera.name: max(v.camera.width, v.camera.height) for v in rec.views}
+        stages = lambda name: {max(8, round(working[name] * f)) for f in rec.quality.coarse_to_fine}  # noqa: E731
+        n = 4
+        center = torch.tensor(rec.source.center, dtype=torch.float32)
+        gaussians = Gaussians(center + 0.01 * torch.randn(n, 3), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]] * n),
+                              torch.zeros(n), torch.full((n, 1), 0.5))
+        loss = Reconstructor(rec)._image_loss(0, iterations=40, chooser=random.Random(1))
+        sizes.clear()
+        for k in range(40):
+            loss(gaussians, k)
+        pseudo = [(name, long) for name, long in sizes if "~sym" in name]
+        real = [(name, long) for name, long in sizes if "~sym" not in name]
+        assert pseudo and real, sizes
+        assert all(long in stages(name) for name, long in real)
+        if side == 24:
+            assert all(long == 24 for _, long in pseudo), pseudo
+        else:
+            assert {long for _, long in pseudo} == stages(pseudo[0][0]), pseudo
