@@ -44,6 +44,9 @@ class LossWeights:
     # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
+MIN_SYMMETRY_SIDE = 8  # the fit never renders a view smaller than 8 px on a side (fluidcore.reconstruct.loop)
+
+
 @dataclass(frozen=True)
 class Quality:
     """Everything a reconstruction's cost depends on.
@@ -108,6 +111,11 @@ class Quality:
     lr_rotation: float = 0.01
     weights: LossWeights = field(default_factory=LossWeights)
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        side = self.symmetry_long_side
+        if side is not None and (isinstance(side, bool) or not isinstance(side, int) or side < MIN_SYMMETRY_SIDE):
+            raise PresetError(f"symmetry_long_side must be None or a whole number of pixels >= {MIN_SYMMETRY_SIDE}, got {side!r}")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

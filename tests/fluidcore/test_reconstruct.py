@@ -224,6 +224,11 @@ def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypa
         return original(gaussians, camera, background, depth=depth)
 
     monkeypatch.setattr(loop, "render", recording)
+    from fluidcore.reconstruct.presets import PresetError
+
+    for bad in (0, 7, -120, 12.5, True, "120"):
+        with pytest.raises(PresetError, match="symmetry_long_side"):
+            get("preview").with_overrides(symmetry_long_side=bad)
     for side in (24, 64, None):  # the scene is fitted at a long side of 64
         rec = _prepare(scene, frames=2, symmetry_long_side=side)
         working = {v.camera.name: max(v.camera.width, v.camera.height) for v in rec.views}
