@@ -48,7 +48,7 @@ from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, Quality
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, MIN_FIT_SIDE, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
@@ -392,7 +392,7 @@ class Reconstructor:
             long_side = max(view.camera.width, view.camera.height)
             if view.kind == "symmetry" and symmetry_side is not None and symmetry_side < long_side:
                 fraction = symmetry_side / long_side
-            size = (max(8, round(view.camera.width * fraction)), max(8, round(view.camera.height * fraction)))
+            size = (max(MIN_FIT_SIDE, round(view.camera.width * fraction)), max(MIN_FIT_SIDE, round(view.camera.height * fraction)))
             camera, target, background = view.at(index, size)
             image = render(gaussians, camera, background, depth=False).image
             return image_loss(image, target, background, w.l1, w.dssim)

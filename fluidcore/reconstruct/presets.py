@@ -44,7 +44,7 @@ class LossWeights:
     # and cost ScalarFlow 0.5 dB of future (docs/bench_generalise.md, "Optical flow")
 
 
-MIN_SYMMETRY_SIDE = 8  # the fit never renders a view smaller than 8 px on a side (fluidcore.reconstruct.loop)
+MIN_FIT_SIDE = 8  # the smallest side, in pixels, the fit renders a view at (fluidcore.reconstruct.loop)
 
 
 @dataclass(frozen=True)
@@ -114,8 +114,8 @@ class Quality:
 
     def __post_init__(self) -> None:
         side = self.symmetry_long_side
-        if side is not None and (isinstance(side, bool) or not isinstance(side, int) or side < MIN_SYMMETRY_SIDE):
-            raise PresetError(f"symmetry_long_side must be None or a whole number of pixels >= {MIN_SYMMETRY_SIDE}, got {side!r}")
+        if side is not None and (isinstance(side, bool) or not isinstance(side, int) or side < MIN_FIT_SIDE):
+            raise PresetError(f"symmetry_long_side must be None or a whole number of pixels >= {MIN_FIT_SIDE}, got {side!r}")
 
     def to_json(self) -> dict[str, Any]:
         return asdict(self)

@@ -206,6 +206,13 @@ def test_the_source_estimate_and_the_depth_range_of_one_view_are_in_the_manifest
     assert np.allclose(ray, (near - camera.center()) / np.linalg.norm(near - camera.center()), atol=1e-6)  # the input ray
 
 
+def test_a_symmetry_long_side_that_is_not_a_whole_number_of_pixels_from_8_is_refused():
+    from fluidcore.reconstruct.presets import PresetError
+
+    for bad in (0, 7, -120, 12.5, True, "120"):
+        with pytest.raises(PresetError, match="symmetry_long_side"):
+            get("preview").with_overrides(symmetry_long_side=bad)
+    assert get("preview").with_overrides(symmetry_long_side=8).symmetry_long_side == 8
 
 
 def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypatch):
@@ -224,15 +231,10 @@ def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypa
         return original(gaussians, camera, background, depth=depth)
 
     monkeypatch.setattr(loop, "render", recording)
-    from fluidcore.reconstruct.presets import PresetError
-
-    for bad in (0, 7, -120, 12.5, True, "120"):
-        with pytest.raises(PresetError, match="symmetry_long_side"):
-            get("preview").with_overrides(symmetry_long_side=bad)
     for side in (24, 64, None):  # the scene is fitted at a long side of 64
         rec = _prepare(scene, frames=2, symmetry_long_side=side)
         working = {v.camera.name: max(v.camera.width, v.camera.height) for v in rec.views}
-        stages = lambda name: {max(8, round(working[name] * f)) for f in rec.quality.coarse_to_fine}  # noqa: E731
+        stages = lambda name: {max(loop.MIN_FIT_SIDE, round(working[name] * f)) for f in rec.quality.coarse_to_fine}  # noqa: E731
         n = 4
         center = torch.tensor(rec.source.center, dtype=torch.float32)
         gaussians = Gaussians(center + 0.01 * torch.randn(n, 3), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]] * n),
