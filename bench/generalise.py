@@ -20,7 +20,9 @@ computed in the same run):
               across the image row at the truth plume's mid-height, prediction vs truth
     velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
               at the truth's sample points (voxels with density > 0.05, or the synth's particles),
-              at every saved frame of the observed and predicted windows; baseline: zero velocity
+              at every saved frame of the observed and predicted windows; baseline: zero velocity;
+              reference: the truth's own axisymmetric mean flow (bench/flow_reference.py), the
+              least error of a model without eddies
     whatif    per counterfactual variant beside the scene (wind / ball, from the protocol.json beside
               it where there is one, else from each variant's gt/meta.json):
               the reconstruction branched at the variant's branch frame, continued once with the
@@ -68,6 +70,7 @@ PLUME_WIDTH_AFTER = 30  # frames after B: issue 23's plume width is measured at 
 # a pixel is smoke where a channel differs from the background colour by more than this (of 255):
 # 5 % of full scale, above 8-bit rounding and the soft edge of the renders; set once, not per scene
 SMOKE_LEVEL = 13
+VELOCITY_MEASURES = ("epe", "zero_epe", "axisymmetric_epe")  # per saved frame; summaries average each
 Predictor = Callable[[Any, list[int], tuple[int, int]], Any]  # (camera, frames, size) -> uint8 (T, H, W, 3)
 
 
@@ -325,8 +328,12 @@ class Protocol:
         return {"frame": t, "view": self.input_view, **widths}
 
     def velocity(self, runs: Sequence[Any]) -> dict:
-        """End-point error per saved truth frame the runs hold, against zero velocity."""
+        """End-point error per saved truth frame the runs hold, against zero velocity and against
+        the truth's own axisymmetric mean flow at the scene's kernel radius (bench/flow_reference.py:
+        what a model with the mean flow exactly right and no eddies would score)."""
         import numpy as np
+
+        from bench.flow_reference import axisymmetric_mean_flow
 
         rows = {}
         for t in self.gt.velocity_frames():
@@ -336,17 +343,18 @@ class Protocol:
                 continue
             points, expected = truth
             predicted = _particle_velocity(run, t, points)
-            error = np.linalg.norm(predicted - expected, axis=1)
-            rows[str(t)] = {"epe": float(error.mean()), "zero_epe": float(np.linalg.norm(expected, axis=1).mean()),
+            reference = axisymmetric_mean_flow(points, expected, np.asarray(run.scene.up), run.scene.physics.h)
+            rows[str(t)] = {"epe": _epe(predicted, expected), "zero_epe": _epe(0.0, expected),
+                            "axisymmetric_epe": _epe(reference, expected),
                             "samples": len(points), "window": "observed" if t < self.window[1] else "future"}
         summary = {}
         for part in ("observed", "future"):
             chosen = [r for r in rows.values() if r["window"] == part]
             if chosen:
-                summary[part] = {k: float(np.mean([r[k] for r in chosen])) for k in ("epe", "zero_epe")}
+                summary[part] = {k: float(np.mean([r[k] for r in chosen])) for k in VELOCITY_MEASURES}
         first = rows.get(str(self.window[1]))
         if first is not None:
-            summary["first_future_frame"] = {"frame": self.window[1], "epe": first["epe"], "zero_epe": first["zero_epe"]}
+            summary["first_future_frame"] = {"frame": self.window[1], **{k: first[k] for k in VELOCITY_MEASURES}}
         return {"frames": rows, "summary": summary}
 
     def whatif(self, recon: Any, variant: Variant) -> dict:
@@ -473,6 +481,13 @@ def _cosine(sums: Any) -> float | None:
     return dot / (aa * bb) ** 0.5 if aa > 0 and bb > 0 else None
 
 
+def _epe(predicted: Any, expected: Any) -> float:
+    """Mean end-point error of `predicted` ((N, 3) or a scalar broadcast) against `expected` (N, 3)."""
+    import numpy as np
+
+    return float(np.linalg.norm(predicted - expected, axis=1).mean())
+
+
 def _particle_velocity(run: Any, t: int, points: Any) -> Any:
     """The run's particle velocities at frame t, interpolated at `points` as the reconstruction
     carries its visual Gaussians (Shepard average within the visual velocity radius; 0 where no
@@ -559,7 +574,8 @@ def print_table(result: dict) -> None:
               f"{width['truth']} px (ratio {width['ratio']:.2f}, row {width['row']})")
     velocity = result["tasks"].get("velocity")
     for part, v in ((velocity or {}).get("summary") or {}).items():
-        print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f})")
+        print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f}, "
+              f"the truth's axisymmetric mean {v['axisymmetric_epe']:.3f})")
     for variant, scored in (result["tasks"].get("whatif") or {}).items():
         cosine = scored["effect"]["cosine"]
         print(f"{variant + ' effect':<16} cosine {'none' if cosine is None else f'{cosine:.3f}'} "

@@ -213,7 +213,9 @@ def test_bench_runs_end_to_end_on_a_synth_scene(synth_dir: Path, tmp_path: Path)
     assert result["tasks"]["future"]["frames"] == [4, 5]
     assert result["tasks"]["future"]["plume_width"]["frame"] == 5  # B + 30 clipped to the last predicted frame
     assert set(result["tasks"]["nvs"]["views"]) == {"view_00", "view_02"}
-    assert result["tasks"]["velocity"]["summary"]["observed"]["zero_epe"] > 0
+    observed = result["tasks"]["velocity"]["summary"]["observed"]
+    assert observed["zero_epe"] > 0
+    assert 0 <= observed["axisymmetric_epe"] < observed["zero_epe"]  # a ring mean is never worse than zero
     assert set(result["tasks"]["input"]["reconstruction"]) == {"fit", "forecast"}
     assert figure.stat().st_size > 1000
 
