@@ -249,12 +249,8 @@ def run_hard_case(name: str, frames: int) -> None:
     assert state.n_alive > 0
 
 
-@pytest.mark.parametrize("name", list(HARD_CASES))
-def test_hard_cases_stay_finite_and_inside_the_box_for_30_frames(name: str) -> None:
-    run_hard_case(name, 30)
-
-
-@pytest.mark.slow
+# In the default suite, as issue 23 asks: the four cases take 17 CPU-s together (300 frames each,
+# one thread, the 2-core machine), about 9 s of the suite's wall time at -n 2.
 @pytest.mark.parametrize("name", list(HARD_CASES))
 def test_hard_cases_stay_finite_and_inside_the_box_for_300_frames(name: str) -> None:
     run_hard_case(name, 300)
