@@ -107,6 +107,7 @@ def reconstruct(inputs: RunInputs) -> None:
         physics=params.physics,
         frames=params.frames,
         source=params.source,
+        simulation=params,  # a ReconstructParams is its SimulationOptions
         context=inputs.context,
     )
 

@@ -20,6 +20,7 @@ import numpy as np
 
 from fluidcore.jobs import BatchProgress, Cancelled, JobContext, JobInputError
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
+from fluidcore.reconstruct.simulation_options import SimulationOptions
 from fluidcore.reconstruct.source_hint import SourceHint
 
 if TYPE_CHECKING:
@@ -50,6 +51,7 @@ def run_reconstruct(
     frames: tuple[int, int] | None = None,
     source: SourceHint | None = None,
     physics: str = DEFAULT_PHYSICS,
+    simulation: SimulationOptions | None = None,
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
     context: JobContext = JobContext(),
@@ -57,7 +59,8 @@ def run_reconstruct(
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
     `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
-    uses). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
+    uses); `simulation`, when given, replaces its air and spreading settings (the user's
+    `SimulationOptions`). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
     "fluidnexus"; fluidcore.reconstruct.identify). `source`: where the user knows the smoke's
     source to be (otherwise estimated; one view leaves its depth to a guess). Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
@@ -73,6 +76,8 @@ def run_reconstruct(
     from fluidcore.reconstruct.presets import get
 
     preset = quality if isinstance(quality, Quality) else get(quality)
+    if simulation is not None:
+        preset = simulation.applied_to(preset)
     cameras_path = Path(cameras_path)
     cameras = camera_io.load(cameras_path)
     if not videos:

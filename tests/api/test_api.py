@@ -181,7 +181,8 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     assert created.status_code == 202, created.text
     job = created.json()
     assert job["state"] == "queued" and job["progress"] == 0.0
-    assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None}
+    assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None,
+                             "air_cells": 0, "air_vorticity": 0.0, "entrainment": False}
     assert service.queue.sent == [(job["id"], "reconstruct")]
     fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
     assert fetched["id"] == job["id"] and fetched["timings"]["started_at"] is None
@@ -200,6 +201,8 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     [
         ({"quality": "ultra"}, "quality"), ({"physics": "phiflow"}, "physics"), ({"frames": [4, 2]}, "frames"),
         ({"frames": [0, 99]}, "frames"), ({"speed": 1}, "speed"),
+        ({"air_cells": 4}, "air_cells"), ({"air_cells": 129}, "air_cells"), ({"air_cells": 32, "air_vorticity": 3}, "air_vorticity"),
+        ({"air_vorticity": 0.5}, "air_vorticity needs the simulated air"), ({"entrainment": "yes please"}, "entrainment"),
     ],
 )
 def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params: dict, field: str) -> None:
@@ -223,6 +226,14 @@ def test_a_source_hint_is_checked_against_the_capture_box(service: Service, tmp_
     created = reconstruct(service, alice, scene_id, source={"center": inside, "radius": 0.05})
     assert created.status_code == 202, created.text
     assert created.json()["params"]["source"] == {"center": inside, "radius": 0.05}
+
+
+def test_reconstruct_takes_the_simulated_air_and_the_spreading(service: Service, scene_id: str) -> None:
+    created = reconstruct(service, service.key("alice"), scene_id, air_cells=32, air_vorticity=0.3, entrainment=True)
+    assert created.status_code == 202, created.text
+    params = created.json()["params"]
+    assert (params["air_cells"], params["air_vorticity"], params["entrainment"]) == (32, 0.3, True)
+    assert service.queue.sent == [(created.json()["id"], "reconstruct")]
 
 
 def test_reconstruct_takes_the_physics_choice(service: Service, scene_id: str) -> None:

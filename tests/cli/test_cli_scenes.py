@@ -74,6 +74,19 @@ def test_export_writes_world_space_particles(run_dir, tmp_path):
         assert np.median(data["velocities"][:, 1]) > 0
 
 
+def test_reconstruct_with_the_simulated_air_saves_it_and_exports_its_velocity(scene, tmp_path):
+    out = tmp_path / "airy"
+    _ok(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}",
+         "--frames", "0:2", "--air-cells", "8", "--air-vorticity", "0.3", "--entrainment", "--out", str(out), "--threads", "1"])
+    quality = json.loads((out / "manifest.json").read_text())["settings"]["quality"]
+    assert (quality["air_cells"], quality["air_vorticity"], quality["entrainment"]) == (8, 0.3, True)
+    _ok(["export", str(out), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
+    with np.load(tmp_path / "d.npz") as data:
+        assert str(data["velocity_source"]) == "air"
+        assert data["velocity"].shape == (*data["density"].shape, 3)
+        assert np.abs(data["velocity"]).max() > 0  # the smoke's buoyancy has set the air moving
+
+
 def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     cams = str(scene / "transforms.json")
     _fails(["reconstruct", "--cameras", cams, "--video", "view_01", "--out", str(tmp_path / "r")], "VIEW=path")
@@ -82,6 +95,8 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--quality", "ultra", "--out", str(tmp_path / "r")], "quality")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--source", "0,1", "--out", str(tmp_path / "r")], "--source")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--source", "9,9,9", "--out", str(tmp_path / "r")], "outside the scene box")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "4", "--out", str(tmp_path / "r")], "air_cells must be 0")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-vorticity", "0.5", "--out", str(tmp_path / "r")], "needs the simulated air")
     assert not (tmp_path / "r").exists()
     _fails(["synth", "--out", str(tmp_path / "odd"), "--width", "135"], "width must be even")
     assert not (tmp_path / "odd").exists()

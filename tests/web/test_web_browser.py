@@ -205,6 +205,13 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.get_by_label("Scene name").press("Enter")  # the keyboard cannot send it either
     assert server.client.get("/v1/scenes").json()["total"] == 0
     page.get_by_label("End frame").fill("2")
+    air = page.get_by_label("Simulated air")
+    air.fill("4")  # below the grid's range: refused before anything is sent
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air: give 0 (still air) or a whole number")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    air.fill("8")
+    page.get_by_label("Let the plume spread").check()
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     page.get_by_label("Scene name").fill("plume")
     page.screenshot(path=screens / "upload.png", full_page=True)
     # Sent from the keyboard: a pointer click here missed in a checkout without ../shared (its
@@ -214,6 +221,8 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05} and sent["physics"] == "auto"
+    assert (sent["air_cells"], sent["entrainment"]) == (8, True)
+    sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
     sync_api.expect(row(page, "reconstruct").locator(".job-origin")).to_contain_text("scene plume")
 

@@ -35,6 +35,8 @@ function paramSummary(job) {
     parts.push(p.quality);
     if (p.frames) parts.push(`frames ${p.frames[0]}–${p.frames[1] - 1}`);
     if (p.source) parts.push(`source ${vector(p.source.center)}${p.source.radius ? ` r ${num(p.source.radius)}` : ""}`);
+    if (p.air_cells) parts.push(`air ${p.air_cells} cells${p.air_vorticity ? `, vorticity ${num(p.air_vorticity)}` : ""}`);
+    if (p.entrainment) parts.push("spreading");
   } else if (p.frames) parts.push(`${p.frames} new frames`);
   if (p.from_frame != null) parts.push(`from frame ${p.from_frame}`);
   if (p.wind) parts.push(`wind ${num(p.wind.strength)} ${p.wind.profile || ""} toward ${vector(p.wind.direction)}`.replace("  ", " "));

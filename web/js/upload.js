@@ -7,6 +7,10 @@ import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.
 import { mp4Frames } from "./mp4.js";
 import { insideBox, parseSource } from "./source.js";
 
+// The simulated air's grid: 0 (still air) or this range of cells on the box's long side; the same
+// bounds as fluidcore.reconstruct.simulation_options.AIR_CELLS (tests/web/test_api_web.py holds them alike).
+const AIR_CELLS = [8, 128];
+
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
 
 const state = { camerasFile: null, parsed: null, cameraError: null, videos: [] };
@@ -66,6 +70,10 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   if (source.error) problems.push(source.error);
   else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
     problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
+  }
+  const air = $("air-cells").value;
+  if (air && !(Number(air) === 0 || (Number.isInteger(Number(air)) && Number(air) >= AIR_CELLS[0] && Number(air) <= AIR_CELLS[1]))) {
+    problems.push(`Simulated air: give 0 (still air) or a whole number of cells from ${AIR_CELLS[0]} to ${AIR_CELLS[1]}, got ${air}.`);
   }
   if (!cameras) return problems;
   const known = cameras.map((c) => c.name).join(", ");
@@ -176,6 +184,9 @@ async function submit(event, onDone) {
 /** The reconstruction's params (the API's ReconstructParams); no end frame: to the clip's end. */
 function reconstructParams() {
   const params = { quality: $("quality").value, physics: $("physics").value };
+  const air = Number($("air-cells").value || 0);
+  if (air > 0) params.air_cells = air;
+  if ($("entrainment").checked) params.entrainment = true;
   const source = parseSource($("source").value).value;
   if (source) params.source = source;
   const start = Number($("frame-start").value || 0), end = $("frame-end").value;
@@ -207,6 +218,6 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
-  for (const id of ["source", "frame-start", "frame-end"]) $(id).addEventListener("input", render);
+  for (const id of ["source", "frame-start", "frame-end", "air-cells"]) $(id).addEventListener("input", render);
   render();
 }

@@ -1,0 +1,73 @@
+"""What a user may switch on beyond the quality preset: the simulated air and the plume's spreading.
+
+Both are issue 23's and both are off by default, because on the benchmark scenes neither helps
+everywhere (docs/bench_generalise.md, "The reconstruction carries the air", "Entrainment" and
+"Issue 23 at its close"). With the air grid on (32 cells, mean of seeds 0-2), the wind what-ifs
+gain in the late window (D +0.18 dB, F +0.63), and a run carries an air velocity that its
+density exports hold (VFX tools use it for motion blur and re-simulation) and the browser draws.
+The factual future loses 0.24 dB on D and 0.16 on F, and F's ball what-if loses 0.47 dB. With
+entrainment on, the predicted plume's width at f120 goes from 0.67 to 0.87 of the truth's on D
+and from 0.70 to 0.94 on F. A user who wants the air or the wider plume should be able to ask
+for them.
+The one parameter model, torch-free like `source_hint`, so the API validates a request before
+anything is queued; the CLI, the API and the worker share it, and `run_reconstruct` applies it
+to the preset (`Quality.air_cells`, `air_vorticity`, `entrainment`, recorded in the manifest;
+every continuation of the run follows them).
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from fluidcore.errors import InputError
+from fluidcore.reconstruct.presets import Quality
+
+# Cells on the scene box's long side. From 8, the smallest grid that still has two cells across a
+# plume a quarter of the box wide. Up to 128: `bench physics --air` measured the air step at 7 %
+# of a 50k-particle PBF step at 32 cells, 17 % at 48 and 34-40 % at 64, growing with the cell
+# count cubed, so 128 costs about three PBF steps per step (docs/bench_physics.md, "The air grid").
+AIR_CELLS = (8, 128)
+# Vorticity confinement epsilon (Fedkiw, Stam & Jensen 2001, dimensionless). Solver libraries
+# document ranges of 0.01-0.5 and 0.1-2.0 for it; above 2 the confinement force outgrows the
+# buoyancy that drives the air.
+MAX_AIR_VORTICITY = 2.0
+
+
+class SimulationOptionsError(InputError):
+    """Simulation options that cannot be used; the message names the field."""
+
+
+class SimulationOptions(BaseModel):
+    """`air_cells`: simulate the air around the smoke on a grid with this many cells on the scene
+    box's long side (0, the default: still air). `air_vorticity`: that air's vorticity confinement
+    (0 = off; needs the air). `entrainment`: identify the plume's spreading rate from the input
+    view and simulate it in every continuation (off: the paper's column)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    air_cells: int = Field(default=0, ge=0, le=AIR_CELLS[1])
+    air_vorticity: float = Field(default=0.0, ge=0.0, le=MAX_AIR_VORTICITY)
+    entrainment: bool = False
+
+    @model_validator(mode="after")
+    def _air_settings(self) -> SimulationOptions:
+        if 0 < self.air_cells < AIR_CELLS[0]:
+            raise ValueError(f"air_cells must be 0 (still air) or {AIR_CELLS[0]}..{AIR_CELLS[1]}, got {self.air_cells}")
+        if self.air_vorticity > 0 and self.air_cells == 0:
+            raise ValueError("air_vorticity needs the simulated air: set air_cells too")
+        return self
+
+    def applied_to(self, preset: Quality) -> Quality:
+        """`preset` with these options in place of its own."""
+        return preset.with_overrides(air_cells=self.air_cells, air_vorticity=self.air_vorticity, entrainment=self.entrainment)
+
+
+def simulation_options(**fields: object) -> SimulationOptions:
+    """The options from the command line's flags, with one line naming each bad field on failure
+    (pydantic's own message spans several lines with documentation links)."""
+    try:
+        return SimulationOptions(**fields)
+    except ValidationError as exc:
+        reasons = [str(e["ctx"]["error"]) if e["type"] == "value_error" else f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
+                   for e in exc.errors(include_url=False)]
+        raise SimulationOptionsError("; ".join(reasons)) from None
