@@ -45,9 +45,13 @@ class SimulationOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    air_cells: int = Field(default=0, ge=0, le=AIR_CELLS[1])
-    air_vorticity: float = Field(default=0.0, ge=0.0, le=MAX_AIR_VORTICITY)
-    entrainment: bool = False
+    air_cells: int = Field(default=0, ge=0, le=AIR_CELLS[1], description=(
+        f"simulate the air around the smoke on a grid of this many cells on the scene box's long side "
+        f"({AIR_CELLS[0]}..{AIR_CELLS[1]}; 0: still air, the default); saved with every frame, its velocity in the density exports"))
+    air_vorticity: float = Field(default=0.0, ge=0.0, le=MAX_AIR_VORTICITY,
+                                 description="the simulated air's vorticity confinement epsilon (0: off; needs air_cells)")
+    entrainment: bool = Field(default=False, description="identify the plume's spreading rate from the input view and "
+                              "simulate it in every continuation (false: the paper's column)")
 
     @model_validator(mode="after")
     def _air_settings(self) -> SimulationOptions:
