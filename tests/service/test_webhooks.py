@@ -169,3 +169,42 @@ def test_a_redirect_is_not_followed() -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_a_host_that_does_not_resolve_in_time_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A resolver that never answers holds no request: the lookup is given up after
+    RESOLVE_TIMEOUT_S and the target refused, naming the host."""
+    import socket
+
+    answer = threading.Event()
+
+    def silent(*args: object, **kwargs: object) -> list:  # type: ignore[type-arg]
+        answer.wait(5.0)  # a resolver that does not answer (released at the end of the test)
+        raise socket.gaierror("released")
+
+    monkeypatch.setattr(socket, "getaddrinfo", silent)
+    monkeypatch.setattr(webhooks, "RESOLVE_TIMEOUT_S", 0.05)
+    try:
+        with pytest.raises(webhooks.RefusedTarget, match="'slow.example.com' did not resolve within 0.05 s"):
+            webhooks.check_target("https://slow.example.com/hook", allow_private=False)
+    finally:
+        answer.set()
+
+
+def test_a_forked_worker_process_resolves_with_a_pool_of_its_own(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Celery forks its worker processes: a child gets none of the parent's lookup threads, so a
+    pool carried over from the parent would never run the child's lookups (each refused after
+    RESOLVE_TIMEOUT_S). The child checks a public host as the parent does."""
+    import multiprocessing
+    import socket
+
+    def public(*args: object, **kwargs: object) -> list:  # type: ignore[type-arg]
+        return [(socket.AF_INET, socket.SOCK_STREAM, 6, "", ("93.184.215.14", 443))]
+
+    monkeypatch.setattr(socket, "getaddrinfo", public)
+    webhooks.check_target("https://hooks.example.com/hook", allow_private=False)  # the parent's pool has a thread now
+    context = multiprocessing.get_context("fork")
+    child = context.Process(target=webhooks.check_target, args=("https://hooks.example.com/hook", False))
+    child.start()
+    child.join(30)
+    assert child.exitcode == 0
