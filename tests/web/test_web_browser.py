@@ -242,6 +242,10 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert box is not None and box["x"] + box["width"] <= 600, box
     page.set_viewport_size({"width": 1366, "height": 900})
     wait_succeeded(page, 2)
+    # the reconstruction ran with the air the form asked for: its frames carry it to the what-if view
+    reconstruction = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["id"]
+    air = server.client.get(f"/v1/jobs/{reconstruction}/particles").json()["air"]
+    assert air is not None and max(abs(v) for v in air["velocities"]) > 0
 
     # results: players of one length in sync, plots from the manifest, downloads of the MP4s too;
     # the job published its input view, the other camera and the orbit are rendered as the players ask
