@@ -14,6 +14,10 @@ from __future__ import annotations
 
 import logging
 import uuid
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from pydantic import ValidationError
 
 
 class InputError(ValueError):
@@ -27,3 +31,16 @@ def internal_error(log: logging.Logger, exc: BaseException, during: str) -> str:
     incident = uuid.uuid4().hex[:12]
     log.error("internal error (id %s) in %s: %s: %s", incident, during, type(exc).__name__, exc, exc_info=exc)
     return f"internal error (id {incident})"
+
+
+def describe_validation(exc: ValidationError) -> str:
+    """One line for a pydantic `ValidationError` that names each offending field (`wind.strength`,
+    `ball.center[2]`, `air_cells`), for an `InputError`: pydantic's own message spans several lines
+    with documentation links. A model-level check's message is shown as it was raised."""
+    parts = []
+    for error in exc.errors(include_url=False):
+        location = ""
+        for key in error["loc"]:
+            location += f"[{key}]" if isinstance(key, int) else (f".{key}" if location else str(key))
+        parts.append(f"{location}: {error['msg']}" if location else str(error["msg"]).removeprefix("Value error, "))
+    return "; ".join(parts)

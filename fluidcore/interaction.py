@@ -21,7 +21,7 @@ from typing import Any, Literal, Protocol
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from fluidcore.errors import InputError
+from fluidcore.errors import InputError, describe_validation
 
 Vec3 = tuple[float, float, float]
 
@@ -240,7 +240,7 @@ def parse_interaction(wind: Given, ball: Given, model: type[InteractionParams] =
     try:
         return model(**fields)
     except ValidationError as exc:
-        raise InteractionError(_describe(exc)) from None
+        raise InteractionError(describe_validation(exc)) from None
 
 
 def _as_dict(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
@@ -254,16 +254,6 @@ def _as_dict(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
     if not isinstance(value, Mapping):
         raise InteractionError(f"{field} must be a JSON object, got {type(value).__name__}")
     return dict(value)
-
-
-def _describe(exc: ValidationError) -> str:
-    parts = []
-    for error in exc.errors(include_url=False):
-        location = ""
-        for key in error["loc"]:
-            location += f"[{key}]" if isinstance(key, int) else (f".{key}" if location else str(key))
-        parts.append(f"{location}: {error['msg']}" if location else str(error["msg"]).removeprefix("Value error, "))
-    return "; ".join(parts)
 
 
 def _check_start(start_frame: int, frames: int, field: str) -> None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from fluidcore.errors import InputError
+from fluidcore.errors import InputError, describe_validation
 from fluidcore.reconstruct.presets import Quality
 
 # Cells on the scene box's long side. From 8, the smallest grid that still has two cells across a
@@ -67,11 +67,8 @@ class SimulationOptions(BaseModel):
 
 
 def simulation_options(**fields: object) -> SimulationOptions:
-    """The options from the command line's flags, with one line naming each bad field on failure
-    (pydantic's own message spans several lines with documentation links)."""
+    """The options from the command line's flags, with one line naming each bad field on failure."""
     try:
         return SimulationOptions(**fields)
     except ValidationError as exc:
-        reasons = [str(e["ctx"]["error"]) if e["type"] == "value_error" else f"{'.'.join(map(str, e['loc']))}: {e['msg']}"
-                   for e in exc.errors(include_url=False)]
-        raise SimulationOptionsError("; ".join(reasons)) from None
+        raise SimulationOptionsError(describe_validation(exc)) from None
