@@ -45,24 +45,19 @@ TIMEOUT_S = 10.0
 # without outside DNS) where the lookup usually fails in 0.1 s.
 RESOLVE_TIMEOUT_S = 3.0
 RESOLVER_THREADS = 4
-
-
-def _resolver() -> ThreadPoolExecutor:
-    """Where lookups run, so a request waits on its own lookup for at most RESOLVE_TIMEOUT_S; a lookup
-    that hangs keeps only one of these threads, and when all are held new lookups time out and are
-    refused."""
-    return ThreadPoolExecutor(max_workers=RESOLVER_THREADS, thread_name_prefix="webhook-dns")
-
-
-_RESOLVER = _resolver()
+_RESOLVER: ThreadPoolExecutor
 
 
 def _fresh_resolver() -> None:
-    """A forked child (a Celery worker process) has none of its parent's threads: give it a pool of its own."""
+    """Where lookups run, so a request waits on its own lookup for at most RESOLVE_TIMEOUT_S; a lookup
+    that hangs keeps only one of these threads, and when all are held new lookups time out and are
+    refused. Made at import and again in a forked child (a Celery worker process), which has none
+    of its parent's threads."""
     global _RESOLVER
-    _RESOLVER = _resolver()
+    _RESOLVER = ThreadPoolExecutor(max_workers=RESOLVER_THREADS, thread_name_prefix="webhook-dns")
 
 
+_fresh_resolver()
 os.register_at_fork(after_in_child=_fresh_resolver)
 
 

@@ -71,9 +71,9 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
     problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
   }
-  const air = $("air-cells").value;
-  if (air && !(Number(air) === 0 || (Number.isInteger(Number(air)) && Number(air) >= AIR_CELLS[0] && Number(air) <= AIR_CELLS[1]))) {
-    problems.push(`Simulated air: give 0 (still air) or a whole number of cells from ${AIR_CELLS[0]} to ${AIR_CELLS[1]}, got ${air}.`);
+  const airText = $("air-cells").value, air = Number(airText);
+  if (airText && !(air === 0 || (Number.isInteger(air) && air >= AIR_CELLS[0] && air <= AIR_CELLS[1]))) {
+    problems.push(`Simulated air: give 0 (still air) or a whole number of cells from ${AIR_CELLS[0]} to ${AIR_CELLS[1]}, got ${airText}.`);
   }
   if (!cameras) return problems;
   const known = cameras.map((c) => c.name).join(", ");
