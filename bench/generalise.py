@@ -57,11 +57,11 @@ import typer
 if __package__ in (None, ""):  # `python bench/generalise.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import UserError, echo_json, user_errors  # noqa: I001 - first: it registers every benchmark
 from bench.gt_scenes import GroundTruth, Variant, open_scene  # noqa: E402
 from bench.predict import per_frame  # noqa: E402
 from bench.scene_args import quality_overrides  # noqa: E402
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 TASKS = ("nvs", "input", "future", "velocity", "whatif", "rise")
 RISE_OBSERVED = 10  # frames of the short reconstruction the rise task continues
@@ -95,7 +95,6 @@ def command(
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
-    """Novel views, input-view fit, future, velocity, what-ifs and rise on one scene, with baselines."""
     import torch
 
     from fluidcore.jobs import parse_frames
@@ -622,4 +621,6 @@ def plot(result: dict, path: Path) -> Path:
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("generalise", command)

@@ -33,6 +33,7 @@ from typing import Any, Optional
 import typer
 
 import fluidcore  # noqa: F401  first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
+from fluidnexus.reporting import UserError, echo_json, user_errors
 
 if __package__ in (None, ""):  # `python bench/generative.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -169,10 +170,7 @@ def command(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads (default: all cores)."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Seconds per frame and peak memory of novel-view generation and video refinement."""
     import torch
-
-    from fluidnexus.cli.errors import UserError, echo_json, user_errors
 
     with user_errors():
         if size not in ("tiny", "full"):
@@ -216,4 +214,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("generative", command)

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from fluidnexus.cli.errors import UserError
+from fluidnexus.reporting import UserError
 
 DENSITY_THRESHOLD = 0.05  # GT density above which a voxel counts as smoke (the dev protocol)
 TOP_QUANTILE = 0.98  # a plume's top: this quantile of the smoke's height (robust to a stray wisp)

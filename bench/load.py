@@ -45,7 +45,7 @@ import typer
 if __package__ in (None, ""):  # `python bench/load.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import UserError, echo_json, user_errors  # noqa: E402
+from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 HOST = "127.0.0.1"  # loopback only: this benchmark never targets another address
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
@@ -434,7 +434,6 @@ def command(
         False, "--computing", help="Serve with the embedded worker, which computes the job during the load."
     ),
 ) -> None:
-    """Requests/s and p50/p99 per route under concurrent polling, listing and uploads."""
     with user_errors():
         if backend not in ("sqlite", "postgres"):
             raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
@@ -458,4 +457,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("load", command)

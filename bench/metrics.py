@@ -24,7 +24,7 @@ import typer
 if __package__ in (None, ""):  # `python bench/metrics.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import echo_json
+from fluidnexus.reporting import echo_json  # noqa: E402
 
 LOSS_SIZES = ((480, 270), (960, 540))  # (width, height) render sizes of the reconstruction loop
 SCORE_SIZE = (648, 1160)  # the ScalarFlow benchmark files
@@ -104,7 +104,6 @@ def command(
     threads: Optional[int] = typer.Option(None, "--threads", min=1, help="CPU threads for torch (default: all cores)."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Time SSIM/PSNR (loss and scoring) and video decode/encode."""
     import torch
 
     torch.set_num_threads(threads or os.cpu_count() or 1)
@@ -129,4 +128,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("metrics", command)

@@ -275,7 +275,6 @@ def command(
     air: bool = typer.Option(False, "--air", help="The air grid's rows: s/step at 32, 48, 64 cells vs the PBF step "
                                                    f"(both scenes, --particles, default {AIR_PARTICLES:,}); writes physics_air.json."),
 ) -> None:
-    """Benchmark the PBF simulator: steps/s and density error vs particles and iterations."""
     import torch
 
     if device not in ("cpu", "cuda"):
@@ -335,4 +334,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("physics", command)

@@ -36,9 +36,9 @@ import typer
 if __package__ in (None, ""):  # `python bench/predict.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import UserError, echo_json, user_errors  # first: it registers every benchmark
-from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
+from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 ANCHOR_ROWS = {"all_views": "future_prediction_frames_all_views", "held_out": "future_prediction_frames_novel_views_0134"}
 
@@ -60,7 +60,6 @@ def command(
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
-    """Reconstruct the observed frames, predict the future ones, score them per view and horizon."""
     import torch
 
     from fluidcore.jobs import parse_frames
@@ -251,4 +250,6 @@ def _print_table(result: dict[str, Any]) -> None:
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("predict", command)

@@ -25,9 +25,9 @@ import typer
 if __package__ in (None, ""):  # `python bench/reconstruct.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import UserError, echo_json, user_errors
-from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402, I001 - shared option parsing
+from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 
 def _log(message: str) -> None:
@@ -45,7 +45,6 @@ def command(
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
-    """Reconstruct from the input view(s), then PSNR/SSIM on every other camera with ground truth."""
     import torch
 
     from fluidcore.jobs import parse_frames
@@ -178,4 +177,6 @@ def _print_table(result: dict) -> None:
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("reconstruct", command)

@@ -37,6 +37,7 @@ from typing import Any, Optional
 import typer
 
 import fluidcore  # noqa: F401  first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
+from fluidnexus.reporting import echo_json
 
 SIZES = ((270, 480), (540, 960), (1080, 1920))
 COUNTS = (10_000, 100_000)
@@ -261,7 +262,6 @@ def command(
     depth: bool = typer.Option(False, "--depth/--no-depth", help="Also render the depth map (reconstruction does not)."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Time fluidcore.render forward + backward on a smoke plume."""
     import torch
 
     _check_choices(channels, backend, device)
@@ -281,8 +281,6 @@ def command(
     if len(rows) == 1:
         report.update(rows[0])
     if json_output:
-        from fluidnexus.cli.errors import echo_json
-
         echo_json(report)
         return
     typer.echo(f"threads {report['threads']} of {report['cpu_count']} cores, load average {report['load_average']}")
@@ -290,4 +288,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("render", command)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from fluidcore.cameras import Camera
-from fluidnexus.cli.errors import UserError
+from fluidnexus.reporting import UserError
 
 CAMERA_FILES = ("transforms.json", "info.json")
 

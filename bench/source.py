@@ -33,9 +33,9 @@ import typer
 if __package__ in (None, ""):  # `python bench/source.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fluidnexus.cli.errors import UserError, echo_json, user_errors  # noqa: I001 - first: it registers every benchmark
 from bench.gt_scenes import GroundTruth, ScalarFlowScene, open_scene  # noqa: E402
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 IMAGE_ESTIMATE_PHYSICS = "scalarflow"  # any preset: presets keep the image estimate of the source
 DEFAULT_OBSERVED = (0, 90)  # frames read when the scene has no protocol.json
@@ -51,7 +51,6 @@ def command(
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
-    """The source's radius and centre as estimated from one view, against the truth."""
     import torch
 
     from fluidcore.jobs import parse_frames
@@ -165,4 +164,6 @@ def print_table(result: dict) -> None:
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("source", command)

@@ -33,6 +33,9 @@ import typer
 if __package__ in (None, ""):  # `python bench/upload_attacks.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.load import camera_json, live_server  # noqa: E402
+from fluidnexus.reporting import echo_json, user_errors  # noqa: E402
+
 CAMERA = (270, 480)  # width, height of the dev scene's views, the camera the hostile video claims
 REFUSE_WITHIN_S = 2.0
 PEAK_RSS_MB = 512.0
@@ -91,7 +94,6 @@ def attacks(folder: Path) -> dict[str, Parts]:
     """The four hostile uploads as multipart parts for POST /v1/scenes."""
     import numpy as np
 
-    from bench.load import camera_json  # here: bench.load imports the CLI, which imports this module
     from fluidcore.video import write_mp4
 
     cameras = ("cameras", ("transforms.json", camera_json("view", *CAMERA), "application/json"))
@@ -133,8 +135,6 @@ def peak_rss_mb(pid: int) -> float:
 def run_attacks(rounds: int) -> dict[str, Any]:
     import httpx
 
-    from bench.load import live_server
-
     results: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="fluidnexus-attacks-") as tmp, live_server("sqlite") as server:
         uploads = attacks(Path(tmp))
@@ -171,9 +171,6 @@ def command(
     rounds: int = typer.Option(3, "--rounds", min=1, max=20, help="Times the four uploads are sent at once."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
 ) -> None:
-    """Peak API memory and time to refuse four concurrent hostile uploads."""
-    from fluidnexus.cli.errors import echo_json, user_errors  # here: the CLI imports this module
-
     with user_errors():
         result = run_attacks(rounds)
     if json_out:
@@ -190,4 +187,6 @@ def command(
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("upload_attacks", command)

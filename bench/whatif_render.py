@@ -39,6 +39,7 @@ import typer
 
 import fluidcore  # first, before torch: sets OpenMP's passive wait policy (see fluidcore/__init__.py)
 import fluidcore.artifacts
+from fluidnexus.reporting import echo_json
 
 DEFAULT_WIND = '{"direction": [1, 0, 0], "strength": 0.5}'
 KEYS = (  # medians
@@ -191,7 +192,6 @@ def command(
     threads: int | None = typer.Option(None, "--threads", min=1, help="CPU threads (default: all cores)."),
     json_output: bool = typer.Option(False, "--json", help="Print one JSON object instead of the table."),
 ) -> None:
-    """Simulate and render `--repeats` what-ifs of RUN, by function and as jobs; print the medians."""
     import torch
 
     if threads is not None:
@@ -216,8 +216,6 @@ def command(
         "rows": rows, "reconstruction": reconstruction,
     }
     if json_output:
-        from fluidnexus.cli.errors import echo_json
-
         echo_json(report)
         return
     typer.echo(f"threads {report['threads']} of {report['cpu_count']} cores, load average {report['load_average']}")
@@ -240,4 +238,6 @@ def table(report: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    typer.run(command)
+    from bench.registry import run_script
+
+    run_script("whatif_render", command)

@@ -48,12 +48,11 @@ def test_package_faces_import_without_torch() -> None:
 
 
 def test_the_quality_default_is_the_presets_everywhere() -> None:
-    from fluidnexus.cli.scenes import reconstruct as cli_reconstruct  # first: the CLI registers the benchmarks
-
-    from bench.predict import command as bench_predict  # noqa: I001
+    from bench.predict import command as bench_predict
     from bench.reconstruct import command as bench_reconstruct
     from fluidcore.reconstruct import PRESETS
     from fluidcore.reconstruct.job import run_reconstruct
+    from fluidnexus.cli.scenes import reconstruct as cli_reconstruct
     from service.job_types import ReconstructParams
 
     assert DEFAULT_QUALITY in PRESETS

@@ -1,20 +1,14 @@
-"""`fluidnexus bench NAME`: each benchmark lives in `bench/NAME.py` and exposes a typer-style
-`command` function, so `python bench/NAME.py` and `fluidnexus bench NAME` are one program."""
+"""`fluidnexus bench NAME`: one sub-command per benchmark declared in `bench.registry`, the same
+`command` function that `python bench/NAME.py` runs, with the same description."""
 
 from __future__ import annotations
 
-import importlib
-
 import typer
 
-BENCHMARKS: tuple[str, ...] = (
-    "reconstruct", "predict", "generalise", "source", "metrics", "physics", "render", "generative", "load", "upload_attacks",
-    "whatif_render",
-)
+from bench.registry import BENCHMARKS, load_command
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
-    """Add one `bench` sub-command per benchmark module."""
-    for name in BENCHMARKS:
-        module = importlib.import_module(f"bench.{name}")
-        bench.command(name)(module.command)
+    """Add one `bench` sub-command per registered benchmark."""
+    for name, description in BENCHMARKS.items():
+        bench.command(name, help=description)(load_command(name))

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import typer
 
-from fluidnexus.cli.errors import emit, user_errors
+from fluidnexus.reporting import emit, user_errors
 
 OUT_OPT = typer.Option(..., "--out", help="transforms.json to write.")
 DISTANCE_OPT = typer.Option(1.0, "--distance", help="Camera distance from the scene centre, in world units.")
@@ -36,7 +36,7 @@ def info(
     """Print the scene box, the estimated source and the camera centres (world units) as JSON."""
     from fluidcore import scene_info
     from fluidcore.runs import MANIFEST, Run
-    from fluidnexus.cli.errors import echo_json
+    from fluidnexus.reporting import echo_json
 
     with user_errors():
         if (path / MANIFEST).is_file():

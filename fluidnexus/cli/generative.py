@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from fluidnexus.cli.errors import echo_json, user_errors
+from fluidnexus.reporting import echo_json, user_errors
 
 ModelsDir = Annotated[
     Path | None, typer.Option("--models", help="models folder (default: $FLUIDNEXUS_MODELS or ./models)")

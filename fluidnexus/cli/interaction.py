@@ -12,7 +12,7 @@ from pathlib import Path
 
 import typer
 
-from fluidnexus.cli.errors import check_device, emit, run_fields, user_errors
+from fluidnexus.reporting import check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or a prediction).")

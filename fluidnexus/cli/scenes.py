@@ -14,7 +14,7 @@ import typer
 from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
 from fluidcore.reconstruct.simulation_options import AIR_CELLS
-from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
+from fluidnexus.reporting import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
 RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from fluidnexus.cli.errors import user_errors
+from fluidnexus.reporting import user_errors
 
 if TYPE_CHECKING:
     from sqlalchemy.orm import Session, sessionmaker

@@ -18,7 +18,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import fluidnexus.cli  # noqa: F401  registers the benchmarks, bench.load among them, before it is imported here
 from bench.load import live_server
 
 SEED = 16

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import pytest
 
-import fluidnexus.cli  # noqa: F401  registers the benchmarks, bench.load among them, before it is imported here
 import service.database
 from bench.load import live_server, run_load
 from api_support import Service, make_service

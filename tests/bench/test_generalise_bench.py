@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from skimage.metrics import structural_similarity
 
-import fluidnexus.cli  # noqa: F401, I001 - first: the CLI registers every benchmark module
 from bench.generalise import SMOKE_LEVEL, Protocol, plume_widths
 from bench.gt_scenes import PhiFlowScene, ScalarFlowScene, SynthScene, open_scene
 from fluidcore import synth, video
@@ -190,7 +189,7 @@ def test_a_protocol_json_gives_the_input_view_windows_and_what_ifs_in_world_unit
 
 def test_a_scene_without_protocol_needs_its_input_view_and_window(tmp_path: Path) -> None:
     from bench.generalise import _protocol_defaults
-    from fluidnexus.cli.errors import UserError
+    from fluidnexus.reporting import UserError
 
     (tmp_path / "videos").mkdir()
     _cameras(tmp_path, ["view_00"], {"view_00": "videos/view_00.mp4"})

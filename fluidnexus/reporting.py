@@ -1,6 +1,10 @@
-"""How the command line reports: bad input as one clear line on stderr and exit code 2 (no
+"""How a command line reports: bad input as one clear line on stderr and exit code 2 (no
 traceback), a bug as its traceback and `error: internal error (id ...)` on stderr and exit code 1,
-results on stdout as text or, with --json, as one JSON object (logs go to stderr)."""
+results on stdout as text or, with --json, as one JSON object (logs go to stderr).
+
+Both the `fluidnexus` commands and the benchmarks (`python bench/NAME.py`) report this way. It
+lives outside `fluidnexus.cli` because the CLI loads every benchmark: a benchmark that imported
+the CLI package for these helpers would load the CLI, and the benchmarks again, from inside itself."""
 
 from __future__ import annotations
 
