@@ -57,7 +57,7 @@ nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
 step kernels 60 python3 -m fluidcore.kernels build  # CPU side of the agreement tests
 # gsplat compiles its CUDA extension on first import of its backend (minutes): once, up front.
 step gsplat_build 240 python3 -c "from gsplat.cuda._backend import _C; assert _C is not None, 'gsplat CUDA build failed'"
-step pytest_gpu 90 python3 -m pytest -p no:cacheprovider -m gpu -q tests/fluidcore/test_render_gpu.py tests/fluidcore/test_physics.py
+step pytest_gpu 90 python3 -m pytest -p no:cacheprovider -m gpu -q tests/fluidcore/render/test_gpu.py tests/fluidcore/physics/test_physics.py
 step bench_render 90 sh -c "python3 bench/render.py --device cuda --backend gsplat --repeats 20 --json >'$out/bench_render_cuda.json'"
 for scene in calm violent; do
     step "bench_physics_$scene" 45 sh -c \

@@ -20,10 +20,10 @@ from typer.testing import CliRunner
 
 from fluidcore.errors import InputError
 from fluidnexus.cli import app
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 from service.database import session_scope
 from service.models import Scene
-from service_support import keyed_client, scene_files, upload_parts
+from tests.support.service import keyed_client, scene_files, upload_parts
 
 WIND = json.dumps({"direction": [1, 0, 0], "strength": 0.1})
 ID = re.compile(r"internal error \(id ([0-9a-f]{12})\)")

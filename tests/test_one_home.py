@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from service_support import write_transforms, write_video
+from tests.support.service import write_transforms, write_video
 from typer.testing import CliRunner
 
 from fluidcore.reconstruct.presets import DEFAULT_QUALITY

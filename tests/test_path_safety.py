@@ -23,8 +23,8 @@ from fluidcore.jobs import JobInputError
 from fluidcore.names import UnsafeName, UnsafePath, check_name, check_relative, safe_join
 from fluidnexus.cli import app
 from service.models import Scene
-from service_support import camera_entry, scene_files, write_video
-from api_support import Service, make_service
+from tests.support.service import camera_entry, scene_files, write_video
+from tests.support.api import Service, make_service
 
 HOSTILE = [
     "../x",
@@ -273,7 +273,7 @@ def test_render_artifacts_never_writes_outside_its_folder(tmp_path: Path) -> Non
     client asks for is checked against the run's names); a run made before the naming rule,
     with a camera named like a path, is refused by the join, not written next to the output folder."""
     from fluidcore.artifacts import render_artifacts
-    from run_support import _camera, _create, _state
+    from tests.support.run_folder import _camera, _create, _state
 
     run = _create(tmp_path / "run", frame_range=(0, 1))
     run.write_frame(0, _state(0), {}, 0.0)

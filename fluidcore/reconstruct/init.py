@@ -166,7 +166,7 @@ def smoke_contrast(frames: torch.Tensor, background: torch.Tensor, noise: torch.
     may change one channel only (the mean divides it by the channel count) or shift channels in
     opposite directions (a grey image does not change at all); nor the norm over channels, which
     counts a decoded video's noise, shared by its channels, sqrt(C) times over
-    (tests/fluidcore/test_smoke_mask.py).
+    (tests/fluidcore/reconstruct/test_smoke_mask.py).
     """
     return ((frames - background).abs() / noise.to(frames)).amax(dim=-1).cpu().numpy()
 

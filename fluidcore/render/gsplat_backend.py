@@ -3,7 +3,7 @@
 gsplat JIT-builds its CUDA extension on first use and has no CPU path, so this backend refuses
 anything but CUDA tensors with a clear error instead of failing deep inside gsplat. The torch
 backend uses gsplat's rules (near plane, eps2d, 1/255 alpha cut, 0.999 alpha cap, 1e-4
-transmittance stop), so the two draw the same picture; tests/fluidcore/test_render_gpu.py checks that.
+transmittance stop), so the two draw the same picture; tests/fluidcore/render/test_gpu.py checks that.
 """
 
 from __future__ import annotations

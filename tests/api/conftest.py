@@ -1,4 +1,4 @@
-"""Fixtures of the API tests: an in-process API over SQLite and PostgreSQL (api_support)."""
+"""Fixtures of the API tests: an in-process API over SQLite and PostgreSQL (tests.support.api)."""
 
-from api_support import scene_dir, scene_id, service, sqlite_service  # noqa: F401  fixtures
-from service_support import postgres_url  # noqa: F401  fixture
+from tests.support.api import scene_dir, scene_id, service, sqlite_service  # noqa: F401  fixtures
+from tests.support.service import postgres_url  # noqa: F401  fixture

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from api_support import Service, make_service, reconstruct, upload
+from tests.support.api import Service, make_service, reconstruct, upload
 from service.database import session_scope
 from service.models import Artifact, Job, JobState, Scene
 from service.settings import Settings
 from service.worker_beats import WorkerBeacon
-from service_support import RecordingQueue, scene_files, store_run, upload_parts, write_video
+from tests.support.service import RecordingQueue, scene_files, store_run, upload_parts, write_video
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -32,7 +32,7 @@ from api.app import create_app
 from api.auth import create_key
 from service.database import session_scope
 from service.settings import Settings
-from service_support import RecordingQueue, upload_parts
+from tests.support.service import RecordingQueue, upload_parts
 from pathlib import Path
 
 files = {{k: Path(v) for k, v in {json.dumps({k: str(v) for k, v in scene_dir.items()})}.items()}}
@@ -45,7 +45,7 @@ with TestClient(create_app(Settings(data_dir={str(tmp_path)!r}), queue=Recording
     assert job.status_code == 202, job.text
 print(sorted(m for m in sys.modules if m == "torch" or m.startswith("torch.")))
 """
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "tests"), os.environ.get("PYTHONPATH", "")])}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "[]"
@@ -444,7 +444,7 @@ def test_s3_backend_upload_and_presigned_download(tmp_path: Path, scene_dir: dic
     import httpx
     from moto.server import ThreadedMotoServer
 
-    from service_support import free_port
+    from tests.support.service import free_port
 
     port = free_port()
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)

@@ -11,8 +11,8 @@ import pytest
 
 from service.models import Job, Scene
 from fluidcore.interaction import WindParams
-from service_support import camera_entry, upload_parts, write_video
-from api_support import Service, make_service
+from tests.support.service import camera_entry, upload_parts, write_video
+from tests.support.api import Service, make_service
 
 
 @pytest.fixture

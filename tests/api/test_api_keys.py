@@ -13,7 +13,7 @@ from service.database import make_engine, make_sessionmaker, session_scope
 from service.models import ApiKey
 from service.settings import Settings
 from fluidnexus.cli import app as cli
-from service_support import RecordingQueue
+from tests.support.service import RecordingQueue
 
 runner = CliRunner()
 

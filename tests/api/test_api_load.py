@@ -14,7 +14,7 @@ import pytest
 
 import service.database
 from bench.load import live_server, run_load
-from api_support import Service, make_service
+from tests.support.api import Service, make_service
 
 
 @pytest.fixture

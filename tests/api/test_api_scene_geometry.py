@@ -19,7 +19,7 @@ from fluidcore.runs import Scene as RunScene
 from service.database import session_scope
 from service.models import Job, JobState, Scene
 from service.storage import run_prefix
-from service_support import keyed_client, scene_files, upload_parts, write_video
+from tests.support.service import keyed_client, scene_files, upload_parts, write_video
 
 
 @pytest.fixture

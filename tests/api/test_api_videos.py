@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from api_support import Service, executor
+from tests.support.api import Service, executor
 from fluidcore.runs import Run
 from fluidcore.video import probe
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 from service.models import Artifact, Job, JobState
 from service.storage import run_prefix
 from service.videos import video_key

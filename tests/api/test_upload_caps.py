@@ -20,8 +20,8 @@ from bench.upload_attacks import many_member_zip, png_mov, zip_bomb
 from fluidcore.cameras import CameraError, load
 from fluidcore.video import VideoError, verify
 from service.models import Job, Scene
-from service_support import upload_parts, write_transforms, write_video
-from api_support import Service, make_service
+from tests.support.service import upload_parts, write_transforms, write_video
+from tests.support.api import Service, make_service
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -9,7 +9,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
-from predict_scenes import SPEC, plume_run
+from tests.support.predict_scenes import SPEC, plume_run
 from typer.testing import CliRunner
 
 from fluidcore import synth

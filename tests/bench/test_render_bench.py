@@ -32,7 +32,7 @@ def test_bench_render_rejects_bad_choices() -> None:
 
 
 def test_bench_whatif_render_times_a_what_if_and_a_video_on_request(tmp_path) -> None:  # noqa: ANN001
-    from predict_scenes import plume_run
+    from tests.support.predict_scenes import plume_run
 
     parent = plume_run(tmp_path / "parent", frames=3, warmup=10)
     result = CliRunner().invoke(

@@ -17,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from service_support import free_port
+from tests.support.service import free_port
 
 FLUIDNEXUS = Path(sys.executable).with_name("fluidnexus")
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -140,14 +140,14 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
     queued. serve starts a new worker, /readyz answers 503 until it beats, and both jobs succeed,
     the running one resumed from its checkpoints (attempt 2). Test-double runners (one frame a
     second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
-    from service_support import scene_files, upload_parts
+    from tests.support.service import scene_files, upload_parts
 
-    tests = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
                          capture_output=True, text=True, check=True).stdout.strip()
     process, base = start_serve(tmp_path / "data", env={
-        "FLUIDNEXUS_RUNNERS": "service_support:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
-        "PYTHONPATH": os.pathsep.join([tests, os.environ.get("PYTHONPATH", "")]),
+        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
+        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
     })
     client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
     workers: set[int] = set()

@@ -17,7 +17,7 @@ from fluidcore.predict import run_predict, run_resimulate
 from fluidcore.reconstruct import Reconstructor, get, prepare, read_inputs
 from fluidcore.runs import AIR_FIELDS, FrameState, Run, RunError, SavedAir, state_file
 from fluidcore.smoke import SmokeState
-from tests.predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 
 CELLS = 12  # a coarse grid: the tests need moving air, not resolved air
 

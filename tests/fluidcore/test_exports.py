@@ -136,7 +136,7 @@ def test_one_velocity_everywhere_is_that_velocity_wherever_there_is_smoke():
 
 
 def test_a_run_with_air_exports_the_airs_velocity(tmp_path):
-    from predict_scenes import plume_run
+    from tests.support.predict_scenes import plume_run
 
     run_dir = plume_run(tmp_path / "run", frames=2, warmup=20, quality={"air_cells": 12})
     _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])

@@ -16,7 +16,7 @@ from fluidcore.jobs import JobInputError
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run
 from fluidnexus.cli import app
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 
 BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}
 

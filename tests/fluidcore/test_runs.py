@@ -20,7 +20,7 @@ from fluidcore.runs import (
     RunRecord,
     state_file,
 )
-from run_support import _camera, _create, _scene, _state
+from tests.support.run_folder import _camera, _create, _scene, _state
 
 OLD_RUNS = Path(__file__).parent / "fixtures" / "runs_v1"  # written by format version 1 (see its README.md)
 

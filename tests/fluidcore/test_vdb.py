@@ -109,7 +109,7 @@ def test_non_finite_values_and_bad_shapes_are_refused(tmp_path):
 @needs_openvdb
 @pytest.mark.parametrize("air_cells", [0, 12])  # velocity from the particles / from the saved air
 def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path, air_cells):
-    from predict_scenes import plume_run
+    from tests.support.predict_scenes import plume_run
 
     run_dir = plume_run(tmp_path / "run", frames=3, quality={"air_cells": air_cells})
     runner = CliRunner()

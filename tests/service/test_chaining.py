@@ -13,8 +13,8 @@ import pytest
 
 from service.chaining import release_children
 from service.models import JobState
-from service_support import FAKE_RUNNERS, scene_files, upload_parts
-from api_support import Service, executor, make_service
+from tests.support.service import FAKE_RUNNERS, scene_files, upload_parts
+from tests.support.api import Service, executor, make_service
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from service_support import Server
+from tests.support.service import Server
 @pytest.fixture
 def server(tmp_path: Path) -> Iterator[Server]:
     server = Server(tmp_path / "data")

@@ -10,7 +10,7 @@ import httpx
 import pytest
 
 from service.storage import InvalidKey, LocalStorage, MinioStorage, ObjectNotFound, Storage, StorageError
-from service_support import free_port
+from tests.support.service import free_port
 
 DATA = bytes(range(256)) * 5000  # 1.28 MB: more than one streaming chunk
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import pytest
 
 from service import webhooks
-from service_support import scene_files, upload_parts
-from api_support import Service, executor, make_service
+from tests.support.service import scene_files, upload_parts
+from tests.support.api import Service, executor, make_service
 
 
 class Receiver:

@@ -2,7 +2,7 @@
 an app over a real database (SQLite, or PostgreSQL where it runs) with a recording job queue, the
 fixtures that make one, and an executor that runs its jobs with test-double runners.
 
-Kept apart from service_support because that module is also loaded by worker processes
+Kept apart from tests.support.service because that module is also loaded by worker processes
 (FLUIDNEXUS_RUNNERS), which have no use for the API and its test client."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from api.auth import create_key
 from service.database import session_scope
 from service.models import Job
 from service.settings import Settings
-from service_support import FAKE_RUNNERS, RecordingQueue, empty_tables, scene_files, sqlite_url, upload_parts
+from tests.support.service import FAKE_RUNNERS, RecordingQueue, empty_tables, scene_files, sqlite_url, upload_parts
 from worker.execution import JobExecutor
 
 

@@ -19,16 +19,16 @@ from service.queue import CeleryQueue
 from service.settings import Settings
 from service.storage import LocalStorage, Storage
 from worker.execution import JobExecutor
-from service_support import FAKE_RUNNERS, scene_files
+from tests.support.service import FAKE_RUNNERS, scene_files
 
-TESTS = Path(__file__).resolve().parents[1]  # where service_support (the test-double runners) lives
+ROOT = Path(__file__).resolve().parents[2]  # where tests.support.service (the test-double runners) imports from
 
 
 def start_worker(settings: Settings, frame_seconds: float = 0.0) -> subprocess.Popen[bytes]:
     env = {
         **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(TESTS), os.environ.get("PYTHONPATH", "")]),
-        "FLUIDNEXUS_RUNNERS": "service_support:FAKE_RUNNERS",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS",
         "FAKE_FRAME_SECONDS": str(frame_seconds),
         "FLUIDNEXUS_DATA_DIR": str(settings.data_dir),
         "FLUIDNEXUS_DATABASE_URL": settings.resolved_database_url(),

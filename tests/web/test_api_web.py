@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from service_support import store_run
+from tests.support.service import store_run
 
-from api_support import Service, reconstruct
+from tests.support.api import Service, reconstruct
 from fluidcore.reconstruct.simulation_options import AIR_CELLS
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from service_support import CLI, Server
+from tests.support.service import CLI, Server
 
 pytestmark = pytest.mark.browser
 
@@ -71,7 +71,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, list[Path] | Pa
     """A 2-frame, 2-camera synthetic plume, a video matching no camera, one of the wrong size and a
     broken COLMAP zip."""
     from fluidcore import synth
-    from service_support import write_video
+    from tests.support.service import write_video
 
     folder = tmp_path_factory.mktemp("scene")
     transforms = synth.write(synth.generate(synth.SynthSpec(frames=2, width=24, height=32, views=2)), folder / "scene")
@@ -342,7 +342,7 @@ def camera_files(folder: Path) -> list[Path]:
     box, and ScalarFlow's real transforms.json when ../shared is there."""
     import json
 
-    from service_support import camera_entry
+    from tests.support.service import camera_entry
 
     frames = [camera_entry(f"cam{i}", 32, 24, x) for i, x in enumerate((-1.0, 0.5, 2.0))]
     box = {"voxel_scale": [0.5, 0.8, 0.4], "voxel_matrix": [[1, 0, 0, -0.2], [0, 1, 0, 0.0], [0, 0, 1, -0.1], [0, 0, 0, 1]]}
@@ -408,7 +408,7 @@ def test_browser_frame_count_agrees_with_the_server(static_web: str, browser, tm
     import base64
 
     from fluidcore.video import probe
-    from service_support import write_video
+    from tests.support.service import write_video
 
     videos = [write_video(tmp_path / "a.mp4", n_frames=2), write_video(tmp_path / "b.mp4", n_frames=40, fps=10.0)]
     scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "videos" / "input_view_02.mp4"
@@ -506,10 +506,10 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
 
     import numpy as np
 
-    from api_support import reconstruct, upload
+    from tests.support.api import reconstruct, upload
     from fluidcore.runs import SourceEstimateRecord
     from service.models import JobState
-    from service_support import store_run
+    from tests.support.service import store_run
 
     api = sqlite_service
     auth = api.key("alice")

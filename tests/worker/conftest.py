@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from service_support import REDIS_URL, database_url, port_open, postgres_url  # noqa: F401  postgres_url: a fixture
-from worker_support import Deployment
+from tests.support.service import REDIS_URL, database_url, port_open, postgres_url  # noqa: F401  postgres_url: a fixture
+from tests.support.worker import Deployment
 
 
 @pytest.fixture

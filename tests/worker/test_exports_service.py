@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from fluidcore.exports import export_artifacts
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 from service.settings import Settings
-from service_support import keyed_client, scene_files, upload_parts
+from tests.support.service import keyed_client, scene_files, upload_parts
 from worker.execution import JobExecutor
 from worker.runners import RunInputs
 

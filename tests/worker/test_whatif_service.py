@@ -17,11 +17,11 @@ from fluidcore.interaction import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run
 from fluidcore.video import probe
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 from service.database import session_scope
 from service.job_types import JobType
 from service.models import Job, JobState
-from service_support import keyed_client, scene_files, upload_parts
+from tests.support.service import keyed_client, scene_files, upload_parts
 from worker.execution import _published_as
 from worker.runners import RunInputs, interact, render
 

@@ -19,8 +19,8 @@ from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, log_key, run_prefix
 from worker.execution import RUN_SHARE, JobBusy
 from worker.runners import RunInputs
-from service_support import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, sqlite_url
-from worker_support import World
+from tests.support.service import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, sqlite_url
+from tests.support.worker import World
 
 
 @pytest.fixture(params=["sqlite", "postgres"])
@@ -297,7 +297,7 @@ def test_a_bug_deep_inside_a_fluidcore_job_is_an_internal_error_and_bad_input_is
 ) -> None:
     """fluidcore's own runners: a numpy call that raises ValueError deep inside a what-if fails the
     job as an internal error; a ball outside the parent's box fails it with its message."""
-    from predict_scenes import plume_run
+    from tests.support.predict_scenes import plume_run
     from worker.runners import FLUIDCORE_RUNNERS
     from worker.sync import FolderMirror
 
@@ -344,7 +344,7 @@ def test_s3_storage_round_trip(tmp_path: Path) -> None:
     from moto.server import ThreadedMotoServer
 
     from service.storage import MinioStorage
-    from service_support import free_port
+    from tests.support.service import free_port
 
     port = free_port()
     server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)

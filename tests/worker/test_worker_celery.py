@@ -16,8 +16,8 @@ from service.database import session_scope
 from service.models import Job, JobState
 from service.queue import CeleryQueue, requeue_orphans
 from service.settings import Settings
-from service_support import database_url
-from worker_support import Deployment, start_worker, stop, wait_for
+from tests.support.service import database_url
+from tests.support.worker import Deployment, start_worker, stop, wait_for
 
 def test_job_through_redis_to_a_worker_process_and_cancel(redis_postgres: Deployment) -> None:
     worker = start_worker(redis_postgres.settings, frame_seconds=0.3)
@@ -67,7 +67,7 @@ def test_embedded_broker_job_resumes_after_the_worker_is_killed(tmp_path: Path) 
 def test_celery_queue_reports_an_unreachable_broker(tmp_path: Path) -> None:
     """What /readyz and POST /v1/jobs see when Redis is down: QueueUnavailable, not a hang."""
     from service.queue import QueueUnavailable
-    from service_support import free_port
+    from tests.support.service import free_port
 
     down = CeleryQueue(Settings(data_dir=tmp_path, broker_url=f"redis://127.0.0.1:{free_port()}/0"))
     with pytest.raises(QueueUnavailable, match="broker"):

@@ -27,8 +27,8 @@ from service.storage import LocalStorage, StorageError, job_prefix
 from worker.execution import JobBusy
 from worker.runners import RunInputs
 from service.queue import reap_stale
-from service_support import FAKE_RUNNERS, fake_job, free_port, sqlite_url
-from worker_support import Deployment, World, start_worker, stop, wait_for
+from tests.support.service import FAKE_RUNNERS, fake_job, free_port, sqlite_url
+from tests.support.worker import Deployment, World, start_worker, stop, wait_for
 
 
 @pytest.fixture
@@ -142,7 +142,7 @@ def test_heartbeats_keep_a_job_without_progress_alive(world: World) -> None:
 
 def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
     from service.queue import RESUME_STAGE
-    from service_support import RecordingQueue
+    from tests.support.service import RecordingQueue
 
     lease = world.settings.job_lease_seconds
     stale = world.job(scene_id=world.scene(), state=JobState.RUNNING, heartbeat_at=utcnow() - timedelta(seconds=lease + 1))
@@ -163,7 +163,7 @@ def test_the_reaper_sends_a_queued_job_again_once_a_worker_sat_idle_a_lease(worl
     """Issue 20 item 5: a queued job whose broker message was lost is sent again, but only once an
     idle worker proves it (a busy worker or a fresh job is left alone), and once a lease at most."""
     from service.worker_beats import WorkerBeacon
-    from service_support import RecordingQueue
+    from tests.support.service import RecordingQueue
 
     lease = world.settings.job_lease_seconds
     old = utcnow() - timedelta(seconds=lease + 1)

@@ -191,7 +191,7 @@ def test_colmap_needs_two_views(tmp_path: Path) -> None:
 
 
 def test_devdata_scene_box_is_read(tmp_path: Path) -> None:
-    devdata = Path(__file__).resolve().parents[2].parent / "shared" / "devdata" / "phiflow_D" / "D" / "transforms.json"
+    devdata = Path(__file__).resolve().parents[3].parent / "shared" / "devdata" / "phiflow_D" / "D" / "transforms.json"
     if not devdata.is_file():
         pytest.skip("../shared/devdata not present")
     lo, hi = scene_box(devdata)

@@ -16,7 +16,7 @@ from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Si
 from fluidcore.physics.air import AirGrid, AirState, cell_velocity, curl
 from fluidcore.predict.job import run_predict
 from fluidcore.runs import Run
-from predict_scenes import plume_run
+from tests.support.predict_scenes import plume_run
 
 CFG = PRESETS["scalarflow"]
 BOX = Box((0.0, 0.0, 0.0), (0.3, 0.4, 0.3))

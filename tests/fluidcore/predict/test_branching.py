@@ -15,7 +15,7 @@ from fluidcore.interaction import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact, run_predict
 from fluidcore.runs import Run
 from fluidnexus.cli import app
-from predict_scenes import live, plume_run
+from tests.support.predict_scenes import live, plume_run
 
 BRANCH = 5
 WIND = parse_interaction({"direction": [1.0, 0.0, 0.0], "strength": 0.3, "start_frame": 2}, None).wind

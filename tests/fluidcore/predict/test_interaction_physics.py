@@ -11,7 +11,7 @@ import torch
 from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
 from fluidcore.predict.job import run_interact, run_predict
 from fluidcore.runs import Run
-from predict_scenes import horizontal_distance, live, plume_run
+from tests.support.predict_scenes import horizontal_distance, live, plume_run
 
 FRAMES = 15
 BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}  # above the source (y 0.075), in the plume's way

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from predict_scenes import SPEC, horizontal_distance, live, plume_run
+from tests.support.predict_scenes import SPEC, horizontal_distance, live, plume_run
 from typer.testing import CliRunner
 
 from fluidcore import run_frames
