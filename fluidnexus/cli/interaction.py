@@ -85,7 +85,7 @@ def interact(
     as_json: bool = JSON_OPT,
 ) -> None:
     """Ask what if: a wind, a ball in the plume's way, or both, from any frame of RUN (default: after its last)."""
-    from fluidcore.interaction import Intervention, parse_interaction
+    from fluidcore.spec.controls import Intervention, parse_interaction
     from fluidcore.jobs import JobContext
 
     with user_errors():

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.models import Job, Scene
-from fluidcore.interaction import WindParams
+from fluidcore.spec.controls import WindParams
 from service_support import camera_entry, upload_parts, write_video
 from api_support import Service, make_service
 

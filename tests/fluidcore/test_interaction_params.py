@@ -8,7 +8,14 @@ import sys
 
 import pytest
 
-from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
+from fluidcore.spec.controls import (
+    MAX_GAIN_EXPONENT,
+    BallParams,
+    InteractionError,
+    InteractionParams,
+    WindParams,
+    parse_interaction,
+)
 from fluidcore.physics.config import PBFConfig, Source
 from fluidcore.runs import RunError, Scene
 
@@ -91,9 +98,11 @@ def test_wind_peak_is_at_the_bottom_when_it_decays_with_height() -> None:
     assert wind.peak_acceleration((0, -1, 0), (1, 1, 1), base_height=0.0) == pytest.approx(math.exp(2.0))
 
 
-def test_overflowing_growth_is_refused_not_inf() -> None:
+def test_a_growth_past_the_gain_cap_is_judged_by_the_gain_the_physics_applies_and_refused() -> None:
+    """exp(50 * 20) overflows a float; the check measures the capped gain the simulator applies
+    (`WindParams.gain`, the one formula), which is still far too strong for the scene."""
     wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=50.0)
-    assert wind.peak_acceleration(LO, (1.0, 20.0, 1.0), 0.0) == math.inf
+    assert wind.peak_acceleration(LO, (1.0, 20.0, 1.0), 0.0) == math.exp(MAX_GAIN_EXPONENT)
     with pytest.raises(InteractionError, match="wind.strength"):
         InteractionParams(wind=wind).check_scene(scene(hi=(1.0, 20.0, 1.0)), FRAMES)
 
@@ -109,7 +118,7 @@ def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
 
 
 def test_parameters_import_without_torch() -> None:
-    code = "import sys, fluidcore.interaction; sys.exit('torch' in sys.modules)"
+    code = "import sys, fluidcore.spec.controls; sys.exit('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
@@ -134,8 +143,8 @@ def test_a_what_if_needs_wind_or_ball_and_its_schema_says_so() -> None:
     schema-valid interact request is never refused for asking for neither."""
     import jsonschema
 
-    from fluidcore.interaction import Intervention
-    from service.job_types import InteractParams
+    from fluidcore.spec.controls import Intervention
+    from fluidcore.spec.jobs import InteractParams
 
     assert InteractionParams().wind is None  # a prediction asks for neither
     with pytest.raises(InteractionError, match="needs a wind, a ball or both"):
