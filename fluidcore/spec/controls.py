@@ -264,18 +264,21 @@ def branch_frame(from_frame: int | None, frames: Sequence[int], run: str) -> int
 NEEDS_WIND_OR_BALL = "interact needs a wind, a ball or both (predict asks for neither)"
 
 Given = str | Mapping[str, Any] | BaseModel | None
+Controls = TypeVar("Controls", bound=InteractionParams)
 
 
-def parse_interaction(wind: Given, ball: Given, model: type[InteractionParams] = InteractionParams) -> InteractionParams:
-    """Build validated parameters (`model`: `Intervention` for a what-if) from JSON text, dicts or
+def parse_interaction(
+    wind: Given, ball: Given, model: type[Controls] = InteractionParams, **fields: Any  # type: ignore[assignment]
+) -> Controls:
+    """Build validated parameters (`model`: `Intervention` for a what-if, `fluidcore.spec.jobs
+    .InteractParams` with its other `fields` for the CLI's interact job) from JSON text, dicts or
     the models themselves, with one readable message on failure.
 
     Pydantic's own message spans several lines with documentation links; the CLI and the API
     show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
     """
-    fields = {"wind": _as_dict(wind, "wind"), "ball": _as_dict(ball, "ball")}
     try:
-        return model(**fields)
+        return model(wind=_as_dict(wind, "wind"), ball=_as_dict(ball, "ball"), **fields)
     except ValidationError as exc:
         raise InteractionError(describe_validation(exc)) from None
 

@@ -9,10 +9,11 @@ before anything is queued.
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from fluidcore.errors import InputError, describe_validation
 from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
 from fluidcore.reconstruct.simulation_options import AIR_CELLS, SimulationOptions
@@ -20,6 +21,7 @@ from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.spec.controls import FromFrame, Intervention
 
 _STRICT = ConfigDict(extra="forbid")
+Params = TypeVar("Params", bound=BaseModel)
 
 QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
 PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
@@ -86,3 +88,16 @@ class RenderParams(BaseModel):
     @classmethod
     def _safe(cls, value: str) -> str:
         return check_name(value, "video")
+
+
+class JobParamsError(InputError):
+    """Job parameters that cannot be used; the message names each field."""
+
+
+def job_params(model: type[Params], **fields: Any) -> Params:
+    """`model` built from a command line's values (the API validates its bodies itself), with
+    one line naming each bad field on failure."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        raise JobParamsError(describe_validation(exc)) from None
