@@ -14,6 +14,7 @@ from fluidcore.spec.controls import (
     InteractionError,
     InteractionParams,
     WindParams,
+    branch_frame,
     parse_interaction,
 )
 from fluidcore.physics.config import PBFConfig, Source
@@ -118,7 +119,7 @@ def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
 
 
 def test_parameters_import_without_torch() -> None:
-    code = "import sys, fluidcore.spec.controls; sys.exit('torch' in sys.modules)"
+    code = "import sys, fluidcore.spec.controls, fluidcore.spec.jobs, fluidcore.spec.limits; sys.exit('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
@@ -173,3 +174,40 @@ def test_a_wind_base_height_replaces_the_source_height_in_the_scene_check() -> N
     assert high.reference_height(0.25) == 2.0
     with pytest.raises(InteractionError, match="wind.strength"):
         InteractionParams(wind=high).check_scene(scene(), FRAMES)
+
+
+def test_the_branch_frame_is_a_finished_frame_or_the_last() -> None:
+    """`branch_frame`, the one from_frame rule the API and the job ask: None is the last finished
+    frame, a finished frame is itself, any other is refused naming the field and the run."""
+    assert branch_frame(None, [3, 4, 5], "run r") == 5
+    assert branch_frame(3, [3, 4, 5], "run r") == 3
+    with pytest.raises(InteractionError, match=r"from_frame: 6 is not a finished frame of the parent run \(run r: frames 3..5\)"):
+        branch_frame(6, [3, 4, 5], "run r")
+    with pytest.raises(InteractionError, match="from_frame: run r has no finished frame"):
+        branch_frame(None, [], "run r")
+
+
+def test_the_api_and_the_job_refuse_a_branch_frame_by_the_one_rule() -> None:
+    """Neither the API's route nor the prediction job states the rule again: both call `branch_frame`."""
+    import inspect
+
+    import api.routers.jobs
+    import fluidcore.predict.job
+
+    for module in (api.routers.jobs, fluidcore.predict.job):
+        source = inspect.getsource(module)
+        assert "branch_frame(" in source and "not in frames" not in source and "not in record.frames" not in source, module
+
+
+@pytest.mark.parametrize(("profile", "growth"), [("exponential", 2.0), ("exponential", 40.0), ("linear", -3.0), ("uniform", 0.0)])
+def test_the_gain_is_one_formula_for_floats_and_tensors(profile: str, growth: float) -> None:
+    """`WindParams.gain` on a float (the scene check, the browser's arrows) equals it on a tensor
+    (the physics), the exponent's cap included."""
+    import torch
+
+    wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=growth, profile=profile)
+    heights = [-1.0, -0.2, 0.0, 0.3, 1.0, 2.0]  # 40 * 2 is past the exponent's cap
+    on_tensor = wind.gain(torch.tensor(heights, dtype=torch.float64)).tolist()
+    assert on_tensor == pytest.approx([wind.gain(h) for h in heights], rel=1e-12)
+    if profile == "exponential":
+        assert wind.gain(2.0) == math.exp(min(2.0 * growth, MAX_GAIN_EXPONENT))

@@ -182,4 +182,6 @@ def test_the_wind_arrows_come_from_the_one_gain(sqlite_service: Service) -> None
     refused = sqlite_service.client.post(url, json={"wind": {**wind, "profile": "uniform"}, "source_height": 0.0, "heights": [0.0]},
                                          headers=alice)
     assert refused.status_code == 422 and "growth must be 0 for a uniform wind" in refused.text
+    overflowing = sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [1e308]}, headers=alice)
+    assert overflowing.status_code == 422 and "heights" in overflowing.text  # never an infinite (null) number
     assert sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [0.0]}).status_code == 401
