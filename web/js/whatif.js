@@ -182,22 +182,27 @@ function airSummary(air, arrows) {
 
 /** Redraw the ball and the wind arrows from the form's current values. */
 function drawOverlay() {
-  if (!view || !run) return;
-  const { overlay, renderer, scene, camera } = view;
-  overlay.clear();
+  if (!run) return;
   const params = formParams();
   const lo = new Vector3(...run.box.lo), hi = new Vector3(...run.box.hi);
   const size = hi.clone().sub(lo).length();
-  if (params.ball && params.ball.radius > 0 && params.ball.center.every(Number.isFinite)) {
-    const ball = new Mesh(new SphereGeometry(params.ball.radius, 24, 16),
+  if (view) drawBall(params.ball, size);
+  drawWind(params.wind, lo, hi, size).catch(showError); // without WebGL too: the API's verdict on the wind
+}
+
+/** The ball (red) and its velocity arrow on a cleared overlay; the wind's arrows join it when the API answers. */
+function drawBall(ball, size) {
+  const { overlay, renderer, scene, camera } = view;
+  overlay.clear();
+  if (ball && ball.radius > 0 && ball.center.every(Number.isFinite)) {
+    const mesh = new Mesh(new SphereGeometry(ball.radius, 24, 16),
       new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, opacity: 0.55 }));
-    ball.position.set(...params.ball.center);
-    overlay.add(ball);
-    const v = new Vector3(...params.ball.velocity);
-    if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), ball.position, 0.3 * size, 0xe74c3c));
+    mesh.position.set(...ball.center);
+    overlay.add(mesh);
+    const v = new Vector3(...ball.velocity);
+    if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), mesh.position, 0.3 * size, 0xe74c3c));
   }
   renderer.render(scene, camera);
-  drawWind(params.wind, lo, hi, size).catch(showError);
 }
 
 /** The wind's arrows up the box's height, each as long as the API's acceleration there (the
@@ -221,7 +226,7 @@ async function drawWind(wind, lo, hi, size) {
   if (asked !== windAsked) return; // the form changed meanwhile: a newer request draws
   windRefusal = answer && answer.refusal ? answer.refusal : null;
   validate();
-  if (!answer || !answer.accelerations) return;
+  if (!view || !answer || !answer.accelerations) return;
   const { overlay, renderer, scene, camera } = view;
   const dir = new Vector3(...wind.direction).normalize(), up = new Vector3(...run.up).normalize();
   const centre = lo.clone().add(hi).multiplyScalar(0.5);
