@@ -29,7 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from fluidcore.errors import InputError, describe_validation
 
 Vec3 = tuple[float, float, float]
-H = TypeVar("H")  # a height: a float, or a torch tensor of heights
+Height = TypeVar("Height")  # a float, or a torch tensor of heights
 
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
 MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far past physical
@@ -107,7 +107,7 @@ class WindParams(BaseModel):
         when the wind names one, else the height of the run's source centre."""
         return source_height if self.base_height is None else self.base_height
 
-    def gain(self, height: H) -> H:
+    def gain(self, height: Height) -> Height:
         """gain(z) at `height` z above the base height, by `profile` (the class docstring); the
         exponent is capped at MAX_GAIN_EXPONENT so a large growth far above the base stays finite.
 
@@ -308,11 +308,11 @@ def _corners(lo: Vec3, hi: Vec3) -> list[Vec3]:
     return [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
 
 
-def _clamp(value: H, low: float | None = None, high: float | None = None) -> H:
+def _clamp(value: Height, low: float | None = None, high: float | None = None) -> Height:
     if isinstance(value, float):
         return min(max(value, -math.inf if low is None else low), math.inf if high is None else high)
     return value.clamp(min=low, max=high)  # type: ignore[attr-defined]  # a torch tensor
 
 
-def _exp(value: H) -> H:
+def _exp(value: Height) -> Height:
     return math.exp(value) if isinstance(value, float) else value.exp()  # type: ignore[attr-defined]
