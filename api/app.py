@@ -18,7 +18,7 @@ from fastapi_offline import FastAPIOffline
 from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
-from api.routers import artifacts, health, jobs, particles, scenes, videos, webhooks
+from api.routers import artifacts, health, jobs, limits, particles, scenes, videos, webhooks, wind
 from api.uploads import Validators
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
@@ -69,7 +69,8 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)
-    routers = (scenes.router, jobs.router, artifacts.router, videos.router, particles.router, webhooks.router, health.router)
+    routers = (scenes.router, jobs.router, artifacts.router, videos.router, particles.router, webhooks.router, health.router,
+               limits.router, wind.router)
     for router in routers:
         app.include_router(router)
     add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])

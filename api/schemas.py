@@ -10,6 +10,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 
 from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
+from fluidcore.spec.controls import WindParams
 from service.job_types import JobType
 from service.models import JobState
 
@@ -210,3 +211,22 @@ class ParticlesOut(BaseModel):
     scene: RunScene
     air: AirSample | None = Field(default=None, description="the air saved with the frame, sampled on a coarse lattice "
                                   "(a run with quality air_cells > 0); null: the run's air is still")
+
+
+FieldLimits = dict[str, Any]  # fluidcore.spec.limits: the JSON Schema keywords that bound one field
+Limits = dict[str, dict[str, FieldLimits]]  # by job type, then by field path ("air_cells", "wind.strength")
+
+MAX_WIND_HEIGHTS = 64  # the what-if view asks for a handful (an arrow each)
+
+
+class WindHeights(BaseModel):
+    """A wind and the heights (world units along the scene's up) to evaluate it at."""
+
+    model_config = ConfigDict(extra="forbid")
+    wind: WindParams
+    source_height: float = Field(description="the run's source centre along up: the base height of a wind that names none")
+    heights: list[float] = Field(min_length=1, max_length=MAX_WIND_HEIGHTS)
+
+
+class WindAccelerations(BaseModel):
+    accelerations: list[float] = Field(description="the wind's acceleration (units/s^2) at each height, in order")

@@ -231,7 +231,7 @@ class Protocol:
 
     def _predict(self, parent: Path, out: Path, frames: int, **interventions: Any) -> Any:
         from fluidcore import predict
-        from fluidcore.interaction import InteractionParams
+        from fluidcore.spec.controls import InteractionParams
         from fluidcore.runs import Run
 
         _log(f"continuing {parent.name} by {frames} frames {sorted(k for k, v in interventions.items() if v) or ''}")

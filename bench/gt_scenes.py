@@ -169,7 +169,7 @@ class PhiFlowScene(GroundTruth):
 
 
 def _phiflow_variant(folder: Path, meta: dict[str, Any], factual: PhiFlowScene) -> Variant | None:
-    """A sibling folder's wind or obstacle, in the terms of `fluidcore.interaction` (frames counted
+    """A sibling folder's wind or obstacle, in the terms of `fluidcore.spec.controls` (frames counted
     from the first new frame after the branch)."""
     scene = open_scene(folder)
     late = _anchor_late_starts(folder.parent / "anchors.json").get(folder.name)

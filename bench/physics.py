@@ -87,7 +87,7 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     """Simulator and state of the benchmark plume with n particles, plus a re-seeding function."""
     import torch
 
-    from fluidcore.interaction import WindParams
+    from fluidcore.spec.controls import WindParams
     from fluidcore.physics import Box, ParticleState, Simulator, Source, Sphere, wind_force
     from fluidcore.physics.source import emit
 

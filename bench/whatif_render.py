@@ -63,7 +63,7 @@ def measure(parent: Path, frames: int, wind: str, folder: Path) -> dict[str, Any
     """One what-if through the functions the worker calls: seconds simulating, rendering what a
     finished job renders, and rendering the orbit on request."""
     from fluidcore import artifacts
-    from fluidcore.interaction import parse_interaction
+    from fluidcore.spec.controls import parse_interaction
     from fluidcore.predict import run_interact
     from fluidcore.runs import Run
     from fluidcore.video import probe

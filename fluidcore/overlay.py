@@ -4,7 +4,7 @@ the wind while it blows; and the side-by-side factual | what-if picture.
 The ball is one-way coupled and invisible to the smoke renderer, so without this a what-if
 video shows the smoke swerving around nothing. Whether (and where) an intervention is drawn on
 a frame comes from the same `WindParams.active` / `BallParams.active` / `center_at` that the
-simulator's forces and spheres follow (fluidcore.interaction), so the picture never disagrees
+simulator's forces and spheres follow (fluidcore.spec.controls), so the picture never disagrees
 with the physics. Frames are uint8 (T, H, W, 3) at the camera's size; torch-free.
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from fluidcore.cameras import Camera
-from fluidcore.interaction import BallParams, InteractionParams, WindParams
+from fluidcore.spec.controls import BallParams, InteractionParams, WindParams
 from fluidcore.runs import ContinuationSettings, RunRecord
 
 BALL_COLOR = (235, 120, 30)  # RGB; an orange no smoke colour is close to

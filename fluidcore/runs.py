@@ -76,7 +76,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
-from fluidcore.interaction import BallParams, WindParams
+from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Source
 
 FORMAT = "fluidnexus-run"

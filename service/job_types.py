@@ -3,8 +3,8 @@
 The API's request schema (`api.schemas.JobRequest`), the Celery task names (`service.celery_app
 .task_name`), the tasks the worker registers (`worker.tasks`) and the runners it checks for
 (`worker.runners`) are all derived from `JobType`, so a new job type is one member here plus its
-runner in `worker/runners.py`. Parameter models are strict (an unknown field is a 422 naming it)
-and torch-free, so the API validates a request before anything is queued.
+runner in `worker/runners.py`. The parameter models are the spec's (`fluidcore.spec.jobs`: strict,
+torch-free, so the API validates a request before anything is queued).
 
 A job that starts from a "run" (`render`) renders one video of a succeeded job's run on request
 and publishes it with that job's artifacts; it writes no run of its own, and is asked for at
@@ -14,80 +14,14 @@ and publishes it with that job's artifacts; it writes no run of its own, and is 
 from __future__ import annotations
 
 import enum
-from typing import Annotated, Literal
+from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ValidationError
 
-from fluidcore.interaction import Intervention
-from fluidcore.names import check_name
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
-from fluidcore.reconstruct.simulation_options import SimulationOptions
-from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import RunKind
-
-_STRICT = ConfigDict(extra="forbid")
-
-QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
-PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
+from fluidcore.spec.jobs import InteractParams, PredictParams, ReconstructParams, RenderParams, ResimulateParams
 
 StartsFrom = Literal["scene", "parent", "run"]  # an upload, a run to continue, a run to render
-
-
-class ReconstructParams(SimulationOptions):
-    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
-    `source`: where the smoke comes from, when known (world units; checked against the scene
-    box): one view cannot tell the source's depth, and the whole plume inherits the guess.
-    `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
-    by default (`SimulationOptions`, whose docstring gives the measurements)."""
-
-    model_config = _STRICT
-    quality: QualityName = DEFAULT_QUALITY
-    physics: PhysicsName = DEFAULT_PHYSICS
-    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
-    source: SourceHint | None = None
-
-    @model_validator(mode="after")
-    def _ordered(self) -> ReconstructParams:
-        if self.frames is not None and self.frames[1] <= self.frames[0]:
-            raise ValueError(f"frames: end ({self.frames[1]}) must be greater than start ({self.frames[0]})")
-        return self
-
-
-class PredictParams(BaseModel):
-    """`frames`: how many new frames to predict after the parent run's last frame."""
-
-    model_config = _STRICT
-    frames: int = Field(default=30, ge=1)
-
-
-class InteractParams(Intervention):
-    """A counterfactual continuation of the parent run: wind, a ball, or both (`Intervention`, whose
-    rule the request schema states), for `frames` new frames after the parent's frame `from_frame`
-    (default: its last; 0 re-simulates the whole clip with the intervention; docs/whatif.md)."""
-
-    model_config = _STRICT
-    frames: int = Field(default=30, ge=1)
-    from_frame: int | None = Field(default=None, ge=0)
-
-
-class ResimulateParams(BaseModel):
-    """Re-simulate the parent run's frames with physics alone; it takes no parameters."""
-
-    model_config = _STRICT
-
-
-class RenderParams(BaseModel):
-    """`video`: the name of one video of the parent job's run (`fluidcore.artifacts.video_names`:
-    a camera of the run, `orbit`, a what-if's `side_by_side`); a safe name here
-    (`fluidcore.names`), checked against the run's manifest where it is asked for."""
-
-    model_config = _STRICT
-    video: str
-
-    @field_validator("video")
-    @classmethod
-    def _safe(cls, value: str) -> str:
-        return check_name(value, "video")
 
 
 class JobType(enum.StrEnum):

@@ -74,7 +74,7 @@ def test_cli_still_reports_bad_input_as_exit_2_with_its_message(tmp_path: Path) 
     parent = plume_run(tmp_path / "parent", frames=3)
     args = ["interact", str(parent), "--frames", "2", "--wind", WIND, "--from-frame", "7", "--out", str(tmp_path / "out")]
     result = CliRunner().invoke(app, args)
-    assert result.exit_code == 2 and "error: from_frame must be a finished frame" in result.output, result.output
+    assert result.exit_code == 2 and "error: from_frame: 7 is not a finished frame of the parent run" in result.output, result.output
     assert "internal error" not in result.output
 
 

@@ -20,7 +20,7 @@ TORCH_FREE = (
     "fluidcore.physics.config",
     "fluidcore.physics",
     "fluidcore.predict",
-    "fluidcore.interaction",
+    "fluidcore.spec.controls",
     "fluidcore.jobs",
     "fluidcore.runs",
     "fluidcore.artifacts",
@@ -36,7 +36,7 @@ def test_package_faces_import_without_torch() -> None:
         f"for name in {TORCH_FREE!r}: __import__(name)\n"
         "from fluidcore.reconstruct import DEFAULT_QUALITY, PRESETS\n"
         "from fluidcore.physics import PRESETS as PHYSICS, PBFConfig\n"
-        "from fluidcore.interaction import InteractionParams\n"
+        "from fluidcore.spec.controls import InteractionParams\n"
         "assert PHYSICS['scalarflow'].terminal_speed > 0 and DEFAULT_QUALITY in PRESETS\n"
         "loaded = [m for m in ('torch', 'worker', 'api') if m in sys.modules]\n"
         "assert not loaded, loaded\n"
@@ -52,8 +52,8 @@ def test_the_quality_default_is_the_presets_everywhere() -> None:
     from bench.reconstruct import command as bench_reconstruct
     from fluidcore.reconstruct import PRESETS
     from fluidcore.reconstruct.job import run_reconstruct
+    from fluidcore.spec.jobs import ReconstructParams
     from fluidnexus.cli.scenes import reconstruct as cli_reconstruct
-    from service.job_types import ReconstructParams
 
     assert DEFAULT_QUALITY in PRESETS
     assert inspect.signature(run_reconstruct).parameters["quality"].default == DEFAULT_QUALITY
@@ -163,7 +163,7 @@ def test_the_smoke_mask_has_one_home() -> None:
 
 def test_the_wind_speed_limit_is_the_physics_configs() -> None:
     """`check_scene` asks PBFConfig for the speed limit instead of re-deriving it from h and dt."""
-    from fluidcore.interaction import InteractionError, InteractionParams, WindParams
+    from fluidcore.spec.controls import InteractionError, InteractionParams, WindParams
     from fluidcore.physics.config import PBFConfig, Source
     from fluidcore.runs import Scene
 
@@ -179,9 +179,9 @@ def test_the_wind_speed_limit_is_the_physics_configs() -> None:
 def test_a_what_if_needs_a_wind_or_a_ball_alike_at_the_api_and_in_the_job(tmp_path: Path) -> None:
     from pydantic import ValidationError
 
-    from fluidcore.interaction import InteractionError, InteractionParams
+    from fluidcore.spec.controls import InteractionError, InteractionParams
     from fluidcore.predict import run_interact
-    from service.job_types import InteractParams
+    from fluidcore.spec.jobs import InteractParams
 
     with pytest.raises(InteractionError) as job:
         run_interact(tmp_path / "no-parent-needed", tmp_path / "out", InteractionParams(), frames=3)

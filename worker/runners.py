@@ -19,7 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from fluidcore.jobs import JobContext, Progress, ShouldCancel
-from service.job_types import InteractParams, JobType, PredictParams, ReconstructParams, RenderParams
+from fluidcore.spec.jobs import InteractParams, PredictParams, ReconstructParams, RenderParams
+from service.job_types import JobType
 
 
 @dataclass(frozen=True)
@@ -122,7 +123,7 @@ def predict(inputs: RunInputs) -> None:
 
 @_rendered
 def interact(inputs: RunInputs) -> None:
-    from fluidcore.interaction import InteractionParams
+    from fluidcore.spec.controls import InteractionParams
     from fluidcore.predict.job import run_interact
 
     params = InteractParams.model_validate(inputs.params)

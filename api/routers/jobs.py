@@ -19,7 +19,8 @@ from api.routers.scenes import capture_geometry_of, check_reconstruct_params, ow
 from api.schemas import JobLinks, JobLogs, JobOut, JobRequest, JobTimings, Page
 from service import webhooks
 from service.chaining import release_children, waiting_stage
-from service.job_types import InteractParams, JobType
+from fluidcore.spec.jobs import InteractParams
+from service.job_types import JobType
 from service.models import Artifact, Job, JobState, utcnow
 from service.queue import JobQueue, QueueUnavailable
 from service.settings import Settings
@@ -240,7 +241,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
     frame against its finished frames, read from its manifest: a ball outside the box, a wind
     that tears the smoke apart or a frame the parent never reached is a 422 now, not a failed job
     later."""
-    from fluidcore.interaction import InteractionError
+    from fluidcore.spec.controls import InteractionError, branch_frame
     from fluidcore.runs import MANIFEST, RunError, RunRecord
 
     try:
@@ -250,13 +251,11 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
         raise HTTPException(status.HTTP_409_CONFLICT, f"parent job {parent_id} has no run in storage") from None
     except RunError as exc:
         raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
-    frames = record.frames()
-    if params.from_frame is not None and params.from_frame not in frames:
-        held = f"{frames[0]}..{frames[-1]}" if frames else "none"
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            f"params.from_frame: {params.from_frame} is not a finished frame of parent job {parent_id} (frames {held})",
-        )
+    try:
+        if params.from_frame is not None:  # without one the job branches off the parent's last frame
+            branch_frame(params.from_frame, record.frames(), f"parent job {parent_id}")
+    except InteractionError as exc:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"params.{exc}") from None
     try:
         params.check_scene(scene, params.frames)
     except InteractionError as exc:

@@ -21,7 +21,8 @@ from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
 from fluidcore.reconstruct.source_hint import SourceHintError
-from service.job_types import JobType, ReconstructParams
+from fluidcore.spec.jobs import ReconstructParams
+from service.job_types import JobType
 from service.models import Job, JobState, Scene, new_id
 from service.queue import QueueUnavailable
 from service.storage import Storage, run_prefix, scene_prefix

@@ -23,7 +23,8 @@ from api.routers.jobs import job_out, owned_job, send
 from api.routers.particles import stored_run
 from api.schemas import VideoList, VideoOut
 from fluidcore.artifacts import video_names
-from service.job_types import JobType, RenderParams
+from fluidcore.spec.jobs import RenderParams
+from service.job_types import JobType
 from service.models import Artifact, Job, JobState
 from service.settings import Settings
 from service.storage import Storage

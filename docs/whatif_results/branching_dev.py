@@ -13,7 +13,7 @@ torch.set_num_threads(1)
 from fluidcore import run_frames, video
 from fluidcore.metrics import psnr, ssim
 from fluidcore.predict import run_interact, run_predict
-from fluidcore.interaction import parse_interaction
+from fluidcore.spec.controls import parse_interaction
 from fluidcore.runs import Run
 
 DEV = Path("/work/shared/devdata/phiflow_D")

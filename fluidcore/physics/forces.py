@@ -14,12 +14,10 @@ from fluidcore.physics.config import PBFConfig, Vec3
 from fluidcore.physics.sph import differences, pair_geometry, poly6, spiky_gradient
 
 if TYPE_CHECKING:  # the edge type is only read here; physics imports nothing from the edge
-    from fluidcore.interaction import WindParams
+    from fluidcore.spec.controls import WindParams
 
 ForceField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> force (N, 3)
 AirField = Callable[[Tensor, float], Tensor]  # (positions (N, 3), time s) -> air velocity (N, 3), world units / s
-
-MAX_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float32 after scaling
 
 
 def wind_force(
@@ -28,7 +26,7 @@ def wind_force(
     """The force field of `wind`: strength * direction * gain(z), z = height above `base_height`
     along `up`, in every step whose start time `blowing(time)` accepts (gain: `wind_acceleration`).
 
-    `wind` is the validated edge type (fluidcore.interaction.WindParams: unit direction, finite
+    `wind` is the validated edge type (fluidcore.spec.controls.WindParams: unit direction, finite
     bounded strength and growth, a known profile), so nothing is checked again here; when it
     blows is the caller's clock (`fluidcore.predict.interventions` derives it from the wind's
     frame window). The simulator's speed limit bounds the result.
@@ -65,23 +63,11 @@ def wind_air(
 
 
 def wind_acceleration(wind: WindParams, positions: Tensor, base_height: float, up: Vec3) -> Tensor:
-    """strength * direction * gain(z) at `positions` (N, 3), z their height above `base_height`.
-
-    gain by `wind.profile`:
-      exponential  exp(growth * z)         the paper's wind;
-      linear       max(0, 1 + growth * z)  a ramp in height (the official release's force);
-      uniform      1                       the same push everywhere.
-    The exponent is capped at MAX_EXPONENT so a large growth far above the source stays finite.
-    """
+    """strength * direction * gain(z) at `positions` (N, 3), z their height above `base_height`
+    (`WindParams.gain`, the one definition of each profile)."""
     norm = math.sqrt(sum(c * c for c in up))
     z = positions @ positions.new_tensor([c / norm for c in up]) - base_height
-    if wind.profile == "linear":
-        gain = torch.clamp(1.0 + wind.growth * z, min=0.0)
-    elif wind.profile == "uniform":
-        gain = torch.ones_like(z)
-    else:
-        gain = torch.exp(torch.clamp(wind.growth * z, max=MAX_EXPONENT))
-    return (wind.strength * gain)[:, None] * positions.new_tensor(wind.direction)
+    return (wind.strength * wind.gain(z))[:, None] * positions.new_tensor(wind.direction)
 
 
 def drag(velocities: Tensor, density: Tensor, config: PBFConfig, air: Tensor | None = None) -> Tensor:

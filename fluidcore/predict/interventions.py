@@ -1,6 +1,6 @@
 """Interventions: the one place where wind and ball parameters become physics.
 
-The parameters arrive validated (fluidcore.interaction: `WindParams`, `BallParams`, checked
+The parameters arrive validated (fluidcore.spec.controls: `WindParams`, `BallParams`, checked
 against the run's scene by `InteractionParams.check_scene`) and are counted in new frames from
 the first predicted one. Here they meet the run's scene and clock: frame numbers become
 simulator seconds, the wind becomes a force field on the smoke and on the air around it
@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fluidcore.interaction import BallParams, InteractionParams, WindParams
+from fluidcore.spec.controls import BallParams, InteractionParams, WindParams
 from fluidcore.physics import AirField, ForceField, PBFConfig, Source, Sphere, wind_air, wind_force
 
 

@@ -1,7 +1,7 @@
 """The prediction jobs (Algorithm S2): a run continued by physics, written as a new run.
 
     run_predict     from the last frame of a run, simulate N more frames (the source keeps seeding)
-    run_interact    the same under a wind and/or with a ball in the way (fluidcore.interaction)
+    run_interact    the same under a wind and/or with a ball in the way (fluidcore.spec.controls)
     run_resimulate  from the FIRST frame of a run, simulate its whole window again (the paper's
                     re-simulation task: how much of the reconstruction the physics alone explains)
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from fluidcore.interaction import InteractionParams, Intervention, parse_interaction
+from fluidcore.spec.controls import InteractionParams, Intervention, branch_frame, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import Simulator
 from fluidcore.physics.air import AirGrid, scene_air
@@ -127,19 +127,8 @@ def _continue(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise JobInputError(f"frames must be a whole number >= 1, got {frames!r}")
     parent = _open_parent(parent_run)
-    branch = branch_frame(parent, from_frame)
+    branch = branch_frame(from_frame, parent.frames(), str(parent.path))
     return _write(parent, out_dir, request, branch, (branch + 1, branch + 1 + frames), context)
-
-
-def branch_frame(parent: Run, from_frame: int | None) -> int:
-    """The parent's frame a continuation starts from: `from_frame`, which must be a finished frame
-    of the parent, or its last frame."""
-    frames = parent.frames()
-    if from_frame is None:
-        return frames[-1]
-    if isinstance(from_frame, bool) or not isinstance(from_frame, int) or from_frame not in frames:
-        raise JobInputError(f"from_frame must be a finished frame of {parent.path} ({frames[0]}..{frames[-1]}), got {from_frame!r}")
-    return from_frame
 
 
 def _open_parent(path: str | os.PathLike[str]) -> Run:

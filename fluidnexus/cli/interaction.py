@@ -12,14 +12,17 @@ from pathlib import Path
 
 import typer
 
+from fluidcore.spec.controls import BallParams, WindParams
+from fluidcore.spec.jobs import InteractParams, PredictParams
 from fluidnexus.reporting import check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
+from fluidnexus.cli.options import json_help, spec_option
 
 RUN_ARG = typer.Argument(..., help="Run folder to continue (a reconstruction, or a prediction).")
 OUT_OPT = typer.Option(..., "--out", help="Folder for the new run; an unfinished run there is resumed.")
 DEVICE_OPT = typer.Option("cpu", "--device", help="torch device: cpu, cuda, cuda:1, ...")
 JSON_OPT = typer.Option(False, "--json", help="Print one JSON object (run, kind, frames, parent) on stdout.")
-FROM_OPT = typer.Option(None, "--from-frame", min=0, help="Branch off this frame of RUN (default: its last frame).")
+FROM_OPT = spec_option(InteractParams, "from_frame", "--from-frame")
 
 
 def register(app: typer.Typer, bench: typer.Typer) -> None:
@@ -31,7 +34,7 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
 def predict(
     run: Path = RUN_ARG,
-    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to predict after the last one."),
+    frames: int = spec_option(PredictParams, "frames", "--frames", default=...),
     out: Path = OUT_OPT,
     from_frame: int | None = FROM_OPT,
     device: str = DEVICE_OPT,
@@ -43,11 +46,13 @@ def predict(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import JobContext
     from fluidcore.predict.job import run_predict
+    from fluidcore.spec.jobs import job_params
 
     with user_errors():
+        params = job_params(PredictParams, frames=frames)
         check_device(device)
         path = run_predict(
-            run, out, frames=frames, from_frame=from_frame, generative=GenerativeSettings(models_root=models),
+            run, out, frames=params.frames, from_frame=from_frame, generative=GenerativeSettings(models_root=models),
             context=JobContext(device, _ProgressBar()),
         )
         emit(as_json, str(path), **run_fields(path))
@@ -66,35 +71,26 @@ def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OP
 
 def interact(
     run: Path = RUN_ARG,
-    frames: int = typer.Option(..., "--frames", min=1, help="How many frames to simulate after the branch frame."),
+    frames: int = spec_option(InteractParams, "frames", "--frames", default=...),
     out: Path = OUT_OPT,
-    wind: str | None = typer.Option(
-        None,
-        "--wind",
-        help='Wind as JSON: {"direction": [x, y, z], "strength": s (units/s^2), "growth": g (per unit height), '
-        '"profile": "exponential|linear|uniform", "start_frame": f, "end_frame": null, "base_height": null '
-        '(world height where the strength holds; default: the source centre)}',
-    ),
-    ball: str | None = typer.Option(
-        None,
-        "--ball",
-        help='Ball as JSON: {"center": [x, y, z], "radius": r, "start_frame": f, "velocity": [vx, vy, vz]}',
-    ),
+    wind: str | None = typer.Option(None, "--wind", help=f"Wind as JSON: {json_help(WindParams)}"),
+    ball: str | None = typer.Option(None, "--ball", help=f"Ball as JSON: {json_help(BallParams)}"),
     from_frame: int | None = FROM_OPT,
     device: str = DEVICE_OPT,
     as_json: bool = JSON_OPT,
 ) -> None:
     """Ask what if: a wind, a ball in the plume's way, or both, from any frame of RUN (default: after its last)."""
-    from fluidcore.interaction import Intervention, parse_interaction
     from fluidcore.jobs import JobContext
+    from fluidcore.spec.controls import parse_interaction
 
     with user_errors():
-        params = parse_interaction(wind, ball, Intervention)  # the edge: bad JSON or values fail here, before torch loads
+        # the edge: the API's interact params, so bad JSON or values fail here, before torch loads
+        params = parse_interaction(wind, ball, InteractParams, frames=frames, from_frame=from_frame)
         from fluidcore.predict.job import run_interact
 
         check_device(device)
         context = JobContext(device, _ProgressBar())
-        path = run_interact(run, out, params, frames=frames, from_frame=from_frame, context=context)
+        path = run_interact(run, out, params, frames=params.frames, from_frame=params.from_frame, context=context)
         emit(as_json, str(path), **run_fields(path))
 
 

@@ -13,9 +13,10 @@ import typer
 
 from fluidcore.names import check_name
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
-from fluidcore.reconstruct.simulation_options import AIR_CELLS
+from fluidcore.spec.jobs import ReconstructParams
 from fluidnexus.reporting import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
+from fluidnexus.cli.options import spec_option
 
 RUN_ARG = typer.Argument(..., help="Run folder (from reconstruct, predict, interact or resimulate).")
 JSON_OPT = typer.Option(False, "--json", help="Print one JSON object on stdout (logs and progress stay on stderr).")
@@ -77,14 +78,9 @@ def reconstruct(
     source: str | None = typer.Option(
         None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
     ),
-    air_cells: int = typer.Option(
-        0, "--air-cells", help=f"Simulate the air around the smoke on a grid of this many cells on the box's long side "
-        f"({AIR_CELLS[0]}..{AIR_CELLS[1]}; 0: still air, the default). The run saves it and its exports carry its velocity."
-    ),
-    air_vorticity: float = typer.Option(0.0, "--air-vorticity", help="The air's vorticity confinement epsilon (0: off; needs --air-cells)."),
-    entrainment: bool = typer.Option(
-        False, "--entrainment", help="Identify how fast the plume spreads from the video and simulate it in every continuation."
-    ),
+    air_cells: int = spec_option(ReconstructParams, "air_cells", "--air-cells"),
+    air_vorticity: float = spec_option(ReconstructParams, "air_vorticity", "--air-vorticity"),
+    entrainment: bool = spec_option(ReconstructParams, "entrainment", "--entrainment"),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
@@ -98,16 +94,20 @@ def reconstruct(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
-    from fluidcore.reconstruct.simulation_options import simulation_options
     from fluidcore.reconstruct.source_hint import parse_source
+    from fluidcore.spec.jobs import job_params
 
     with user_errors():
-        simulation = simulation_options(air_cells=air_cells, air_vorticity=air_vorticity, entrainment=entrainment)
+        params = job_params(  # the API's reconstruct params: one check, one message naming the field
+            ReconstructParams, quality=quality, physics=physics, frames=parse_frames(frames),
+            source=None if source is None else parse_source(source), air_cells=air_cells, air_vorticity=air_vorticity,
+            entrainment=entrainment,
+        )
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
-            cameras, parse_videos(video), out, quality=quality, physics=physics, frames=parse_frames(frames),
-            source=None if source is None else parse_source(source), simulation=simulation,
+            cameras, parse_videos(video), out, quality=params.quality, physics=params.physics, frames=params.frames,
+            source=params.source, simulation=params,  # a ReconstructParams is its SimulationOptions
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit(as_json, str(path), **run_fields(path))

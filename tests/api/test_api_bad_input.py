@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from service.models import Job, Scene
-from fluidcore.interaction import WindParams
+from fluidcore.spec.controls import WindParams
 from tests.support.service import camera_entry, upload_parts, write_video
 from tests.support.api import Service, make_service
 

@@ -153,7 +153,7 @@ def test_a_protocol_json_gives_the_input_view_windows_and_what_ifs_in_world_unit
     import torch
 
     from bench.generalise import _protocol_defaults
-    from fluidcore.interaction import WindParams
+    from fluidcore.spec.controls import WindParams
     from fluidcore.physics.forces import wind_acceleration
 
     meta = {"saved_frames": [0], "source": {"center_world": [0.26, 0.065, -0.2]}, "forces": {"wind": None}, "obstacle": None}

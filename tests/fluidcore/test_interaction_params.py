@@ -8,7 +8,15 @@ import sys
 
 import pytest
 
-from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
+from fluidcore.spec.controls import (
+    MAX_GAIN_EXPONENT,
+    BallParams,
+    InteractionError,
+    InteractionParams,
+    WindParams,
+    branch_frame,
+    parse_interaction,
+)
 from fluidcore.physics.config import PBFConfig, Source
 from fluidcore.runs import RunError, Scene
 
@@ -91,9 +99,11 @@ def test_wind_peak_is_at_the_bottom_when_it_decays_with_height() -> None:
     assert wind.peak_acceleration((0, -1, 0), (1, 1, 1), base_height=0.0) == pytest.approx(math.exp(2.0))
 
 
-def test_overflowing_growth_is_refused_not_inf() -> None:
+def test_a_growth_past_the_gain_cap_is_judged_by_the_gain_the_physics_applies_and_refused() -> None:
+    """exp(50 * 20) overflows a float; the check measures the capped gain the simulator applies
+    (`WindParams.gain`, the one formula), which is still far too strong for the scene."""
     wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=50.0)
-    assert wind.peak_acceleration(LO, (1.0, 20.0, 1.0), 0.0) == math.inf
+    assert wind.peak_acceleration(LO, (1.0, 20.0, 1.0), 0.0) == math.exp(MAX_GAIN_EXPONENT)
     with pytest.raises(InteractionError, match="wind.strength"):
         InteractionParams(wind=wind).check_scene(scene(hi=(1.0, 20.0, 1.0)), FRAMES)
 
@@ -109,7 +119,7 @@ def test_intervention_starting_after_the_horizon_is_refused(which: str) -> None:
 
 
 def test_parameters_import_without_torch() -> None:
-    code = "import sys, fluidcore.interaction; sys.exit('torch' in sys.modules)"
+    code = "import sys, fluidcore.spec.controls, fluidcore.spec.jobs, fluidcore.spec.limits; sys.exit('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
@@ -134,8 +144,8 @@ def test_a_what_if_needs_wind_or_ball_and_its_schema_says_so() -> None:
     schema-valid interact request is never refused for asking for neither."""
     import jsonschema
 
-    from fluidcore.interaction import Intervention
-    from service.job_types import InteractParams
+    from fluidcore.spec.controls import Intervention
+    from fluidcore.spec.jobs import InteractParams
 
     assert InteractionParams().wind is None  # a prediction asks for neither
     with pytest.raises(InteractionError, match="needs a wind, a ball or both"):
@@ -164,3 +174,40 @@ def test_a_wind_base_height_replaces_the_source_height_in_the_scene_check() -> N
     assert high.reference_height(0.25) == 2.0
     with pytest.raises(InteractionError, match="wind.strength"):
         InteractionParams(wind=high).check_scene(scene(), FRAMES)
+
+
+def test_the_branch_frame_is_a_finished_frame_or_the_last() -> None:
+    """`branch_frame`, the one from_frame rule the API and the job ask: None is the last finished
+    frame, a finished frame is itself, any other is refused naming the field and the run."""
+    assert branch_frame(None, [3, 4, 5], "run r") == 5
+    assert branch_frame(3, [3, 4, 5], "run r") == 3
+    with pytest.raises(InteractionError, match=r"from_frame: 6 is not a finished frame of the parent run \(run r: frames 3..5\)"):
+        branch_frame(6, [3, 4, 5], "run r")
+    with pytest.raises(InteractionError, match="from_frame: run r has no finished frame"):
+        branch_frame(None, [], "run r")
+
+
+def test_the_api_and_the_job_refuse_a_branch_frame_by_the_one_rule() -> None:
+    """Neither the API's route nor the prediction job states the rule again: both call `branch_frame`."""
+    import inspect
+
+    import api.routers.jobs
+    import fluidcore.predict.job
+
+    for module in (api.routers.jobs, fluidcore.predict.job):
+        source = inspect.getsource(module)
+        assert "branch_frame(" in source and "not in frames" not in source and "not in record.frames" not in source, module
+
+
+@pytest.mark.parametrize(("profile", "growth"), [("exponential", 2.0), ("exponential", 40.0), ("linear", -3.0), ("uniform", 0.0)])
+def test_the_gain_is_one_formula_for_floats_and_tensors(profile: str, growth: float) -> None:
+    """`WindParams.gain` on a float (the scene check, the browser's arrows) equals it on a tensor
+    (the physics), the exponent's cap included."""
+    import torch
+
+    wind = WindParams(direction=(1, 0, 0), strength=1.0, growth=growth, profile=profile)
+    heights = [-1.0, -0.2, 0.0, 0.3, 1.0, 2.0]  # 40 * 2 is past the exponent's cap
+    on_tensor = wind.gain(torch.tensor(heights, dtype=torch.float64)).tolist()
+    assert on_tensor == pytest.approx([wind.gain(h) for h in heights], rel=1e-12)
+    if profile == "exponential":
+        assert wind.gain(2.0) == math.exp(min(2.0 * growth, MAX_GAIN_EXPONENT))

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fluidcore.cameras import Camera, look_at
-from fluidcore.interaction import parse_interaction
+from fluidcore.spec.controls import parse_interaction
 from fluidcore.overlay import BALL_COLOR, draw_interventions, side_by_side
 
 CAMERA = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 200, 200, 80, 60, 160, 120, np.eye(4)), "c")

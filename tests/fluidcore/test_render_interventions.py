@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from fluidcore import artifacts, run_frames
 from fluidcore import video
-from fluidcore.interaction import InteractionParams, parse_interaction
+from fluidcore.spec.controls import InteractionParams, parse_interaction
 from fluidcore.jobs import JobInputError
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run

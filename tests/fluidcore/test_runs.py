@@ -142,7 +142,7 @@ def test_version_1_settings_missing_later_fields_get_their_defaults_and_stranger
 
 
 def test_a_version_1_reconstruction_is_continued_into_a_version_2_run(tmp_path):
-    from fluidcore.interaction import BallParams, InteractionParams
+    from fluidcore.spec.controls import BallParams, InteractionParams
     from fluidcore.predict import run_interact
 
     shutil.copytree(OLD_RUNS / "reconstruct", tmp_path / "reconstruct")

@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from fluidcore.interaction import InteractionError, WindParams, parse_interaction
+from fluidcore.spec.controls import InteractionError, WindParams, parse_interaction
 from fluidcore.physics import wind_force
 
 HEIGHTS = torch.tensor([-0.2, 0.0, 0.1, 0.5, 1.0], dtype=torch.float64)

@@ -118,11 +118,70 @@ def test_the_air_saved_with_a_frame_comes_sampled_on_a_lattice(service: Service,
     np.testing.assert_allclose(velocities[:, 2], 0.0, atol=1e-6)
 
 
-def test_the_upload_form_checks_the_air_grid_against_the_apis_bounds() -> None:
-    """The form refuses an air grid the API would refuse before anything is sent; its bounds are
-    written in web/js/upload.js, so they must be the API's (SimulationOptions.AIR_CELLS)."""
-    found = re.search(r"const AIR_CELLS = \[(\d+), (\d+)\];", (WEB / "js" / "upload.js").read_text())
-    assert found is not None, "upload.js states no AIR_CELLS"
-    assert (int(found[1]), int(found[2])) == AIR_CELLS
-    field = re.search(r'<input id="air-cells"[^>]*>', (WEB / "index.html").read_text())
-    assert field is not None and f'max="{AIR_CELLS[1]}"' in field[0]
+# -- limits and the wind's arrows -------------------------------------------------------------------
+
+def test_the_limits_are_the_parameter_models_json_schema(sqlite_service: Service) -> None:
+    """GET /v1/limits (no key: the page reads it before sign-in) holds each field's bounds as the
+    job type's parameter model declares them in its JSON Schema, and new frames the server's cap."""
+    from service.job_types import JobType
+
+    answer = sqlite_service.client.get("/v1/limits")
+    assert answer.status_code == 200
+    limits = answer.json()
+    assert set(limits) == {t.value for t in JobType if t.writes_run}
+    reconstruct = JobType.RECONSTRUCT.params.model_json_schema()["properties"]
+    assert {k: limits["reconstruct"]["air_cells"][k] for k in ("minimum", "maximum", "anyOf")} == {
+        k: reconstruct["air_cells"][k] for k in ("minimum", "maximum", "anyOf")}
+    assert limits["reconstruct"]["quality"]["enum"] == reconstruct["quality"]["enum"]
+    assert limits["reconstruct"]["frames[1]"]["minimum"] == reconstruct["frames"]["anyOf"][0]["prefixItems"][1]["minimum"]
+    interact = JobType.INTERACT.params.model_json_schema()
+    wind, ball = interact["$defs"]["WindParams"]["properties"], interact["$defs"]["BallParams"]["properties"]
+    for field in ("minimum", "maximum", "description"):
+        assert limits["interact"]["wind.strength"][field] == wind["strength"][field]
+        assert limits["interact"]["wind.growth"][field] == wind["growth"][field]
+    assert limits["interact"]["ball.radius"]["exclusiveMinimum"] == ball["radius"]["exclusiveMinimum"]
+    assert limits["interact"]["from_frame"]["minimum"] == interact["properties"]["from_frame"]["anyOf"][0]["minimum"]
+    max_frames = sqlite_service.app.state.settings.max_predict_frames
+    assert limits["interact"]["frames"]["maximum"] == limits["predict"]["frames"]["maximum"] == max_frames
+    assert "/v1/limits" in sqlite_service.client.get("/openapi.json").json()["paths"]
+
+
+def test_the_air_grid_rule_in_the_schema_is_the_models() -> None:
+    """The "0 or 8..128" the browser reads (an `anyOf` in the schema) accepts exactly what the
+    model accepts, checked at the edges of each branch."""
+    import jsonschema
+
+    from fluidcore.spec.jobs import ReconstructParams
+
+    validator = jsonschema.Draft202012Validator(ReconstructParams.model_json_schema())
+    for cells in (-1, 0, 1, AIR_CELLS[0] - 1, AIR_CELLS[0], AIR_CELLS[1], AIR_CELLS[1] + 1):
+        try:
+            ReconstructParams(air_cells=cells)
+            accepted = True
+        except ValueError:
+            accepted = False
+        assert validator.is_valid({"air_cells": cells}) == accepted, cells
+
+
+def test_the_wind_arrows_come_from_the_one_gain(sqlite_service: Service) -> None:
+    """POST /v1/wind/accelerations evaluates `WindParams.gain` above the wind's base height (the
+    source's unless it names one); a wind the model refuses is a 422 naming the field."""
+    from fluidcore.spec.controls import WindParams
+
+    alice = sqlite_service.key("alice")
+    url = "/v1/wind/accelerations"
+    wind = {"direction": [1, 0, 0], "strength": 2.0, "growth": 1.5, "profile": "linear"}
+    heights = [0.0, 0.2, 0.9]
+    answer = sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.2, "heights": heights}, headers=alice)
+    assert answer.status_code == 200, answer.text
+    model = WindParams(**wind)
+    assert answer.json()["accelerations"] == [2.0 * model.gain(h - 0.2) for h in heights]
+    placed = sqlite_service.client.post(url, json={"wind": {**wind, "base_height": 0.9}, "source_height": 0.2, "heights": heights},
+                                        headers=alice).json()["accelerations"]
+    assert placed == [2.0 * model.gain(h - 0.9) for h in heights]
+    refused = sqlite_service.client.post(url, json={"wind": {**wind, "profile": "uniform"}, "source_height": 0.0, "heights": [0.0]},
+                                         headers=alice)
+    assert refused.status_code == 422 and "growth must be 0 for a uniform wind" in refused.text
+    overflowing = sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [1e308]}, headers=alice)
+    assert overflowing.status_code == 422 and "heights" in overflowing.text  # never an infinite (null) number
+    assert sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [0.0]}).status_code == 401

@@ -207,7 +207,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     page.get_by_label("End frame").fill("2")
     air = page.get_by_label("Simulated air")
     air.fill("4")  # below the grid's range: refused before anything is sent
-    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air: give 0 (still air) or a whole number")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air must be 0 or a whole number from")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     air.fill("8")
     page.get_by_label("Let the plume spread").check()
@@ -375,6 +375,61 @@ def static_web() -> Iterator[str]:
     httpd.server_close()
 
 
+def in_process(api):  # type: ignore[no-untyped-def]
+    """A route handler answering the page's /v1 requests with the in-process API `api`."""
+    from urllib.parse import urlsplit
+
+    def to_api(route) -> None:  # type: ignore[no-untyped-def]
+        request, url = route.request, urlsplit(route.request.url)
+        answer = api.client.request(request.method, url.path + (f"?{url.query}" if url.query else ""),
+                                    headers={k: v for k, v in request.headers.items() if k.lower() in ("authorization", "content-type")},
+                                    content=request.post_data_buffer)
+        route.fulfill(status=answer.status_code, body=answer.content, headers={"content-type": answer.headers.get("content-type", "text/plain")})
+
+    return to_api
+
+
+def test_the_forms_judge_values_by_the_apis_limits_as_the_models_do(static_web: str, browser, sqlite_service) -> None:  # type: ignore[no-untyped-def]
+    """web/js/limits.js reads GET /v1/limits (the in-process API behind the page) and accepts a
+    value exactly when the parameter model does; its refusal names the range the model declares."""
+    from pydantic import ValidationError
+
+    from fluidcore.reconstruct.simulation_options import AIR_CELLS
+    from fluidcore.spec.jobs import InteractParams, ReconstructParams
+
+    wind = {"direction": [1, 0, 0], "strength": 1.0}
+    models = {
+        "air_cells": lambda v: ReconstructParams(air_cells=v),
+        "wind.strength": lambda v: InteractParams(wind={**wind, "strength": v}),
+        "wind.growth": lambda v: InteractParams(wind={**wind, "growth": v}),
+        "wind.start_frame": lambda v: InteractParams(wind={**wind, "start_frame": v}),
+        "ball.radius": lambda v: InteractParams(ball={"center": [0, 0, 0], "radius": v}),
+        "from_frame": lambda v: InteractParams(wind=wind, from_frame=v),
+    }
+    values = [-51, -1, -0.5, 0, 0.01, 1, 2.5, AIR_CELLS[0] - 1, AIR_CELLS[0], AIR_CELLS[1], AIR_CELLS[1] + 1, 999, 1000, 1000.5]
+    cases = [("reconstruct" if field == "air_cells" else "interact", field, v) for field in models for v in values]
+
+    def accepted(field: str, value: float) -> bool:
+        try:
+            models[field](value)
+        except ValidationError:
+            return False
+        return True
+
+    page = browser.new_page()
+    page.route("**/v1/**", in_process(sqlite_service))
+    page.goto(static_web + "vendor/README.md")
+    verdicts = page.evaluate("""async (cases) => { const { loadLimits, limitProblem } = await import('/js/limits.js');
+        const limits = await loadLimits();
+        return cases.map(([type, field, value]) => limitProblem(field, value, limits[type][field])); }""", cases)
+    for (_, field, value), problem in zip(cases, verdicts, strict=True):
+        assert (problem is None) == accepted(field, value), (field, value, problem)
+    air = page.evaluate("""async () => (await import('/js/limits.js')).limitProblem(
+        'Simulated air', 4, (await (await import('/js/limits.js')).loadLimits()).reconstruct.air_cells)""")
+    assert air == f"Simulated air must be 0 or a whole number from {AIR_CELLS[0]} to {AIR_CELLS[1]}, got 4."
+    page.close()
+
+
 def test_browser_camera_reader_agrees_with_fluidcore(static_web: str, browser, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """web/js/cameras.js (what the upload view shows) reads the same names, sizes, camera centres
     and scene box as fluidcore.cameras, which the server validates uploads with."""
@@ -450,6 +505,9 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
 
     import numpy as np
 
+    from api.routers.limits import limits
+    from service.settings import Settings
+
     lattice = np.stack(np.meshgrid(*[np.linspace(-0.4, 0.4, 5)] * 3, indexing="ij"), -1).reshape(-1, 3)
     air = {"points": lattice.ravel().tolist(), "velocities": np.tile([0.0, 0.3, 0.1], len(lattice)).tolist()}
     job = {"id": "job-air", "type": "predict", "state": "succeeded", "scene_id": None, "parent_job_id": "job-rec", "params": {}}
@@ -480,6 +538,8 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
         page = browser.new_page()
         page.route("**/v1/jobs?limit=100", lambda route: route.fulfill(json={"items": [job]}))
         page.route("**/v1/jobs/job-air/particles*", answer(particles(with_air)))
+        page.route("**/v1/limits", answer(json.dumps(limits(Settings()))))
+        page.route("**/v1/wind/accelerations", answer(json.dumps({"accelerations": [1.0] * 5})))  # arrows drawn blue
         page.goto(static_web)
         page.evaluate("""async () => { document.getElementById('view-whatif').hidden = false;
                                        await (await import('/js/whatif.js')).showWhatif('job-air'); }""")
@@ -502,7 +562,6 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     the box is refused in the form, and the button queues a new reconstruction of the scene with
     the hint as its source and the first one's other params."""
     from datetime import UTC, datetime
-    from urllib.parse import urlsplit
 
     import numpy as np
 
@@ -520,18 +579,10 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     store_run(api.storage, job_id, {0: np.array([[0.0, 0.2, 0.0], [0.1, 0.3, 0.0]])}, source_estimate=estimate)
     api.set_job(job_id, state=JobState.SUCCEEDED, finished_at=datetime.now(UTC))
 
-    def to_api(route) -> None:  # type: ignore[no-untyped-def]
-        """The page's /v1 requests answered by the in-process API."""
-        request, url = route.request, urlsplit(route.request.url)
-        answer = api.client.request(request.method, url.path + (f"?{url.query}" if url.query else ""),
-                                    headers={k: v for k, v in request.headers.items() if k.lower() in ("authorization", "content-type")},
-                                    content=request.post_data_buffer)
-        route.fulfill(status=answer.status_code, body=answer.content, headers={"content-type": answer.headers.get("content-type", "text/plain")})
-
     page = browser.new_page(viewport={"width": 1366, "height": 900})
     errors: list[str] = []
     page.on("pageerror", lambda error: errors.append(str(error)))
-    page.route("**/v1/**", to_api)
+    page.route("**/v1/**", in_process(api))
     page.goto(static_web)
     page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
     page.keyboard.press("Enter")
@@ -539,6 +590,12 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     page.evaluate(f"location.hash = '#whatif/{job_id}'")
 
     sync_api.expect(page.locator("#source-form")).to_be_visible()
+    # the wind's arrows come from the API, which also says what it refuses of the form's wind
+    page.get_by_label("Profile").select_option("uniform")
+    page.get_by_label("Growth with height").fill("1")
+    sync_api.expect(page.locator("#whatif-problems")).to_contain_text("growth must be 0 for a uniform wind")
+    page.get_by_label("Growth with height").fill("0")
+    sync_api.expect(page.locator("#whatif-problems")).not_to_contain_text("growth must be 0")
     sync_api.expect(page.locator("#source-depth")).to_contain_text("from (0, 0.1, 0.5) (nearest) to (0, 0.1, -0.5) (farthest)")
     sync_api.expect(page.locator("#source-depth")).to_contain_text("put it at (0, 0.1, 0), radius 0.05")
     slider, hint = page.get_by_label("Source centre along the input ray"), page.get_by_label("Source hint for a new reconstruction")

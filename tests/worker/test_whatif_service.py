@@ -13,7 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from fluidcore.exports import EXPORTERS
-from fluidcore.interaction import InteractionParams, parse_interaction
+from fluidcore.spec.controls import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact
 from fluidcore.runs import Run
 from fluidcore.video import probe

@@ -4,6 +4,7 @@
 import { $ } from "./dom.js";
 import { ApiError, api, checkKey, clearKey, getKey, setKey, setUnauthorizedHandler } from "./api.js";
 import { describeJob, initJobs, jobs, pollNow, requestOf, shortId, startPolling, stopPolling } from "./jobs.js";
+import { bound, loadLimits } from "./limits.js";
 import { initResults, showResults, stopSync } from "./results.js";
 import { initUpload } from "./upload.js";
 import { initWhatif, leaveWhatif, showWhatif } from "./whatif.js";
@@ -104,6 +105,7 @@ function init() {
     retry: (id) => act("Sent again", api("/v1/jobs", { method: "POST", body: requestOf(jobs.get(id)) })),
   });
   initResults();
+  loadLimits().then((limits) => bound($("predict-frames"), limits.predict.frames), () => {}); // the upload view says why not
   initWhatif((job) => {
     notice(`What-if ${shortId(job.id)} queued, with the factual prediction it plays next to. Open its Results when it has succeeded.`);
     go("#jobs");

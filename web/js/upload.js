@@ -5,15 +5,13 @@ import { $, showList } from "./dom.js";
 import { uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
 import { mp4Frames } from "./mp4.js";
+import { allowedText, bound, limitProblem, loadLimits } from "./limits.js";
 import { insideBox, parseSource } from "./source.js";
-
-// The simulated air's grid: 0 (still air) or this range of cells on the box's long side; the same
-// bounds as fluidcore.reconstruct.simulation_options.AIR_CELLS (tests/web/test_api_web.py holds them alike).
-const AIR_CELLS = [8, 128];
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
 
 const state = { camerasFile: null, parsed: null, cameraError: null, videos: [] };
+let limits = null; // the reconstruction's parameter limits (GET /v1/limits), or {error}
 
 /** The first frame of a video, decoded by the browser: {width, height, duration, frames} and a canvas. */
 function firstFrame(file) {
@@ -71,9 +69,11 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
     problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
   }
-  const airText = $("air-cells").value, air = Number(airText);
-  if (airText && !(air === 0 || (Number.isInteger(air) && air >= AIR_CELLS[0] && air <= AIR_CELLS[1]))) {
-    problems.push(`Simulated air: give 0 (still air) or a whole number of cells from ${AIR_CELLS[0]} to ${AIR_CELLS[1]}, got ${airText}.`);
+  if (!limits) problems.push("Reading the server's limits…");
+  else if (limits.error) problems.push(`The server's limits could not be read: ${limits.error}`);
+  else {
+    const air = $("air-cells").value && limitProblem("Simulated air", Number($("air-cells").value), limits.air_cells);
+    if (air) problems.push(air);
   }
   if (!cameras) return problems;
   const known = cameras.map((c) => c.name).join(", ");
@@ -96,12 +96,14 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   return [...problems, ...frameRangeProblems(videos)];
 }
 
-/** The frame range against the shortest video's frame count, where the browser could count it. */
+/** The frame range against its limits and the shortest video's frame count, where the browser could count it. */
 function frameRangeProblems(videos) {
   const start = Number($("frame-start").value || 0), endText = $("frame-end").value;
   const end = endText ? Number(endText) : null;
-  if (!Number.isInteger(start) || start < 0) return [`First frame must be a whole number of at least 0, got ${$("frame-start").value}.`];
-  if (end !== null && (!Number.isInteger(end) || end <= start)) return [`End frame must be a whole number above the first frame (${start}), got ${endText}.`];
+  const bad = limits && !limits.error && (limitProblem("First frame", start, limits["frames[0]"])
+    || (end !== null && limitProblem("End frame", end, limits["frames[1]"])));
+  if (bad) return [bad];
+  if (end !== null && end <= start) return [`End frame must be above the first frame (${start}), got ${endText}.`];
   const counted = videos.filter((v) => v.frames);
   if (!counted.length) return start > 0 && end === null && videos.length ? ["Give an end frame too: this browser could not count the video's frames."] : [];
   const shortest = counted.reduce((a, b) => (b.frames < a.frames ? b : a));
@@ -220,4 +222,18 @@ export function initUpload(onDone) {
   $("upload-clear").addEventListener("click", reset);
   for (const id of ["source", "frame-start", "frame-end", "air-cells"]) $(id).addEventListener("input", render);
   render();
+  loadLimits().then((all) => { limits = all.reconstruct; showLimits(); }, (error) => { limits = { error: error.message }; })
+    .finally(render);
+}
+
+/** The form's own hints from the limits: the air field's range and the choices of quality and physics. */
+function showLimits() {
+  $("air-cells-range").textContent = allowedText(limits.air_cells);
+  bound($("air-cells"), limits.air_cells);
+  bound($("frame-start"), limits["frames[0]"]);
+  bound($("frame-end"), limits["frames[1]"]);
+  for (const name of ["quality", "physics"]) {
+    const select = $(name), labels = new Map([...select.options].map((o) => [o.value, o.textContent]));
+    select.replaceChildren(...limits[name].enum.map((value) => new Option(labels.get(value) || value, value, false, value === limits[name].default)));
+  }
 }

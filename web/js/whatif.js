@@ -1,14 +1,17 @@
 // What-if view: wind and ball controls drawn over a 3D view of the reconstructed particles and
 // the scene box, and, for a run that simulates the air, arrows of the air's velocity sampled from
-// the saved frame (the particles answer's `air`). The form refuses a ball outside the box (naming
-// the box's limits) before anything is sent; the server checks everything again
-// (fluidcore.interaction). For a reconstruction from one view, the view also draws the stretch of
+// the saved frame (the particles answer's `air`). The form checks its values against the API's
+// limits (GET /v1/limits) and refuses a ball outside the box (naming the box's limits) before
+// anything is sent; the wind's arrows are the API's accelerations (POST /v1/wind/accelerations,
+// which also refuses a wind the model refuses); the server checks everything again
+// (fluidcore.spec.controls). For a reconstruction from one view, the view also draws the stretch of
 // the input ray its source could lie on (GET /v1/scenes/{id}: geometry.source.depth), and a slider
 // along it fills the source hint of a new reconstruction of the scene.
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
+import { bound, limitProblem, loadLimits } from "./limits.js";
 import { fractionAlong, hintText, insideBox, parseSource, pointAlong } from "./source.js";
 import {
   ArrowHelper, Box3, Box3Helper, BufferAttribute, BufferGeometry, Color, Group, Mesh, MeshBasicMaterial,
@@ -16,6 +19,9 @@ import {
 } from "../vendor/three.min.js";
 
 const num = (id) => Number($(id).value);
+// The form's number inputs whose spinners take their range from a field's limits.
+const BOUNDED = [["wi-frames", "frames"], ["wi-from", "from_frame"], ["wind-strength", "wind.strength"],
+  ["wind-growth", "wind.growth"], ["wind-start", "wind.start_frame"], ["ball-start", "ball.start_frame"]];
 const vec = (...ids) => ids.map(num);
 const WIND_ARROWS = 5; // arrows up the box's height show how the wind grows
 // The default wind moves smoke at rest a quarter of the box's width (along the wind) in
@@ -34,6 +40,9 @@ let retry = null;
 let onSubmitted = () => {};
 let onReconstruct = () => {};
 let depth = null; // {jobId, sceneId, params, range: [near, far], center, radius, cue}: one view's source
+let limits = null; // the interact parameters' limits (GET /v1/limits)
+let windRefusal = null; // the API's refusal of the form's wind, from the last arrows asked for
+let windAsked = 0; // numbers the requests for arrows: an answer to an older one is dropped
 
 /** The values in the form, as the API's interact params. */
 function formParams() {
@@ -50,27 +59,28 @@ function formParams() {
   return params;
 }
 
-/** What the server would refuse, in words; box limits and finished frames come from the parent run. */
-function whatifProblems(params, box, frames) {
+/** What the server would refuse, in words: values outside the API's `limits` of each field, and
+ * against the parent run, a ball outside its box, a branch frame it has not finished, an
+ * intervention starting after the new frames. */
+function whatifProblems(params, limits, box, frames) {
   const problems = [];
-  const whole = (value, name, min) => {
-    if (!Number.isInteger(value) || value < min) problems.push(`${name} must be a whole number of at least ${min}.`);
+  const check = (name, value, field) => {
+    const problem = limitProblem(name, value, limits[field]);
+    if (problem) problems.push(problem);
   };
-  whole(params.frames, "New frames", 1);
+  check("New frames", params.frames, "frames");
   if (params.from_frame !== undefined) {
-    whole(params.from_frame, "Branch frame", 0);
+    check("Branch frame", params.from_frame, "from_frame");
     if (frames && frames.length && Number.isInteger(params.from_frame) && !frames.includes(params.from_frame)) {
       problems.push(`Branch frame ${params.from_frame} is not a finished frame of the run (frames ${frames[0]} to ${frames[frames.length - 1]}).`);
     }
   }
   if (!params.wind && !params.ball) problems.push("Turn on the wind, the ball, or both.");
   if (params.wind) {
-    const { direction, strength, growth, start_frame: start } = params.wind;
-    if (direction.some((v) => !Number.isFinite(v)) || Math.hypot(...direction) === 0) problems.push("Wind direction must be a non-zero vector.");
-    if (!(strength >= 0)) problems.push("Wind strength must be 0 or more.");
-    if (!Number.isFinite(growth)) problems.push("Wind growth must be a number.");
-    if (params.wind.profile === "uniform" && growth !== 0) problems.push("Wind growth must be 0 for a uniform wind (it is the same at every height).");
-    whole(start, "Wind start frame", 0);
+    const { strength, growth, start_frame: start } = params.wind;
+    check("Wind strength", strength, "wind.strength");
+    check("Wind growth", growth, "wind.growth");
+    check("Wind start frame", start, "wind.start_frame");
     if (start >= params.frames) problems.push(`Wind start frame ${start} is not within the ${params.frames} new frames.`);
   }
   if (params.ball) {
@@ -84,9 +94,9 @@ function whatifProblems(params, box, frames) {
       const extent = Math.max(...box.hi.map((h, i) => h - box.lo[i]));
       if (radius > extent) problems.push(`Ball radius ${radius} is larger than the scene box (${fmt(extent)}).`);
     }
-    if (!(radius > 0)) problems.push("Ball radius must be more than 0.");
+    check("Ball radius", radius, "ball.radius");
     if (velocity.some((v) => !Number.isFinite(v))) problems.push("Ball velocity must be three numbers.");
-    whole(start, "Ball start frame", 0);
+    check("Ball start frame", start, "ball.start_frame");
     if (start >= params.frames) problems.push(`Ball start frame ${start} is not within the ${params.frames} new frames.`);
   }
   return problems;
@@ -170,44 +180,62 @@ function airSummary(air, arrows) {
   return ` Violet arrows: the air's velocity at ${arrows} of ${speeds.length} sampled points (fastest ${fmt(fastest)} units/s).`;
 }
 
-/** How strongly the wind pushes at `height` above the source, per profile (fluidcore.interaction.WindParams). */
-function windGain({ profile, growth }, height) {
-  if (profile === "uniform") return 1;
-  if (profile === "linear") return Math.max(0, 1 + growth * height);
-  return Math.exp(growth * height);
-}
-
 /** Redraw the ball and the wind arrows from the form's current values. */
 function drawOverlay() {
-  if (!view || !run) return;
-  const { overlay, renderer, scene, camera } = view;
-  overlay.clear();
+  if (!run) return;
   const params = formParams();
   const lo = new Vector3(...run.box.lo), hi = new Vector3(...run.box.hi);
   const size = hi.clone().sub(lo).length();
-  if (params.ball && params.ball.radius > 0 && params.ball.center.every(Number.isFinite)) {
-    const ball = new Mesh(new SphereGeometry(params.ball.radius, 24, 16),
+  if (view) drawBall(params.ball, size);
+  drawWind(params.wind, lo, hi, size).catch(showError); // without WebGL too: the API's verdict on the wind
+}
+
+/** The ball (red) and its velocity arrow on a cleared overlay; the wind's arrows join it when the API answers. */
+function drawBall(ball, size) {
+  const { overlay, renderer, scene, camera } = view;
+  overlay.clear();
+  if (ball && ball.radius > 0 && ball.center.every(Number.isFinite)) {
+    const mesh = new Mesh(new SphereGeometry(ball.radius, 24, 16),
       new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, opacity: 0.55 }));
-    ball.position.set(...params.ball.center);
-    overlay.add(ball);
-    const v = new Vector3(...params.ball.velocity);
-    if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), ball.position, 0.3 * size, 0xe74c3c));
+    mesh.position.set(...ball.center);
+    overlay.add(mesh);
+    const v = new Vector3(...ball.velocity);
+    if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), mesh.position, 0.3 * size, 0xe74c3c));
   }
-  if (params.wind && Math.hypot(...params.wind.direction) > 0) {
-    const dir = new Vector3(...params.wind.direction).normalize();
+  renderer.render(scene, camera);
+}
+
+/** The wind's arrows up the box's height, each as long as the API's acceleration there (the
+ * simulator's gain, fluidcore.spec.controls.WindParams.gain); a wind the API refuses draws none
+ * and its reason joins the form's problems. */
+async function drawWind(wind, lo, hi, size) {
+  const asked = ++windAsked;
+  let answer = null;
+  if (wind) {
     const up = new Vector3(...run.up).normalize();
-    // WindParams.reference_height: the wind's own base height when it names one, else the source's.
-    const base = params.wind.base_height ?? up.dot(new Vector3(...(run.source.center || [0, 0, 0])));
-    const centre = lo.clone().add(hi).multiplyScalar(0.5);
     const heights = [...Array(WIND_ARROWS).keys()].map((i) => lo.dot(up) + ((i + 0.5) / WIND_ARROWS) * hi.clone().sub(lo).dot(up));
-    const force = heights.map((h) => params.wind.strength * windGain(params.wind, h - base));
-    const peak = Math.max(...force, 1e-12);
-    heights.forEach((h, i) => {
-      const at = centre.clone().addScaledVector(up, h - centre.dot(up)).addScaledVector(dir, -0.25 * size);
-      const length = Math.max(0.02 * size, (0.25 * size * force[i]) / peak); // short: the smoke stays in view
-      overlay.add(new ArrowHelper(dir, at, length, 0x3498db, 0.2 * length, 0.08 * length));
-    });
+    const body = { wind, source_height: up.dot(new Vector3(...(run.source.center || [0, 0, 0]))), heights };
+    try {
+      answer = { heights, ...(await api("/v1/wind/accelerations", { method: "POST", body })) };
+    } catch (error) {
+      if (asked !== windAsked) return;
+      if (error.status !== 422) throw error;
+      answer = { refusal: `Wind: ${error.message}` };
+    }
   }
+  if (asked !== windAsked) return; // the form changed meanwhile: a newer request draws
+  windRefusal = answer && answer.refusal ? answer.refusal : null;
+  validate();
+  if (!view || !answer || !answer.accelerations) return;
+  const { overlay, renderer, scene, camera } = view;
+  const dir = new Vector3(...wind.direction).normalize(), up = new Vector3(...run.up).normalize();
+  const centre = lo.clone().add(hi).multiplyScalar(0.5);
+  const peak = Math.max(...answer.accelerations, 1e-12);
+  answer.heights.forEach((h, i) => {
+    const at = centre.clone().addScaledVector(up, h - centre.dot(up)).addScaledVector(dir, -0.25 * size);
+    const length = Math.max(0.02 * size, (0.25 * size * answer.accelerations[i]) / peak); // short: the smoke stays in view
+    overlay.add(new ArrowHelper(dir, at, length, 0x3498db, 0.2 * length, 0.08 * length));
+  });
   renderer.render(scene, camera);
 }
 
@@ -237,7 +265,8 @@ function defaultWindStrength(box, direction, dt) {
 }
 
 function validate() {
-  const problems = whatifProblems(formParams(), run && run.box, run && run.frames);
+  const problems = limits ? whatifProblems(formParams(), limits, run && run.box, run && run.frames) : ["Reading the server's limits…"];
+  if (windRefusal) problems.push(windRefusal);
   showList("whatif-problems", problems);
   for (const id of ["ball-cx", "ball-cy", "ball-cz", "ball-radius"]) {
     $(id).setAttribute("aria-invalid", String(problems.some((p) => p.includes(`centre ${id.slice(-1)} `) || (id === "ball-radius" && p.startsWith("Ball radius")))));
@@ -276,6 +305,12 @@ export async function showWhatif(jobId) {
   $("box-limits").textContent = ""; // filled again when this run's box has loaded
   $("wi-from").value = ""; // each opening starts from the run's last frame, not the branch sent before
   view = view || createView();
+  try {
+    limits = (await loadLimits()).interact;
+  } catch (error) {
+    showError(error);
+  }
+  if (limits) BOUNDED.forEach(([id, field]) => bound($(id), limits[field]));
   await refreshJobs();
   const job = jobs.get(jobId) || (await api(`/v1/jobs/${jobId}`));
   $("whatif-title").textContent = `What if: continue ${describeJob(job)}`;

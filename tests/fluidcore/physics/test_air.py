@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from fluidcore.interaction import WindParams
+from fluidcore.spec.controls import WindParams
 from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Simulator, Source, Sphere, wind_force
 from fluidcore.physics.air import AirGrid, AirState, cell_velocity, curl
 from fluidcore.predict.job import run_predict

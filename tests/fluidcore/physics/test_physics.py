@@ -9,7 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from fluidcore.interaction import WindParams
+from fluidcore.spec.controls import WindParams
 from fluidcore.physics import (
     PRESETS,
     Box,

@@ -11,7 +11,7 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from fluidcore.interaction import InteractionParams, parse_interaction
+from fluidcore.spec.controls import InteractionParams, parse_interaction
 from fluidcore.predict import run_interact, run_predict
 from fluidcore.runs import Run
 from fluidnexus.cli import app
@@ -57,13 +57,13 @@ def test_branch_at_frame_zero_resimulates_the_clip_with_the_ball(parent: Path, t
 
 
 def test_branch_frame_must_be_a_finished_frame(parent: Path, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="from_frame must be a finished frame"):
+    with pytest.raises(ValueError, match="from_frame: 99 is not a finished frame of the parent run"):
         run_interact(parent, tmp_path / "late", InteractionParams(wind=WIND), frames=2, from_frame=99)
     assert not (tmp_path / "late").exists()
     wind = json.dumps({"direction": [1, 0, 0], "strength": 0.3})
     result = CliRunner().invoke(app, ["interact", str(parent), "--frames", "2", "--wind", wind, "--from-frame", "99",
                                       "--out", str(tmp_path / "cli")])
-    assert result.exit_code == 2 and "error: from_frame must be a finished frame" in result.output
+    assert result.exit_code == 2 and "error: from_frame: 99 is not a finished frame of the parent run" in result.output
 
 
 def test_cli_branch_reports_the_branch_frame(parent: Path, tmp_path: Path) -> None:

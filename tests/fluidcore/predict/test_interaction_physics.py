@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from fluidcore.interaction import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
+from fluidcore.spec.controls import BallParams, InteractionError, InteractionParams, WindParams, parse_interaction
 from fluidcore.predict.job import run_interact, run_predict
 from fluidcore.runs import Run
 from tests.support.predict_scenes import horizontal_distance, live, plume_run
@@ -212,7 +212,7 @@ def test_sparse_smoke_moves_with_the_wind_blown_air_not_at_drag_terminal_speed()
 def test_a_wind_with_its_own_base_height_ramps_from_zero_in_world_units_wherever_the_source_is() -> None:
     """A ramp from zero at world height 0.065 to 0.2 at 0.765 (profile linear, base_height 0.765,
     growth 1 / 0.7) pushes the same at every height whichever source the reconstruction found."""
-    from fluidcore.interaction import InteractionParams
+    from fluidcore.spec.controls import InteractionParams
     from fluidcore.physics import PRESETS, Source
     from fluidcore.predict.interventions import interventions
 

@@ -16,7 +16,7 @@ from tests.support.predict_scenes import SPEC, horizontal_distance, live, plume_
 from typer.testing import CliRunner
 
 from fluidcore import run_frames
-from fluidcore.interaction import InteractionParams, WindParams
+from fluidcore.spec.controls import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout

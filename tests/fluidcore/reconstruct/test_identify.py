@@ -95,7 +95,7 @@ def test_a_still_plume_has_no_floor() -> None:
 
 
 def test_cli_and_api_select_the_physics(tmp_path: Path) -> None:
-    from service.job_types import ReconstructParams
+    from fluidcore.spec.jobs import ReconstructParams
     from fluidnexus.cli import app
 
     runner = CliRunner()

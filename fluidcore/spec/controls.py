@@ -1,8 +1,9 @@
-"""Counterfactual parameters: wind and ball, validated once and shared by the CLI, the API and the browser.
+"""The controls of a what-if: the wind, the ball and the frame it branches from, validated once
+and shared by the CLI, the API (and through it the browser) and the jobs.
 
 Plain pydantic models with no torch import, so the API process can validate a job's
 parameters before anything is queued. World units and seconds throughout; frames are
-counted from the first new (predicted) frame.
+counted from the first new (predicted) frame, except `from_frame`, a frame of the parent run.
 
 Validation happens in two stages because the scene is not known when a request arrives:
 the models themselves reject what is wrong in any scene (NaN, a zero direction, a negative
@@ -10,23 +11,29 @@ radius, a strength no smoke survives), and `InteractionParams.check_scene`, the 
 check, rejects what is wrong in the run's scene (a ball outside the scene box, a wind too
 strong for the simulator to resolve, an intervention that starts after the last predicted
 frame). The validated models are what the physics receives (`fluidcore.predict.interventions`).
+Two rules live here and nowhere else: the wind's gain with height (`WindParams.gain`, which the
+physics evaluates per particle and the API per height for the browser's arrows) and the frame a
+continuation branches from (`branch_frame`, which the API checks before queueing and the job
+before it writes).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
-from typing import Any, Literal, Protocol
+from collections.abc import Mapping, Sequence
+from typing import Annotated, Any, Literal, Protocol, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fluidcore.errors import InputError, describe_validation
 
 Vec3 = tuple[float, float, float]
+Height = TypeVar("Height")  # a float, or a torch tensor of heights
 
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
 MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far past physical
+MAX_GAIN_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float32 after scaling
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -61,13 +68,16 @@ class WindParams(BaseModel):
 
     model_config = _STRICT
 
-    direction: Vec3
-    strength: float = Field(ge=0.0, le=MAX_WIND_STRENGTH)
-    growth: float = Field(default=0.0, ge=-MAX_WIND_GROWTH, le=MAX_WIND_GROWTH)
-    profile: WindProfile = "exponential"
-    start_frame: int = Field(default=0, ge=0)
-    end_frame: int | None = Field(default=None, ge=0)
-    base_height: float | None = None
+    direction: Vec3 = Field(description="where the wind blows (x, y, z; normalised)")
+    strength: float = Field(ge=0.0, le=MAX_WIND_STRENGTH, description="the acceleration at the base height, units/s^2")
+    growth: float = Field(default=0.0, ge=-MAX_WIND_GROWTH, le=MAX_WIND_GROWTH,
+                          description="how the gain changes with height, per unit of height (0 for a uniform wind)")
+    profile: WindProfile = Field(default="exponential", description="the gain with height z: exponential "
+                                 "exp(growth z), linear max(0, 1 + growth z) or uniform 1")
+    start_frame: int = Field(default=0, ge=0, description="the new frame it starts blowing on")
+    end_frame: int | None = Field(default=None, ge=0, description="the new frame it stops on (exclusive; null: never)")
+    base_height: float | None = Field(default=None, description="the world height where `strength` holds "
+                                      "(null: the source centre's)")
 
     @field_validator("direction")
     @classmethod
@@ -97,18 +107,25 @@ class WindParams(BaseModel):
         when the wind names one, else the height of the run's source centre."""
         return source_height if self.base_height is None else self.base_height
 
+    def gain(self, height: Height) -> Height:
+        """gain(z) at `height` z above the base height, by `profile` (the class docstring); the
+        exponent is capped at MAX_GAIN_EXPONENT so a large growth far above the base stays finite.
+
+        The one definition: `height` is a float (the scene check, the browser's arrows through the
+        API) or a torch tensor of particle heights (`fluidcore.physics.forces`; this module imports
+        no torch, so a tensor is clamped and exponentiated by its own methods)."""
+        exponent = self.growth * height
+        if self.profile == "uniform":
+            return 1.0 + 0.0 * exponent
+        if self.profile == "linear":
+            return _clamp(1.0 + exponent, low=0.0)
+        return _exp(_clamp(exponent, high=MAX_GAIN_EXPONENT))
+
     def peak_acceleration(self, lo: Vec3, hi: Vec3, base_height: float, up: Vec3 = (0.0, 1.0, 0.0)) -> float:
         """The largest wind acceleration anywhere in the box [lo, hi] (every gain is monotonic in
         height, so it peaks at a corner)."""
         heights = [sum(u * c for u, c in zip(up, corner)) - base_height for corner in _corners(lo, hi)]
-        if self.profile == "uniform":
-            return self.strength
-        if self.profile == "linear":
-            return self.strength * max(0.0, max(1.0 + self.growth * h for h in heights))
-        exponent = max(self.growth * h for h in heights)
-        if exponent > 700.0:  # exp overflows a float64 just above 709
-            return math.inf
-        return self.strength * math.exp(exponent)
+        return self.strength * max(self.gain(h) for h in heights)
 
 
 class BallParams(BaseModel):
@@ -120,10 +137,10 @@ class BallParams(BaseModel):
 
     model_config = _STRICT
 
-    center: Vec3
-    radius: float = Field(gt=0.0)
-    start_frame: int = Field(default=0, ge=0)
-    velocity: Vec3 = (0.0, 0.0, 0.0)
+    center: Vec3 = Field(description="where it enters, world units (inside the scene box)")
+    radius: float = Field(gt=0.0, description="world units (at most the scene box's size)")
+    start_frame: int = Field(default=0, ge=0, description="the new frame it enters on")
+    velocity: Vec3 = Field(default=(0.0, 0.0, 0.0), description="its constant velocity, world units/s")
 
     def active(self, frame: int) -> bool:
         """Whether the ball is in the scene during new frame `frame` (the one definition)."""
@@ -224,21 +241,44 @@ class Intervention(InteractionParams):
         return self
 
 
+FROM_FRAME_RULE = "a finished frame of the parent run"
+FromFrame = Annotated[int | None, Field(
+    default=None, ge=0, description=f"the frame a continuation branches off, {FROM_FRAME_RULE} (`branch_frame`); "
+    "default: its last frame; 0 re-simulates the whole clip with the intervention")]
+
+
+def branch_frame(from_frame: int | None, frames: Sequence[int], run: str) -> int:
+    """The parent's frame a continuation starts from: `from_frame`, which must be one of the
+    parent run's finished `frames` (ascending), or its last frame when None. The one check of
+    that rule: the API asks it of a parent's manifest before queueing, the job of the run itself
+    before it writes; `run` names the parent in the message."""
+    if not frames:
+        raise InteractionError(f"from_frame: {run} has no finished frame to start from")
+    if from_frame is None:
+        return frames[-1]
+    if from_frame not in frames:
+        raise InteractionError(f"from_frame: {from_frame} is not {FROM_FRAME_RULE} ({run}: frames {frames[0]}..{frames[-1]})")
+    return from_frame
+
+
 NEEDS_WIND_OR_BALL = "interact needs a wind, a ball or both (predict asks for neither)"
 
 Given = str | Mapping[str, Any] | BaseModel | None
+Controls = TypeVar("Controls", bound=InteractionParams)
 
 
-def parse_interaction(wind: Given, ball: Given, model: type[InteractionParams] = InteractionParams) -> InteractionParams:
-    """Build validated parameters (`model`: `Intervention` for a what-if) from JSON text, dicts or
+def parse_interaction(
+    wind: Given, ball: Given, model: type[Controls] = InteractionParams, **fields: Any  # type: ignore[assignment]
+) -> Controls:
+    """Build validated parameters (`model`: `Intervention` for a what-if, `fluidcore.spec.jobs
+    .InteractParams` with its other `fields` for the CLI's interact job) from JSON text, dicts or
     the models themselves, with one readable message on failure.
 
     Pydantic's own message spans several lines with documentation links; the CLI and the API
     show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
     """
-    fields = {"wind": _as_dict(wind, "wind"), "ball": _as_dict(ball, "ball")}
     try:
-        return model(**fields)
+        return model(wind=_as_dict(wind, "wind"), ball=_as_dict(ball, "ball"), **fields)
     except ValidationError as exc:
         raise InteractionError(describe_validation(exc)) from None
 
@@ -266,3 +306,13 @@ def _check_start(start_frame: int, frames: int, field: str) -> None:
 
 def _corners(lo: Vec3, hi: Vec3) -> list[Vec3]:
     return [(x, y, z) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+
+
+def _clamp(value: Height, low: float | None = None, high: float | None = None) -> Height:
+    if isinstance(value, float):
+        return min(max(value, -math.inf if low is None else low), math.inf if high is None else high)
+    return value.clamp(min=low, max=high)  # type: ignore[attr-defined]  # a torch tensor
+
+
+def _exp(value: Height) -> Height:
+    return math.exp(value) if isinstance(value, float) else value.exp()  # type: ignore[attr-defined]

@@ -1,0 +1,103 @@
+"""The parameters of each job type, composed from the spec's types: what a request's `params`
+holds (`service.job_types.JobType` names the model of each type; `api.schemas.JobRequest`
+derives the request bodies, and so the OpenAPI schema, from them; `fluidcore.spec.limits` the
+bounds the browser reads at GET /v1/limits; the CLI's flags their help and bounds).
+
+Strict (an unknown field is a 422 naming it) and torch-free, so the API validates a request
+before anything is queued.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from fluidcore.errors import InputError, describe_validation
+from fluidcore.names import check_name
+from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
+from fluidcore.reconstruct.simulation_options import AIR_CELLS, SimulationOptions
+from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.controls import FromFrame, Intervention
+
+_STRICT = ConfigDict(extra="forbid")
+Params = TypeVar("Params", bound=BaseModel)
+
+QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset names, for the schema
+PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
+
+
+class ReconstructParams(SimulationOptions):
+    """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
+    `source`: where the smoke comes from, when known (world units; checked against the scene
+    box): one view cannot tell the source's depth, and the whole plume inherits the guess.
+    `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
+    by default (`SimulationOptions`, whose docstring gives the measurements)."""
+
+    # The schema states the air grid's "0 or AIR_CELLS" rule too (SimulationOptions checks it in a
+    # validator), so /openapi.json and GET /v1/limits refuse what the model refuses.
+    model_config = ConfigDict(extra="forbid", json_schema_extra=lambda schema: schema["properties"]["air_cells"].update(
+        anyOf=[{"const": 0}, {"minimum": AIR_CELLS[0]}]))
+    quality: QualityName = DEFAULT_QUALITY
+    physics: PhysicsName = DEFAULT_PHYSICS
+    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
+    source: SourceHint | None = None
+
+    @model_validator(mode="after")
+    def _ordered(self) -> ReconstructParams:
+        if self.frames is not None and self.frames[1] <= self.frames[0]:
+            raise ValueError(f"frames: end ({self.frames[1]}) must be greater than start ({self.frames[0]})")
+        return self
+
+
+NewFrames = Annotated[int, Field(default=30, ge=1, description="how many new frames to simulate after the branch frame")]
+
+
+class PredictParams(BaseModel):
+    """`frames`: how many new frames to predict after the parent run's last frame."""
+
+    model_config = _STRICT
+    frames: NewFrames
+
+
+class InteractParams(Intervention):
+    """A counterfactual continuation of the parent run: wind, a ball, or both (`Intervention`, whose
+    rule the request schema states), for `frames` new frames after the parent's frame `from_frame`
+    (default: its last; 0 re-simulates the whole clip with the intervention; docs/whatif.md)."""
+
+    model_config = _STRICT
+    frames: NewFrames
+    from_frame: FromFrame
+
+
+class ResimulateParams(BaseModel):
+    """Re-simulate the parent run's frames with physics alone; it takes no parameters."""
+
+    model_config = _STRICT
+
+
+class RenderParams(BaseModel):
+    """`video`: the name of one video of the parent job's run (`fluidcore.artifacts.video_names`:
+    a camera of the run, `orbit`, a what-if's `side_by_side`); a safe name here
+    (`fluidcore.names`), checked against the run's manifest where it is asked for."""
+
+    model_config = _STRICT
+    video: str
+
+    @field_validator("video")
+    @classmethod
+    def _safe(cls, value: str) -> str:
+        return check_name(value, "video")
+
+
+class JobParamsError(InputError):
+    """Job parameters that cannot be used; the message names each field."""
+
+
+def job_params(model: type[Params], **fields: Any) -> Params:
+    """`model` built from a command line's values (the API validates its bodies itself), with
+    one line naming each bad field on failure."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        raise JobParamsError(describe_validation(exc)) from None
