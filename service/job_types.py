@@ -20,10 +20,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from fluidcore.interaction import Intervention
 from fluidcore.names import check_name
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
-from fluidcore.reconstruct.simulation_options import SimulationOptions
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import RunKind
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS
+from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES, SimulationConfig
 
 _STRICT = ConfigDict(extra="forbid")
 
@@ -33,12 +33,12 @@ PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluid
 StartsFrom = Literal["scene", "parent", "run"]  # an upload, a run to continue, a run to render
 
 
-class ReconstructParams(SimulationOptions):
+class ReconstructParams(SimulationConfig):
     """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
     `source`: where the smoke comes from, when known (world units; checked against the scene
     box): one view cannot tell the source's depth, and the whole plume inherits the guess.
     `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
-    by default (`SimulationOptions`, whose docstring gives the measurements)."""
+    by default (`SimulationConfig`, whose docstring gives the measurements)."""
 
     model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY

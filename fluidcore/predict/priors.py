@@ -125,7 +125,6 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     from fluidcore.reconstruct.job import fit
     from fluidcore.reconstruct.loop import prepare, read_inputs
     from fluidcore.cameras import render_size
-    from fluidcore.reconstruct.presets import Quality
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
@@ -135,11 +134,11 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     if origin is None:
         return "skipped: no reconstruction among the run's parents to take the quality and physics from"
     origin_settings = origin.settings
-    quality = Quality.from_json(origin_settings.quality)
+    quality = origin_settings.quality
     cameras = run.cameras()
     rough = {}
     for name in run.input_views:
-        camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
+        camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.fit.long_side))
         rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), context.device)).float() / 255.0
     refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
@@ -149,7 +148,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
         cameras, inputs, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
         source=SourceHint(center=scene.source.center, radius=scene.source.radius),
-        physics=origin_settings.physics_mode, pseudo_views=False, device=context.device,
+        physics=origin_settings.physics.mode, pseudo_views=False, device=context.device,
     )
     first = run.frames()[0]
     fit(rec, run.path / REFINED_RUN, context=context,

@@ -12,8 +12,8 @@ from pathlib import Path
 import typer
 
 from fluidcore.names import check_name
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
-from fluidcore.reconstruct.simulation_options import AIR_CELLS
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP
+from fluidcore.spec.simulation import AIR_CELLS, DEFAULT_PHYSICS, PHYSICS_MODES
 from fluidnexus.cli.errors import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 
@@ -72,7 +72,7 @@ def reconstruct(
     cameras: Path = typer.Option(..., "--cameras", exists=True, help="transforms.json, info.json or a COLMAP model."),
     video: list[str] = typer.Option(..., "--video", help="VIEW=path.mp4; repeat for several input views."),
     frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_HELP),
     physics: str = typer.Option(DEFAULT_PHYSICS, "--physics", help=" | ".join(PHYSICS_MODES) + ": identified from the video, or a preset"),
     source: str | None = typer.Option(
         None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
@@ -98,11 +98,11 @@ def reconstruct(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
-    from fluidcore.reconstruct.simulation_options import simulation_options
+    from fluidcore.spec.simulation import simulation_config
     from fluidcore.reconstruct.source_hint import parse_source
 
     with user_errors():
-        simulation = simulation_options(air_cells=air_cells, air_vorticity=air_vorticity, entrainment=entrainment)
+        simulation = simulation_config(air_cells=air_cells, air_vorticity=air_vorticity, entrainment=entrainment)
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(

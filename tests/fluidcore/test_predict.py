@@ -20,7 +20,7 @@ from fluidcore.interaction import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
-from fluidcore.runs import Run, RunError, VisualSettings
+from fluidcore.runs import Run, RunError
 from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
@@ -168,8 +168,7 @@ def test_a_prediction_follows_the_concentration_only_where_the_reconstruction_as
     smoke's concentration; one recorded without (every run before it) keeps each Gaussian's look.
     Identified ("auto") physics: no appearance prior moves the look besides."""
     fixed = plume_run(tmp_path / "fixed", frames=3, warmup=25, physics="auto")
-    visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0, opacity_concentration=True)
-    following = plume_run(tmp_path / "following", frames=3, warmup=25, visual=visual, physics="auto")
+    following = plume_run(tmp_path / "following", frames=3, warmup=25, quality={"opacity_concentration": True}, physics="auto")
     looks = {}
     for name, source in (("fixed", fixed), ("following", following)):
         run = Run.open(job.run_predict(source, tmp_path / f"predicted_{name}", frames=4))

@@ -11,7 +11,7 @@ import pytest
 from service_support import store_run
 
 from api_support import Service, reconstruct
-from fluidcore.reconstruct.simulation_options import AIR_CELLS
+from fluidcore.spec.simulation import AIR_CELLS
 
 ROOT = Path(__file__).resolve().parents[2]
 WEB = ROOT / "web"
@@ -120,7 +120,7 @@ def test_the_air_saved_with_a_frame_comes_sampled_on_a_lattice(service: Service,
 
 def test_the_upload_form_checks_the_air_grid_against_the_apis_bounds() -> None:
     """The form refuses an air grid the API would refuse before anything is sent; its bounds are
-    written in web/js/upload.js, so they must be the API's (SimulationOptions.AIR_CELLS)."""
+    written in web/js/upload.js, so they must be the API's (fluidcore.spec.simulation.AIR_CELLS)."""
     found = re.search(r"const AIR_CELLS = \[(\d+), (\d+)\];", (WEB / "js" / "upload.js").read_text())
     assert found is not None, "upload.js states no AIR_CELLS"
     assert (int(found[1]), int(found[2])) == AIR_CELLS

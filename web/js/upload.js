@@ -8,7 +8,7 @@ import { mp4Frames } from "./mp4.js";
 import { insideBox, parseSource } from "./source.js";
 
 // The simulated air's grid: 0 (still air) or this range of cells on the box's long side; the same
-// bounds as fluidcore.reconstruct.simulation_options.AIR_CELLS (tests/web/test_api_web.py holds them alike).
+// bounds as fluidcore.spec.simulation.AIR_CELLS (tests/web/test_api_web.py holds them alike).
 const AIR_CELLS = [8, 128];
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
