@@ -225,7 +225,7 @@ class ContinuationSettings(BaseModel):
     parent_source_rate: int
     identified_on_frame: int | None = None
     buoyancy_scale: float = 1.0
-    buoyancy_calibration_error: dict[str, Any] = {}
+    buoyancy_calibration_error: dict[str, float] = {}  # tracking error per buoyancy scale tried (predict.identification)
     appearance_profile: dict[str, Any] | None = None  # `fluidcore.predict.priors.HeightProfile.to_json()`
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
