@@ -51,6 +51,9 @@ class SimulationConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
+    # The air around the smoke (fluidcore.physics.air.AirGrid): 0 = still air, the default until issue
+    # 23's measurements on both dev scenes and ScalarFlow (module docstring). The reconstruction steps
+    # it frame by frame and saves it with every frame; continuations go on from it.
     air_cells: int = Field(default=0, ge=0, le=AIR_CELLS[1], description=(
         f"simulate the air around the smoke on a grid of this many cells on the scene box's long side "
         f"({AIR_CELLS[0]}..{AIR_CELLS[1]}; 0: still air, the default); saved with every frame, its velocity in the density exports"))
