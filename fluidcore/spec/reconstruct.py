@@ -178,6 +178,7 @@ class ReconstructConfig(BaseModel):
     simulation: SimulationConfig = SimulationConfig()
 
     def visual_settings(self) -> VisualSettings:
+        """What a continuation of a run made with this config keeps of its visual layer."""
         return VisualSettings(velocity_radius=self.visual.velocity_radius, per_physical=self.visual.per_physical,
                               seed=self.seed, opacity_concentration=self.visual.opacity_concentration)
 
@@ -205,6 +206,9 @@ class ReconstructConfig(BaseModel):
             raise PresetError(f"quality overrides: {describe_validation(exc)}") from None
 
 
+# A field's own name reaches it where it is unambiguous: every part's fields have names found in
+# no other part and not at the top, which these lines check on import. The loss weights are left
+# out: `color` or `scale` alone would not say that a weight is meant.
 _PARTS = {name: field.annotation for name, field in ReconstructConfig.model_fields.items()
           if isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel) and name != "weights"}
 _FLAT = {leaf: (part, leaf) for part, model in _PARTS.items() for leaf in model.model_fields}
