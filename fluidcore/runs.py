@@ -216,6 +216,18 @@ class ReconstructSettings(BaseModel):
     views: tuple[ViewRecord, ...] = ()
 
 
+class AppearanceProfile(BaseModel):
+    """The mean appearance of the smoke by height that a prediction holds its smoke to
+    (`fluidcore.predict.priors.HeightProfile` adds how it is observed and held), recorded so that
+    a chained prediction holds it alike."""
+
+    model_config = _RECORD
+    edges: tuple[float, ...]  # band boundaries along `up`; heights outside go to the end bands
+    up: tuple[float, float, float]
+    means: dict[str, tuple[tuple[float, ...], ...]]  # attribute -> per band, per channel
+    counts: tuple[int, ...]  # Gaussians per band; an empty band holds nothing
+
+
 class ContinuationSettings(BaseModel):
     """The settings of a run continuing its parent by physics (predict, interact, resimulate)."""
 
@@ -226,7 +238,7 @@ class ContinuationSettings(BaseModel):
     identified_on_frame: int | None = None
     buoyancy_scale: float = 1.0
     buoyancy_calibration_error: dict[str, float] = {}  # tracking error per buoyancy scale tried (predict.identification)
-    appearance_profile: dict[str, Any] | None = None  # `fluidcore.predict.priors.HeightProfile.to_json()`
+    appearance_profile: AppearanceProfile | None = None
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
     ball: BallParams | None = None

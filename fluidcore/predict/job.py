@@ -180,7 +180,7 @@ def _write(
             profile = HeightProfile.observe(look, scene.up)
         scene = scene.with_buoyancy_scaled(buoyancy_scale)
     elif request.keeps_priors and parent_settings.appearance_profile:
-        profile = HeightProfile.from_json(parent_settings.appearance_profile)  # a chained prediction
+        profile = HeightProfile.of(parent_settings.appearance_profile)  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = parent.visual_settings()
@@ -202,7 +202,7 @@ def _write(
             identified_on_frame=observed,
             buoyancy_scale=buoyancy_scale,
             buoyancy_calibration_error=calibration,
-            appearance_profile=None if profile is None else profile.to_json(),
+            appearance_profile=profile,
             priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
             wind=params.wind,
             ball=params.ball,

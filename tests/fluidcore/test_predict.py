@@ -20,7 +20,7 @@ from fluidcore.interaction import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
-from fluidcore.runs import Run, RunError
+from fluidcore.runs import AppearanceProfile, Run, RunError
 from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
@@ -348,7 +348,8 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         inside = band == b
         assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)
     assert torch.equal(held.means, risen.means) and torch.equal(held.appearance.log_scales, risen.appearance.log_scales)
-    assert priors.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
+    recorded = AppearanceProfile.model_validate_json(profile.model_dump_json())  # as a chained prediction reads it
+    assert priors.HeightProfile.of(recorded) == profile
 
 
 def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: Path) -> None:
