@@ -60,7 +60,7 @@ if __package__ in (None, ""):  # `python bench/generalise.py`
 from bench.gt_scenes import GroundTruth, Variant, open_scene  # noqa: E402
 from bench.predict import per_frame  # noqa: E402
 from bench.scene_args import quality_overrides  # noqa: E402
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 TASKS = ("nvs", "input", "future", "velocity", "whatif", "rise")
@@ -83,7 +83,7 @@ def command(
     input_view: str | None = typer.Option(None, "--input-view", help="The one camera whose video is reconstructed (default: the scene's protocol.json)."),
     observed: str | None = typer.Option(None, "--observed", help="A:B, the observed frames, end exclusive (default: the scene's protocol.json)."),
     future: int | None = typer.Option(None, "--future", min=1, help="Frames to predict after B (default: up to 60, as many as the truth has)."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_HELP}."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. long_side=240."),
     score_every: int = typer.Option(1, "--score-every", min=1, help="Score every K-th frame of each window."),
     score_long_side: int | None = typer.Option(None, "--score-long-side", min=16, help="Score at this long side (default: full size)."),
@@ -169,7 +169,7 @@ class Protocol:
         out: dict[str, Any] = {
             "scene": str(self.gt.root), "layout": self.gt.kind, "input_view": self.input_view,
             "observed": list(self.window), "score_every": self.every, "score_long_side": self.long_side,
-            "quality": recon.settings.quality, "physics": recon.scene.to_json()["physics"],
+            "quality": recon.settings.quality.model_dump(mode="json"), "physics": recon.scene.to_json()["physics"],
             "source": recon.scene.to_json()["source"], "reconstruction": str(recon.path), "tasks": {},
             "source_given": None if self.source is None else self.source.model_dump(mode="json"),
         }
@@ -212,7 +212,7 @@ class Protocol:
 
     def _reconstruct(self, reuse: Path | None, quality: str, overrides: dict, progress_bar: bool) -> Path:
         from fluidcore.reconstruct.job import run_reconstruct
-        from fluidcore.reconstruct.presets import get
+        from fluidcore.spec.reconstruct import get
         from fluidcore.runs import Run
 
         if reuse is not None:
@@ -498,8 +498,7 @@ def _particle_velocity(run: Any, t: int, points: Any) -> Any:
 
     state = run.read_frame(t)
     h = run.scene.physics.h
-    visual = run.settings.visual
-    radius = visual.velocity_radius if visual is not None else run.settings.quality["velocity_radius"]  # runs before settings.visual
+    radius = run.visual_settings().velocity_radius
     alive = state.alive
     with torch.no_grad():
         v = interpolate_velocity(torch.from_numpy(np.ascontiguousarray(points)), torch.from_numpy(state.positions[alive]),

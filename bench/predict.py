@@ -37,7 +37,7 @@ if __package__ in (None, ""):  # `python bench/predict.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 ANCHOR_ROWS = {"all_views": "future_prediction_frames_all_views", "held_out": "future_prediction_frames_novel_views_0134"}
@@ -53,7 +53,7 @@ def command(
     observed: str = typer.Option(..., "--observed", help="A:B, the observed (reconstructed) frames."),
     future: str = typer.Option(..., "--future", help="B:C, the frames to predict and score."),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_HELP}."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
     reconstruction: Path | None = typer.Option(None, "--reconstruction", help="Reuse this finished reconstruction run."),
     out: Path | None = typer.Option(None, "--out", help="Keep the runs here (default: a temporary folder)."),
@@ -64,7 +64,7 @@ def command(
 
     from fluidcore.jobs import parse_frames
     from fluidcore.predict.job import run_predict, run_resimulate
-    from fluidcore.reconstruct import get
+    from fluidcore.spec.reconstruct import get
     from fluidcore.reconstruct.job import run_reconstruct
     from fluidcore.runs import Run
 

@@ -26,7 +26,7 @@ if __package__ in (None, ""):  # `python bench/reconstruct.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 
@@ -38,7 +38,7 @@ def command(
     scene: Path = typer.Option(..., "--scene", exists=True, file_okay=False, help="Scene folder with transforms.json."),
     input_view: list[str] = typer.Option(..., "--input-view", help="NAME[=path]; repeat for several input views."),
     frames: str = typer.Option("0:10", "--frames", help="START:END (end exclusive)."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_HELP),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
     set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
     out: Path | None = typer.Option(None, "--out", help="Keep the run folder here (default: a temporary folder)."),
@@ -48,7 +48,7 @@ def command(
     import torch
 
     from fluidcore.jobs import parse_frames
-    from fluidcore.reconstruct import get
+    from fluidcore.spec.reconstruct import get
     from fluidcore.reconstruct.job import run_reconstruct
 
     with user_errors():
@@ -82,7 +82,7 @@ def command(
                 "scene": str(scene),
                 "input_views": sorted(inputs),
                 "frames": list(frame_range),
-                "quality": preset.to_json(),
+                "quality": preset.model_dump(mode="json"),
                 "threads": torch.get_num_threads(),
                 "load_average": list(os.getloadavg()),
                 "seconds_total": seconds,

@@ -18,8 +18,11 @@ import typer
 
 
 def _label(result: dict) -> str:
-    q = result["quality"]
-    return f"{q['position_iterations']}+{q['appearance_iterations']} it, {q['long_side']} px, sym {q['symmetry_views']}"
+    from fluidcore.spec.reconstruct import ReconstructConfig, quality_fields
+
+    quality = ReconstructConfig.model_validate(quality_fields(result["quality"]))  # older results: flat
+    fit = quality.fit
+    return f"{fit.position_iterations}+{fit.appearance_iterations} it, {fit.long_side} px, sym {quality.priors.symmetry_views}"
 
 
 def command(

@@ -39,7 +39,9 @@ def view_paths(items: list[str], option: str, base: Path) -> dict[str, Path | No
 
 
 def quality_overrides(items: list[str]) -> dict[str, object]:
-    """Parse repeated `--set FIELD=JSON` options into keyword overrides for a quality preset."""
+    """Parse repeated `--set FIELD=JSON` options into keyword overrides for a quality preset
+    (`ReconstructConfig.with_overrides` checks them: FIELD is a dotted path, `fit.long_side`, or a
+    field's own name, `long_side`)."""
     values: dict[str, object] = {}
     for item in items:
         key, sep, text = item.partition("=")

@@ -34,7 +34,7 @@ if __package__ in (None, ""):  # `python bench/source.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.gt_scenes import GroundTruth, ScalarFlowScene, open_scene  # noqa: E402
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, QUALITY_CHOICES  # noqa: E402
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 IMAGE_ESTIMATE_PHYSICS = "scalarflow"  # any preset: presets keep the image estimate of the source
@@ -45,7 +45,7 @@ def command(
     scene_dirs: list[Path] = typer.Argument(..., exists=True, file_okay=False, help="Scene folders with transforms.json and a known source."),
     input_view: str | None = typer.Option(None, "--input-view", help="The camera whose video is read (default: protocol.json, else view_02)."),
     observed: str | None = typer.Option(None, "--observed", help="A:B, frames read (default: protocol.json, else 0:90)."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_CHOICES}."),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_HELP}."),
     physics: str = typer.Option("auto", "--physics", help="Physics mode of the second estimate (auto identifies it)."),
     seeds: str = typer.Option("0", "--seeds", help="Comma-separated seeds of the second estimate, e.g. 0,1,2."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
@@ -120,15 +120,15 @@ def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int,
     from fluidcore import video
     from fluidcore.cameras import capture_box, render_size
     from fluidcore.reconstruct.loop import prepare, read_inputs
-    from fluidcore.reconstruct.presets import get
+    from fluidcore.spec.reconstruct import get
 
     preset = get(quality).with_overrides(seed=seed)
     cameras = {name: camera.pinhole() for name, camera in gt.cameras.items()}
-    decoded = {name: video.read_frames(path, window[0], window[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side))
+    decoded = {name: video.read_frames(path, window[0], window[1], size=render_size(cameras[name].width, cameras[name].height, preset.fit.long_side))
                for name, path in videos.items()}
     inputs = read_inputs(cameras, decoded, frame_range=window, quality=preset)
     rec = prepare(cameras, inputs, fps=gt.fps, quality=preset, box=capture_box(gt.cameras_path, cameras), physics=physics)
-    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius), rec.physics
+    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius), rec.physics.model_dump(mode="json")
 
 
 def rig_source(gt: ScalarFlowScene, view: str, window: tuple[int, int], quality: str) -> tuple[np.ndarray, float]:

@@ -79,11 +79,10 @@ def render_orbit(
 def fit_long_side(run_dir: str | os.PathLike[str]) -> int | None:
     """The long side, in pixels, that the reconstruction behind the run was fit at (preview:
     480); None for a run with no reconstruction among its ancestors."""
-    from fluidcore.reconstruct.presets import reconstruction_quality
     from fluidcore.runs import Run
 
-    quality = reconstruction_quality(Run.open(run_dir))
-    return None if quality is None else quality.long_side
+    origin = Run.open(run_dir).reconstruction()
+    return None if origin is None else origin.settings.quality.fit.long_side
 
 
 def published_camera(camera, long_side: int | None):  # noqa: ANN001, ANN201 - Camera

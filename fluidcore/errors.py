@@ -36,11 +36,13 @@ def internal_error(log: logging.Logger, exc: BaseException, during: str) -> str:
 def describe_validation(exc: ValidationError) -> str:
     """One line for a pydantic `ValidationError` that names each offending field (`wind.strength`,
     `ball.center[2]`, `air_cells`), for an `InputError`: pydantic's own message spans several lines
-    with documentation links. A model-level check's message is shown as it was raised."""
+    with documentation links. A model-level check's message is shown as it was raised
+    (after the name of the part it checks, when it checks a nested one)."""
     parts = []
     for error in exc.errors(include_url=False):
         location = ""
         for key in error["loc"]:
             location += f"[{key}]" if isinstance(key, int) else (f".{key}" if location else str(key))
-        parts.append(f"{location}: {error['msg']}" if location else str(error["msg"]).removeprefix("Value error, "))
+        message = str(error["msg"]).removeprefix("Value error, ")
+        parts.append(f"{location}: {message}" if location else message)
     return "; ".join(parts)

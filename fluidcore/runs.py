@@ -4,7 +4,7 @@ A run is generic on purpose: cameras, a frame range, one particle state per fram
 optional parent run. Reconstruction, prediction, interaction and re-simulation all write the
 same format, so one renderer and one exporter serve them all.
 
-Layout (format version 2)::
+Layout (format version 3)::
 
     RUN/
       manifest.json            everything but the arrays (see below); rewritten atomically
@@ -14,7 +14,7 @@ Layout (format version 2)::
 
 `manifest.json` keys:
 
-    format, format_version   "fluidnexus-run", 2 (1 is still read: `_migrate` fills it in on read)
+    format, format_version   "fluidnexus-run", 3 (1 and 2 are still read: `_migrate` brings them up to date on read)
     kind                     a `RunKind`: "reconstruct" | "predict" | "interact" | "resimulate"
     parent                   the run this one continues, as a path relative to this run folder (so a
                              chain of runs moves as one: another work dir, another worker), or null;
@@ -29,7 +29,9 @@ Layout (format version 2)::
                              (`Scene`: read back as the typed PBFConfig and Source)
     settings                 the settings that produced the run, one model per kind:
                              `ReconstructSettings` or `ContinuationSettings` (every field written;
-                             version 1 left out what a feature added later, read as its default)
+                             version 1 left out what a feature added later, read as its default;
+                             versions 1 and 2 kept a reconstruction's quality flat, and its
+                             visual settings apart from it)
     frames                   [{"t", "file", "losses": {...}, "seconds"}] in order of completion
     complete                 true once every frame of frame_range is written
 
@@ -78,10 +80,11 @@ from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.physics.config import PBFConfig, PhysicsInputError, Source
+from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
 
 FORMAT = "fluidnexus-run"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 MANIFEST = "manifest.json"
 BACKGROUND = "background.npz"
 STATES_DIR = "states"
@@ -108,17 +111,6 @@ class RunKind(enum.StrEnum):
 _RECORD = ConfigDict(extra="forbid", frozen=True)
 
 
-class VisualSettings(BaseModel):
-    """How visual Gaussians move and are born (`Quality.visual_settings`): a continuation moves
-    them as the reconstruction did."""
-
-    model_config = _RECORD
-    velocity_radius: float
-    per_physical: int
-    seed: int
-    opacity_concentration: bool = False  # opacity follows the smoke's concentration; older runs: fixed
-
-
 class ViewRecord(BaseModel):
     """One view a reconstruction fitted: its camera, kind (input, symmetry, generated) and weight."""
 
@@ -140,22 +132,100 @@ class SourceEstimateRecord(BaseModel):
     generated: dict[str, float] = {}  # generated view -> its ray's weight in the triangulation (the input view's is 1)
 
 
-class ReconstructSettings(BaseModel):
-    """The settings of a reconstruction (kind "reconstruct")."""
+class PriorSource(BaseModel):
+    """Where the identification started the source from (world units)."""
 
     model_config = _RECORD
-    quality: dict[str, Any]  # `fluidcore.reconstruct.presets.Quality.to_json()`
-    visual: VisualSettings | None = None  # None: written before it was recorded; such a run cannot be continued
-    physics: dict[str, Any] = {"mode": "scalarflow"}  # mode and how it was found; before --physics: the preset
-    symmetry: dict[str, Any] | None = None
+    center: tuple[float, float, float]
+    radius: float
+
+
+class IdentificationPrior(BaseModel):
+    """What the identification started from (the physics preset in the scene's units) and what
+    it kept of it."""
+
+    model_config = _RECORD
+    preset: str
+    buoyancy: float
+    drag: float
+    rho0: float
+    held_from_prior: tuple[str, ...]
+    inflow_speed: str  # how the inflow's speed follows from the rest ("buoyancy / drag")
+    budget: int  # the particles per step the inlet may seed at most
+    source: PriorSource
+
+
+class IdentifiedRecord(BaseModel):
+    """The physics identified from the input view and how it was found
+    (`fluidcore.reconstruct.identify.identify`)."""
+
+    model_config = _RECORD
+    buoyancy: float  # world units / s^2 along up
+    inflow_speed: float  # world units / s along up
+    rate: int  # particles per step
+    age: int  # steps the source had emitted before frame 0
+    misfit: float  # mean 1 - IoU over the frames, at the optimum
+    rise_speed: float  # observed speed of the plume's top (world units / s), what the floor uses
+    floor: float  # the buoyancy floor
+    evaluations: int
+    source_center: tuple[float, float, float]  # world
+    source_radius: float
+    prior: IdentificationPrior
+    entrainment: float = 0.0  # the plume's spreading rate db/dz (fluidcore.physics.entrainment); before it: none
+
+
+class PhysicsRecord(BaseModel):
+    """How a reconstruction's physics was chosen (`fluidcore.reconstruct.identify.scene_physics`):
+    the mode, the prior preset and, for "auto", what was identified; then what the scene simulates
+    with. Only the mode is known of a run written before --physics (it ran the preset); a field a
+    later version added is None in a run written before it."""
+
+    model_config = _RECORD
+    mode: str  # "auto" (identified from the video) or the preset's name (fluidcore.spec.simulation.PHYSICS_MODES)
+    prior_preset: str | None = None
+    kernel_radius: float | None = None
+    identified: IdentifiedRecord | None = None  # None: a preset's physics
+    buoyancy: float | None = None
+    inflow_speed: float | None = None
+    inflow_rate: int | None = None
+    inflow_rate_speed: float | None = None
+    drag: float | None = None
+    rho0: float | None = None
+    entrainment: float | None = None
+    stabilization_steps: int | None = None
+
+
+class SymmetryRecord(BaseModel):
+    """How much the symmetry prior was trusted (fluidcore.reconstruct.views.symmetry_support)."""
+
+    model_config = _RECORD
+    mirror_agreement: float  # of the input view's smoke with its mirror image about the source's axis
+    weight: float  # the pseudo-views' total loss weight
+
+
+class ReconstructSettings(BaseModel):
+    """The settings of a reconstruction (kind "reconstruct"). What a continuation needs of its
+    visual layer is the quality's (`ReconstructConfig.visual_settings`)."""
+
+    model_config = _RECORD
+    quality: ReconstructConfig
+    physics: PhysicsRecord = PhysicsRecord(mode="scalarflow")  # before --physics: the preset
+    symmetry: SymmetryRecord | None = None  # None: no symmetry prior (several input views, or none asked for)
     source_hint: dict[str, Any] | None = None
     source_estimate: SourceEstimateRecord | None = None  # None: the user gave the whole source, or an older run
     views: tuple[ViewRecord, ...] = ()
 
-    @property
-    def physics_mode(self) -> str:
-        """"auto" (identified from the video) or the preset's name."""
-        return str(self.physics.get("mode", "scalarflow"))
+
+class AppearanceProfile(BaseModel):
+    """The mean appearance of the smoke by height that a prediction holds its smoke to
+    (`fluidcore.predict.priors.HeightProfile` adds how it is observed and held), recorded so that
+    a chained prediction holds it alike."""
+
+    model_config = _RECORD
+    edges: tuple[float, ...]  # band boundaries along `up`; heights outside go to the end bands
+    up: tuple[float, float, float]
+    means: dict[str, tuple[tuple[float, ...], ...]]  # attribute -> per band, per channel
+    counts: tuple[int, ...]  # Gaussians per band; an empty band holds nothing
 
 
 class ContinuationSettings(BaseModel):
@@ -167,8 +237,8 @@ class ContinuationSettings(BaseModel):
     parent_source_rate: int
     identified_on_frame: int | None = None
     buoyancy_scale: float = 1.0
-    buoyancy_calibration_error: dict[str, Any] = {}
-    appearance_profile: dict[str, Any] | None = None  # `fluidcore.predict.priors.HeightProfile.to_json()`
+    buoyancy_calibration_error: dict[str, float] = {}  # tracking error per buoyancy scale tried (predict.identification)
+    appearance_profile: AppearanceProfile | None = None
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
     ball: BallParams | None = None
@@ -456,6 +526,19 @@ def state_file(t: int) -> str:
     return f"{STATES_DIR}/frame_{t:06d}.npz"
 
 
+def _nested_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """A reconstruction's settings of format 1 or 2 as format 3 has them: the flat quality nested
+    (`fluidcore.spec.reconstruct.quality_fields`), and the visual settings, which version 3 reads
+    off the quality, folded into it (version 1 did not record the concentration rule in the
+    quality: its visual settings say whether the run followed it)."""
+    visual = settings.pop("visual", None) or {}
+    quality = settings.get("quality")
+    if isinstance(quality, Mapping):
+        settings["quality"] = quality_fields(
+            {"opacity_concentration": visual.get("opacity_concentration", False), **quality})
+    return settings
+
+
 def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
     """A manifest of any readable version as the current version: checked, settings completed
     with the defaults of their kind's model (version 1 left out what a feature added later)."""
@@ -469,6 +552,8 @@ def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
         raise RunError(f"run: {where} has kind {manifest.get('kind')!r}, not one of {[k.value for k in RunKind]}") from None
     model = settings_model(kind)
     settings = dict(manifest.get("settings") or {})
+    if manifest["format_version"] < 3 and kind is RunKind.RECONSTRUCT:
+        settings = _nested_settings(settings)
     if manifest["format_version"] == 1:  # free-form then: what no model field names is dropped
         settings = {k: v for k, v in settings.items() if k in model.model_fields}
     if kind is not RunKind.RECONSTRUCT and "branch_frame" not in settings and manifest.get("frames"):
@@ -501,6 +586,12 @@ class RunRecord:
     def settings(self) -> Settings:
         """`ReconstructSettings` for a reconstruction, else `ContinuationSettings`."""
         return settings_model(self.kind).model_validate(self.manifest["settings"])
+
+    def visual_settings(self) -> VisualSettings:
+        """How this run moves and bears visual Gaussians, which a continuation of it keeps: a
+        reconstruction's quality says it, a continuation records what it kept."""
+        settings = self.settings
+        return settings.quality.visual_settings() if isinstance(settings, ReconstructSettings) else settings.visual
 
     @property
     def channels(self) -> int:

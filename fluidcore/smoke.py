@@ -9,7 +9,7 @@ the two: both algorithms resume from and write the same files through it.
 
 `concentration` is the smoke concentration the physical particles give at any point, and
 `Appearance.diluted` the one rule by which a visual Gaussian follows it: a parcel of fixed smoke
-mass that expands as its smoke thins (prediction, `Quality.opacity_concentration`).
+mass that expands as its smoke thins (prediction, `ReconstructConfig.visual.opacity_concentration`).
 """
 
 from __future__ import annotations
@@ -153,7 +153,7 @@ def concentration(points: torch.Tensor, positions: torch.Tensor, radius: float, 
     8 particles per h^3), 1 = smoke as dense as it leaves the source.
 
     The number density is a Poly6 average over `radius` (the neighbourhood a visual Gaussian
-    moves with, `Quality.velocity_radius`; the PBF kernel h alone sees a preview plume's sparse
+    moves with, `VisualConfig.velocity_radius`; the PBF kernel h alone sees a preview plume's sparse
     particles one at a time). It is at least one particle's share at the kernel's centre: less
     smoke than one particle carries is not resolved, and a Gaussian no particle reaches keeps a
     finite, positive concentration.

@@ -45,11 +45,12 @@ def test_every_fluidcore_error_a_user_can_fix_derives_from_input_error() -> None
     from fluidcore.cameras import camera
     from fluidcore.generative import finetune, models, novel_view, refine
     from fluidcore.physics import config
-    from fluidcore.reconstruct import identify, init, loop, presets, source_hint
+    from fluidcore.reconstruct import identify, init, loop, source_hint
     from fluidcore.render import gaussians
+    from fluidcore.spec import reconstruct, simulation
 
     kinds = [
-        exports.ExportError, source_hint.SourceHintError, init.EstimationError, presets.PresetError,
+        exports.ExportError, source_hint.SourceHintError, init.EstimationError, reconstruct.PresetError, simulation.SimulationConfigError,
         loop.ReconstructionError, identify.IdentificationError, identify.PhysicsChoiceError, camera.CameraError,
         novel_view.NovelViewError, refine.RefineError, finetune.FinetuneError, jobs.JobInputError, metrics.MetricError,
         config.PhysicsInputError, gaussians.RenderError, runs.RunError, interaction.InteractionError, video.VideoError,

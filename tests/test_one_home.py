@@ -12,10 +12,11 @@ import pytest
 from tests.support.service import write_transforms, write_video
 from typer.testing import CliRunner
 
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY
 
 TORCH_FREE = (
-    "fluidcore.reconstruct.presets",
+    "fluidcore.spec.reconstruct",
+    "fluidcore.spec.simulation",
     "fluidcore.reconstruct",
     "fluidcore.physics.config",
     "fluidcore.physics",
@@ -34,7 +35,7 @@ def test_package_faces_import_without_torch() -> None:
     code = (
         "import sys\n"
         f"for name in {TORCH_FREE!r}: __import__(name)\n"
-        "from fluidcore.reconstruct import DEFAULT_QUALITY, PRESETS\n"
+        "from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS\n"
         "from fluidcore.physics import PRESETS as PHYSICS, PBFConfig\n"
         "from fluidcore.spec.controls import InteractionParams\n"
         "assert PHYSICS['scalarflow'].terminal_speed > 0 and DEFAULT_QUALITY in PRESETS\n"
@@ -50,9 +51,9 @@ def test_package_faces_import_without_torch() -> None:
 def test_the_quality_default_is_the_presets_everywhere() -> None:
     from bench.predict import command as bench_predict
     from bench.reconstruct import command as bench_reconstruct
-    from fluidcore.reconstruct import PRESETS
     from fluidcore.reconstruct.job import run_reconstruct
     from fluidcore.spec.jobs import ReconstructParams
+    from fluidcore.spec.reconstruct import PRESETS
     from fluidnexus.cli.scenes import reconstruct as cli_reconstruct
 
     assert DEFAULT_QUALITY in PRESETS

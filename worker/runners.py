@@ -108,7 +108,7 @@ def reconstruct(inputs: RunInputs) -> None:
         physics=params.physics,
         frames=params.frames,
         source=params.source,
-        simulation=params,  # a ReconstructParams is its SimulationOptions
+        simulation=params,  # a ReconstructParams is its SimulationConfig
         context=inputs.context,
     )
 

@@ -36,8 +36,8 @@ from torch import Tensor
 from fluidcore.physics import checks
 from fluidcore.physics.config import Box, PBFConfig, PhysicsInputError, Sphere, Vec3
 from fluidcore.physics.forces import ForceField
+from fluidcore.spec.simulation import AIR_CELLS  # the one range of the grid's cells, and why it is that
 
-CELL_RANGE = (4, 256)  # cells on the long side; 256^3 faces is ~200 MB of float32 per field copy
 MIN_CELLS_PER_AXIS = 2  # trilinear sampling and central differences need two cells on every axis
 
 
@@ -101,8 +101,8 @@ class AirGrid:
                  max_iterations: int = 200) -> None:
         if not isinstance(box, Box):
             raise PhysicsInputError(f"box must be a Box, got {type(box).__name__}")
-        if not isinstance(cells, int) or not CELL_RANGE[0] <= cells <= CELL_RANGE[1]:
-            raise PhysicsInputError(f"cells must be an integer in {CELL_RANGE[0]}..{CELL_RANGE[1]}, got {cells!r}")
+        if not isinstance(cells, int) or not AIR_CELLS[0] <= cells <= AIR_CELLS[1]:
+            raise PhysicsInputError(f"cells must be an integer in {AIR_CELLS[0]}..{AIR_CELLS[1]}, got {cells!r}")
         for value, name in ((buoyancy, "buoyancy"), (vorticity, "vorticity")):
             if not isinstance(value, (int, float)) or not 0.0 <= value < float("inf"):
                 raise PhysicsInputError(f"{name} must be a finite number >= 0, got {value!r}")

@@ -34,8 +34,9 @@ from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
 from fluidcore.predict.rollout import Rollout, continued_scene, source_template
-from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind, Scene, VisualSettings
+from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind, Scene
 from fluidcore.smoke import SmokeState
+from fluidcore.spec.reconstruct import VisualSettings
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -161,17 +162,17 @@ def _write(
         # both taken from the reconstruction's last frames even for a branch from an earlier one:
         # the whole window is observed footage, and at an early branch frame (frame 0 above all)
         # the plume has not risen yet to show its speed or its look higher up.
-        if parent_settings.physics_mode != "auto":
+        if parent_settings.physics.mode != "auto":
             observed = parent.frames()[-1]
             buoyancy_scale, calibration = calibrate_buoyancy(parent, scene, observed, device)
             look = start if observed == start_frame else SmokeState.from_frame(parent.read_frame(observed), device)
             profile = HeightProfile.observe(look, scene.up)
         scene = scene.with_buoyancy_scaled(buoyancy_scale)
     elif request.keeps_priors and parent_settings.appearance_profile:
-        profile = HeightProfile.from_json(parent_settings.appearance_profile)  # a chained prediction
+        profile = HeightProfile.of(parent_settings.appearance_profile)  # a chained prediction
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene, n_frames)  # before anything is written
-    visual_settings = _visual_settings(parent)
+    visual_settings = parent.visual_settings()
     air_cells, air_vorticity = _air_settings(parent)
     run = Run.create(
         out_dir,
@@ -190,7 +191,7 @@ def _write(
             identified_on_frame=observed,
             buoyancy_scale=buoyancy_scale,
             buoyancy_calibration_error=calibration,
-            appearance_profile=None if profile is None else profile.to_json(),
+            appearance_profile=profile,
             priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
             wind=params.wind,
             ball=params.ball,
@@ -254,18 +255,10 @@ def _rollout(
 
 def _air_settings(parent: Run) -> tuple[int, float]:
     """The air grid's cells (0: still air) and vorticity confinement a continuation of `parent`
-    simulates with: a reconstruction's quality says them, a continuation passes them on; older
-    runs have none."""
+    simulates with: a reconstruction's quality says them, a continuation passes them on."""
     settings = parent.settings
     if isinstance(settings, ReconstructSettings):
-        return int(settings.quality.get("air_cells", 0)), float(settings.quality.get("air_vorticity", 0.0))
+        return settings.quality.simulation.air_cells, settings.quality.simulation.air_vorticity
     return settings.air_cells, settings.air_vorticity
 
 
-def _visual_settings(parent: Run) -> VisualSettings:
-    """How visual Gaussians move and are born in the parent (a reconstruction records them from
-    its quality preset, a prediction passes them on): a continuation must move them alike."""
-    visual = parent.settings.visual
-    if visual is None:
-        raise JobInputError(f"run: {parent.path} records no settings.visual (written by an older version?); reconstruct again")
-    return visual

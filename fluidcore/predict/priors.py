@@ -13,16 +13,15 @@ A new prior goes here, and `fluidcore.predict.job` applies it (see docs/architec
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from fluidcore.jobs import JobContext, JobInputError
 from fluidcore.reconstruct.source_hint import SourceHint
-from fluidcore.runs import REFINED_RUN, Run
+from fluidcore.runs import REFINED_RUN, AppearanceProfile, Run
 from fluidcore.smoke import Appearance, SmokeState
 
 if TYPE_CHECKING:
@@ -35,8 +34,7 @@ HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per f
 HELD_RANGE = {"colors": (0.0, 1.0), "opacities": (1e-4, 1.0 - 1e-4)}
 
 
-@dataclass(frozen=True)
-class HeightProfile:
+class HeightProfile(AppearanceProfile):
     """The mean appearance of the smoke by height in the last reconstructed frame.
 
     Smoke thins as it rises, and the reconstruction's image fit keeps each height looking the way
@@ -46,13 +44,9 @@ class HeightProfile:
     band's departure from the profile's mean colour and opacity (a stationarity prior over the
     short horizons a prediction covers, relaxed so the handover is gradual), keeping each
     Gaussian's difference from its band's mean. Scales are left to the Gaussians: holding them
-    too made the ScalarFlow prediction worse (docs/bench_predict.md).
+    too made the ScalarFlow prediction worse (docs/bench_predict.md). Its data is the run
+    record's `AppearanceProfile`, which a prediction records as it is.
     """
-
-    edges: tuple[float, ...]  # band boundaries along `up`; heights outside go to the end bands
-    up: tuple[float, float, float]
-    means: dict[str, tuple[tuple[float, ...], ...]]  # attribute -> per band, per channel
-    counts: tuple[int, ...]  # Gaussians per band; an empty band holds nothing
 
     @classmethod
     def observe(cls, visual: SmokeState, up: Sequence[float], bands: int = PROFILE_BANDS) -> HeightProfile:
@@ -66,16 +60,12 @@ class HeightProfile:
             raise FloatingPointError("appearance profile: a band mean is NaN or Inf")
         counts = tuple(torch.bincount(band, minlength=bands).tolist())
         rows = {name: tuple(tuple(row) for row in value) for name, value in means.items()}
-        return cls(tuple(edges.tolist()), (float(up[0]), float(up[1]), float(up[2])), rows, counts)
+        return cls(edges=tuple(edges.tolist()), up=(float(up[0]), float(up[1]), float(up[2])), means=rows, counts=counts)
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> HeightProfile:
-        means = {k: tuple(map(tuple, v)) for k, v in data["means"].items()}
-        return cls(tuple(data["edges"]), tuple(data["up"]), means, tuple(data["counts"]))
-
-    def to_json(self) -> dict[str, Any]:
-        means = {k: [list(row) for row in v] for k, v in self.means.items()}
-        return {"edges": list(self.edges), "up": list(self.up), "means": means, "counts": list(self.counts)}
+    def of(cls, recorded: AppearanceProfile) -> HeightProfile:
+        """The profile a run recorded (a chained prediction holds its parent's)."""
+        return cls(**dict(recorded))
 
     def hold(self, visual: SmokeState) -> SmokeState:
         """`visual` with each band's mean appearance moved HOLD_RATE of the way to the profile's."""
@@ -125,7 +115,6 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     from fluidcore.reconstruct.job import fit
     from fluidcore.reconstruct.loop import prepare, read_inputs
     from fluidcore.cameras import render_size
-    from fluidcore.reconstruct.presets import Quality
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
@@ -135,11 +124,11 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     if origin is None:
         return "skipped: no reconstruction among the run's parents to take the quality and physics from"
     origin_settings = origin.settings
-    quality = Quality.from_json(origin_settings.quality)
+    quality = origin_settings.quality
     cameras = run.cameras()
     rough = {}
     for name in run.input_views:
-        camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.long_side))
+        camera = cameras[name].scaled(*render_size(cameras[name].width, cameras[name].height, quality.fit.long_side))
         rough[name] = torch.from_numpy(render_frames(run, camera, run.frames(), context.device)).float() / 255.0
     refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
@@ -149,7 +138,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
         cameras, inputs, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
         source=SourceHint(center=scene.source.center, radius=scene.source.radius),
-        physics=origin_settings.physics_mode, pseudo_views=False, device=context.device,
+        physics=origin_settings.physics.mode, pseudo_views=False, device=context.device,
     )
     first = run.frames()[0]
     fit(rec, run.path / REFINED_RUN, context=context,

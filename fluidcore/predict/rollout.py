@@ -6,7 +6,7 @@ kernel-interpolated displacement, forward Euler), so a prediction continues the 
 without a visual jump; Gaussians are born with every new physical particle and take the fitted
 appearance of the reconstruction's Gaussians nearest the source (`source_template`), because
 newborn smoke should look like the smoke the video showed coming out of it. With
-`opacity_concentration` (the reconstruction's `Quality.opacity_concentration`) each Gaussian
+`opacity_concentration` (the reconstruction's `ReconstructConfig.visual.opacity_concentration`) each Gaussian
 follows the concentration of the smoke it carries from frame to frame, instead of keeping the
 opacity and extent last fitted (`fluidcore.smoke.Appearance.diluted`: smoke that spreads
 thins and widens, its mass kept). A ball pushes the

@@ -7,13 +7,12 @@ from one video or a few calibrated ones.
     physical  the position fit of one frame (L_sim + L_incomp + image loss through advection)
     visual    visual Gaussians: birth, advection, appearance fit with temporal regularisation
     loop      `read_inputs`, `prepare` and `Reconstructor`: the per-frame driver with checkpoint / resume
-    presets   quality presets (preview, standard, paper) and the default; torch-free
 
-Only the presets load with the package; the rest (torch) on first use (`fluidcore.lazy`).
+The quality presets and the config a reconstruction runs with are the spec layer's
+(fluidcore.spec.reconstruct). Everything here (torch) loads on first use (`fluidcore.lazy`).
 """
 
 from fluidcore.lazy import lazy_exports
-from fluidcore.reconstruct.presets import DEFAULT_QUALITY, PRESETS, Quality, get
 
 __getattr__ = lazy_exports(
     __name__,
@@ -28,6 +27,5 @@ __getattr__ = lazy_exports(
 )
 
 __all__ = [
-    "DEFAULT_QUALITY", "PRESETS", "Quality", "Reconstruction", "ReconstructionError", "Reconstructor", "get", "prepare",
-    "read_inputs", "run_reconstruct",
+    "Reconstruction", "ReconstructionError", "Reconstructor", "prepare", "read_inputs", "run_reconstruct",
 ]

@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -57,8 +57,9 @@ from scipy import ndimage
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
-from fluidcore.reconstruct.presets import PHYSICS_MODES
 from fluidcore.reconstruct.views import ViewTarget
+from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PhysicsRecord, PriorSource
+from fluidcore.spec.simulation import PHYSICS_MODES
 
 MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
 # Observed frames the misfit is measured over (the first ones): the whole window of a clip up to
@@ -129,27 +130,6 @@ class Observation:
     def tops(self, cells: np.ndarray) -> np.ndarray:
         """(T,) height of the highest smoke cell of each frame (pixels; 0 for an empty frame)."""
         return np.where(cells.any(axis=(1, 2)), np.where(cells, self.height, 0.0).max(axis=(1, 2)), 0.0)
-
-
-@dataclass(frozen=True)
-class Identified:
-    """The identified physics and how it was found (recorded in the run's manifest)."""
-
-    buoyancy: float  # world units / s^2 along up
-    inflow_speed: float  # world units / s along up
-    rate: int  # particles per step
-    age: int  # steps the source had emitted before frame 0
-    misfit: float  # mean 1 - IoU over the frames, at the optimum
-    rise_speed: float  # observed speed of the plume's top (world units / s), what the floor uses
-    floor: float  # the buoyancy floor
-    evaluations: int
-    source_center: list[float]  # world
-    source_radius: float
-    entrainment: float  # the plume's spreading rate db/dz (fluidcore.physics.entrainment)
-    prior: dict  # the starting values (preset) and what stayed the prior's
-
-    def to_json(self) -> dict:
-        return asdict(self)
 
 
 def buoyancy_floor(rise_speed: float, drag: float) -> float:
@@ -282,7 +262,7 @@ def identify(
     device: torch.device | str = "cpu",
     prior_name: str = "",
     spreading_rates: Sequence[float] = SPREADING_RATES,
-) -> Identified:
+) -> IdentifiedRecord:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
 
     The inflow speed is the buoyancy's terminal speed rather than a search dimension of its own:
@@ -315,11 +295,12 @@ def identify(
         best = _best(search, best, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
     misfit, age = search.misfit(best)
     _, fitted = search.parts(best)
-    prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
-             "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
-             "source": {"center": list(source.center), "radius": source.radius}}
-    return Identified(max(best[0], floor), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
-                      len(search.rollouts), list(fitted.center), fitted.radius, best[3], prior)
+    prior = IdentificationPrior(preset=prior_name, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
+                                held_from_prior=("drag", "rho0"), inflow_speed="buoyancy / drag", budget=budget,
+                                source=PriorSource(center=source.center, radius=source.radius))
+    return IdentifiedRecord(buoyancy=max(best[0], floor), inflow_speed=float(np.dot(fitted.velocity, up_v)), rate=fitted.rate,
+                            age=age, misfit=misfit, rise_speed=speed_obs, floor=floor, evaluations=len(search.rollouts),
+                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=prior)
 
 
 def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], floor: float,
@@ -370,7 +351,7 @@ class ScenePhysics:
     config: PBFConfig
     source: Source
     stabilization_steps: int  # steps the source emits before frame 0
-    record: dict  # for the manifest: mode, prior preset, identified values (or why none)
+    record: PhysicsRecord  # for the manifest: mode, prior preset, identified values
 
 
 def check_mode(mode: str) -> str:
@@ -412,7 +393,7 @@ def scene_physics(
     gravity = tuple(float(c) for c in -9.8 * up)
     prior = replace(PRESETS[prior_name], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
     source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
-    record: dict = {"mode": mode, "prior_preset": prior_name, "kernel_radius": h}
+    found = None
     observed_rise = 0.0  # a preset's inlet is filled at its own terminal speed
     if mode == "auto":
         camera = view.camera
@@ -426,13 +407,13 @@ def scene_physics(
         source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps
         observed_rise = found.rise_speed
-        record["identified"] = found.to_json()
     else:
         config, steps = prior, PRESET_STABILIZATION_STEPS
     buoyancy = float(np.dot(config.body_acceleration, up))
     speed = config.terminal_speed
     carried = inflow_rate_speed(speed, observed_rise)
     source = replace(source, rate=inlet_rate(source.radius, carried, config, budget), velocity=tuple(float(c) for c in speed * up))
-    record.update({"buoyancy": buoyancy, "inflow_speed": speed, "inflow_rate": source.rate, "inflow_rate_speed": carried,
-                   "drag": config.drag, "rho0": config.rho0, "entrainment": config.entrainment, "stabilization_steps": steps})
+    record = PhysicsRecord(mode=mode, prior_preset=prior_name, kernel_radius=h, identified=found, buoyancy=buoyancy,
+                           inflow_speed=speed, inflow_rate=source.rate, inflow_rate_speed=carried, drag=config.drag,
+                           rho0=config.rho0, entrainment=config.entrainment, stabilization_steps=steps)
     return ScenePhysics(config, source, steps, record)

@@ -19,9 +19,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fluidcore.jobs import BatchProgress, Cancelled, JobContext, JobInputError
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, Quality
-from fluidcore.reconstruct.simulation_options import SimulationOptions
 from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, ReconstructConfig, get
+from fluidcore.spec.simulation import DEFAULT_PHYSICS, SimulationConfig
 
 if TYPE_CHECKING:
     import torch
@@ -47,20 +47,20 @@ def run_reconstruct(
     videos: Mapping[str, str | os.PathLike[str]],
     out_dir: str | os.PathLike[str],
     *,
-    quality: str | Quality = DEFAULT_QUALITY,
+    quality: str | ReconstructConfig = DEFAULT_QUALITY,
     frames: tuple[int, int] | None = None,
     source: SourceHint | None = None,
     physics: str = DEFAULT_PHYSICS,
-    simulation: SimulationOptions | None = None,
+    simulation: SimulationConfig | None = None,
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
     context: JobContext = JobContext(),
 ) -> Path:
     """Reconstruct `videos` (camera name -> path) seen by the cameras of `cameras_path`.
 
-    `quality` is a preset name or a `Quality` (a preset with overrides, as the benchmark
+    `quality` is a preset name or a `ReconstructConfig` (a preset with overrides, as the benchmark
     uses); `simulation`, when given, replaces its air and spreading settings (the user's
-    `SimulationOptions`). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
+    `SimulationConfig`, or a request model that extends it). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
     "fluidnexus"; fluidcore.reconstruct.identify). `source`: where the user knows the smoke's
     source to be (otherwise estimated; one view leaves its depth to a guess). Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
@@ -73,11 +73,10 @@ def run_reconstruct(
     from fluidcore.generative.stages import GENERATED_DIR, GenerativeSettings, save_generated_views
     from fluidcore.reconstruct.loop import prepare, read_inputs
     from fluidcore.scene_info import WORLD_UP
-    from fluidcore.reconstruct.presets import get
 
-    preset = quality if isinstance(quality, Quality) else get(quality)
+    preset = quality if isinstance(quality, ReconstructConfig) else get(quality)
     if simulation is not None:
-        preset = simulation.applied_to(preset)
+        preset = preset.with_simulation(simulation)
     cameras_path = Path(cameras_path)
     cameras = camera_io.load(cameras_path)
     if not videos:
@@ -97,7 +96,7 @@ def run_reconstruct(
         name: camera_io.undistort_frames(
             cameras[name],
             video.read_frames(
-                path, frame_range[0], frame_range[1], size=camera_io.render_size(cameras[name].width, cameras[name].height, preset.long_side)
+                path, frame_range[0], frame_range[1], size=camera_io.render_size(cameras[name].width, cameras[name].height, preset.fit.long_side)
             ),
         )
         for name, path in videos.items()
@@ -137,14 +136,14 @@ def novel_views(
     cameras: Mapping[str, Camera],
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float],
-    quality: Quality,
+    quality: ReconstructConfig,
     settings: GenerativeSettings,
     device: str = "cpu",
     on_batch: BatchProgress | None = None,
     stored: Path | None = None,
 ) -> NovelViews:
     """Generated views of a single-view reconstruction (same total weight as the symmetry prior,
-    `Quality.symmetry_weight`) when the novel-view weights exist. The generated cameras are the
+    `priors.symmetry_weight`) when the novel-view weights exist. The generated cameras are the
     scene's other cameras (their poses only), else as many turned copies of the input camera as
     the symmetry prior uses. Views saved in `stored` from the same inputs and settings are read
     back instead of sampled again."""
@@ -154,19 +153,20 @@ def novel_views(
     if len(inputs.targets) != 1:
         reason = "skipped: more than one input view (real views constrain the depth)"
         return NovelViews([], {"novel_views": reason, "view_refinement": reason}, {}, {})
-    if quality.symmetry_views < 1 or quality.symmetry_weight <= 0:
+    priors = quality.priors
+    if priors.symmetry_views < 1 or priors.symmetry_weight <= 0:
         reason = "skipped: pseudo-views are off in this quality (symmetry_views or symmetry_weight is 0)"
         return NovelViews([], {"novel_views": reason, "view_refinement": reason}, {}, {})
     source = inputs.targets[0]
     center = 0.5 * (np.asarray(box[0]) + np.asarray(box[1]))
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    targets = target_cameras(cameras, source.camera, center, up_v, min(quality.symmetry_views, settings.max_views))
+    targets = target_cameras(cameras, source.camera, center, up_v, min(priors.symmetry_views, settings.max_views))
     key = saved_key(source.camera.name, inputs.frame_range, targets, settings)
     saved = read_generated_views(stored, key) if stored is not None else None
     frames, status = saved if saved is not None else generated_views(
         source.camera, source.frames, targets, center, up_v, settings, device, on_batch
     )
-    views = generated_targets(source, targets, frames, quality.symmetry_weight) if frames else []
+    views = generated_targets(source, targets, frames, priors.symmetry_weight) if frames else []
     return NovelViews(views, status, frames, key)
 
 

@@ -11,7 +11,7 @@ physics in this scene's units);
              (with `first_frame_factor` times more iterations), the visual Gaussians are born
              on them and their appearance is fitted;
     frame t: p_sim = Sim(p_{t-1}, u_{t-1}) (which also seeds new particles and, with
-             `Quality.air_cells`, steps the air from p_{t-1}: the air is saved with the frame),
+             `simulation.air_cells`, steps the air from p_{t-1}: the air is saved with the frame),
              positions fitted
              (fluidcore.reconstruct.physical; with the input view's optical flow between
              frames t-1 and t, fluidcore.reconstruct.flow, when its weight is not 0),
@@ -48,13 +48,14 @@ from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.identify import scene_physics
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, MIN_FIT_SIDE, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
+from fluidcore.runs import PhysicsRecord, ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.spec.reconstruct import MIN_FIT_SIDE, ReconstructConfig
+from fluidcore.spec.simulation import DEFAULT_PHYSICS
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -94,10 +95,10 @@ class Reconstruction:
     box: Box
     source: Source
     up: np.ndarray
-    quality: Quality
-    physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
+    quality: ReconstructConfig
+    physics: PhysicsRecord  # how the physics was chosen (fluidcore.reconstruct.identify)
     stabilization_steps: int
-    symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
+    symmetry: SymmetryRecord | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
@@ -122,8 +123,7 @@ class Reconstruction:
 
     def settings(self) -> ReconstructSettings:
         return ReconstructSettings(
-            quality=self.quality.to_json(),
-            visual=self.quality.visual_settings(),
+            quality=self.quality,
             physics=self.physics,
             symmetry=self.symmetry,
             source_hint=self.source_hint,
@@ -137,7 +137,7 @@ def read_inputs(
     videos: Mapping[str, np.ndarray],
     *,
     frame_range: tuple[int, int],
-    quality: Quality,
+    quality: ReconstructConfig,
     device: str | torch.device = "cpu",
 ) -> InputViews:
     """The input `videos` (uint8 (T, H, W, 3) per input camera, frames of `frame_range` only, at
@@ -158,7 +158,7 @@ def read_inputs(
     targets, backgrounds = [], {}
     for name, frames in videos.items():
         camera = cameras[name]
-        width, height = render_size(camera.width, camera.height, quality.long_side)
+        width, height = render_size(camera.width, camera.height, quality.fit.long_side)
         data = init.to_float(frames, channels)
         data = np.stack([init.resize_image(f, width, height) for f in data])
         background = init.estimate_background(data)
@@ -175,7 +175,7 @@ def prepare(
     inputs: InputViews,
     *,
     fps: float,
-    quality: Quality,
+    quality: ReconstructConfig,
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
     source: SourceHint | None = None,
@@ -225,17 +225,18 @@ def prepare(
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
     chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device,
-                           entrainment=quality.entrainment)
+                           sim_box, up_v, fps, quality.fit.particles_per_frame, quality.seed, device,
+                           entrainment=quality.simulation.entrainment)
     config, src = chosen.config, chosen.source
     center = np.asarray(src.center)
     pseudo, symmetry = [], None
-    if quality.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
+    priors = quality.priors
+    if priors.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
         agreement = mirror_agreement(targets[0], center, up_v)
-        weight = quality.symmetry_weight * symmetry_support(agreement) / quality.symmetry_views
-        symmetry = {"mirror_agreement": agreement, "weight": weight * quality.symmetry_views}
+        weight = priors.symmetry_weight * symmetry_support(agreement) / priors.symmetry_views
+        symmetry = SymmetryRecord(mirror_agreement=agreement, weight=weight * priors.symmetry_views)
         if weight > 0 and pseudo_views and not extra_views:
-            pseudo = symmetry_views(targets, center, up_v, quality.symmetry_views, weight)
+            pseudo = symmetry_views(targets, center, up_v, priors.symmetry_views, weight)
     flow = input_flow(first.camera, first.frames, first.background, first.noise) if quality.weights.flow > 0 else None
     return Reconstruction(
         cameras=dict(cameras),
@@ -280,9 +281,10 @@ class Reconstructor:
     def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
         self.rec = rec
         self.device = torch.device(device)
-        # with quality.air_cells the air is part of the state: stepped from the fitted particles of
+        # with simulation.air_cells the air is part of the state: stepped from the fitted particles of
         # each frame, saved with it, and continued by every prediction and branch of the run
-        air = scene_air(rec.box, rec.fit_config, rec.quality.air_cells, vorticity=rec.quality.air_vorticity)
+        simulation = rec.quality.simulation
+        air = scene_air(rec.box, rec.fit_config, simulation.air_cells, vorticity=simulation.air_vorticity)
         self.simulator = Simulator(rec.fit_config, rec.box, rec.source, air=air, device=self.device)
 
     def open_run(self, out_dir) -> Run:
@@ -321,7 +323,8 @@ class Reconstructor:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
         """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
-        rec, q, config = self.rec, self.rec.quality, self.rec.fit_config
+        rec, config = self.rec, self.rec.fit_config
+        q, fit, visual, lr = rec.quality, rec.quality.fit, rec.quality.visual, rec.quality.optimiser
         index = t - rec.frame_range[0]
         seed = q.seed * 1_000_003 + t
         generator = torch.Generator().manual_seed(seed)
@@ -338,37 +341,37 @@ class Reconstructor:
         p_prev = torch.where(born[:, None], p_sim - config.dt * v_sim, prev.positions[slots])
         owner, offsets, new_appearance = spawn(
             torch.nonzero(born).flatten(),
-            q.visual_per_physical,
+            visual.per_physical,
             spread=0.25 * config.h,
             scale=0.35 * config.h,
-            opacity=q.initial_opacity,
+            opacity=visual.initial_opacity,
             color=carry.appearance.colors.mean(0) if len(carry.appearance) else torch.from_numpy(rec.smoke_color).to(self.device),
             generator=generator,
         )
         problem = PositionProblem(
-            p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), q.velocity_radius * config.h
+            p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), visual.velocity_radius * config.h
         )
         appearance = carry.appearance.cat(new_appearance)
         forecast = self._input_psnr(index, visual_means(p_sim, problem, config.dt), appearance)
-        iterations = q.position_iterations * (q.first_frame_factor if first else 1)
+        iterations = fit.position_iterations * (fit.first_frame_factor if first else 1)
         loss_fn = self._image_loss(index, iterations, chooser)
         flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, p_prev, config.h)
         p, terms = fit_positions(
-            problem, appearance, loss_fn, config, q.weights, iterations, q.lr_position, q.next_step_incompressibility, flow
+            problem, appearance, loss_fn, config, q.weights, iterations, lr.lr_position, q.priors.next_step_incompressibility, flow
         )
         means = visual_means(p, problem, config.dt).detach()
         velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
-        app_iterations = q.appearance_iterations * (q.first_frame_factor if first else 1)
+        app_iterations = fit.appearance_iterations * (fit.first_frame_factor if first else 1)
         appearance, app_loss = fit_appearance(
             means,
             appearance,
             carry.appearance,
             self._image_loss(index, app_iterations, chooser),
             app_iterations,
-            {"color": q.lr_color, "scale": q.lr_scale, "opacity": q.lr_opacity, "rotation": q.lr_rotation},
+            {"color": lr.lr_color, "scale": lr.lr_scale, "opacity": lr.lr_opacity, "rotation": lr.lr_rotation},
             q.weights,
-            ScaleBounds(q.min_scale * config.h, q.max_scale * config.h),
-            OpacityTie(q.opacity_spread),
+            ScaleBounds(visual.min_scale * config.h, visual.max_scale * config.h),
+            OpacityTie(visual.opacity_spread),
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
@@ -379,11 +382,11 @@ class Reconstructor:
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations;
-        symmetry pseudo-views at `Quality.symmetry_long_side` when it is set and smaller."""
+        symmetry pseudo-views at `priors.symmetry_long_side` when it is set and smaller."""
         views = self.rec.views
         weights = [v.weight for v in views]
-        stages = self.rec.quality.coarse_to_fine
-        symmetry_side = self.rec.quality.symmetry_long_side
+        stages = self.rec.quality.fit.coarse_to_fine
+        symmetry_side = self.rec.quality.priors.symmetry_long_side
         w = self.rec.quality.weights
 
         def loss(gaussians: Gaussians, k: int) -> torch.Tensor:

@@ -25,9 +25,9 @@ import torch
 from fluidcore.physics import PBFConfig, incompressibility_loss, sim_step
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.sph import poly6
-from fluidcore.reconstruct.presets import LossWeights
 from fluidcore.render import Gaussians
 from fluidcore.smoke import Appearance
+from fluidcore.spec.reconstruct import LossWeights
 
 
 class FixedInterpolation:

@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import torch
 
-from fluidcore.reconstruct.presets import LossWeights
 from fluidcore.render import Gaussians
 from fluidcore.smoke import Appearance
+from fluidcore.spec.reconstruct import LossWeights
 
 
 def spawn(

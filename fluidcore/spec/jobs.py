@@ -15,10 +15,10 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from fluidcore.errors import InputError, describe_validation
 from fluidcore.names import check_name
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, PRESETS
-from fluidcore.reconstruct.simulation_options import AIR_CELLS, SimulationOptions
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.spec.controls import FromFrame, Intervention
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS
+from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES, SimulationConfig
 
 _STRICT = ConfigDict(extra="forbid")
 Params = TypeVar("Params", bound=BaseModel)
@@ -27,17 +27,14 @@ QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset 
 PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
 
 
-class ReconstructParams(SimulationOptions):
+class ReconstructParams(SimulationConfig):
     """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
     `source`: where the smoke comes from, when known (world units; checked against the scene
     box): one view cannot tell the source's depth, and the whole plume inherits the guess.
     `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
-    by default (`SimulationOptions`, whose docstring gives the measurements)."""
+    by default (`SimulationConfig`, whose docstring gives the measurements)."""
 
-    # The schema states the air grid's "0 or AIR_CELLS" rule too (SimulationOptions checks it in a
-    # validator), so /openapi.json and GET /v1/limits refuse what the model refuses.
-    model_config = ConfigDict(extra="forbid", json_schema_extra=lambda schema: schema["properties"]["air_cells"].update(
-        anyOf=[{"const": 0}, {"minimum": AIR_CELLS[0]}]))
+    model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY
     physics: PhysicsName = DEFAULT_PHYSICS
     frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None

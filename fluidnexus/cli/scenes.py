@@ -12,8 +12,9 @@ from pathlib import Path
 import typer
 
 from fluidcore.names import check_name
-from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, DEFAULT_QUALITY, PHYSICS_MODES, QUALITY_CHOICES
 from fluidcore.spec.jobs import ReconstructParams
+from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP
+from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES
 from fluidnexus.reporting import UserError, check_device, emit, run_fields, user_errors
 from fluidnexus.cli.generative import ModelsDir
 from fluidnexus.cli.options import spec_option
@@ -73,7 +74,7 @@ def reconstruct(
     cameras: Path = typer.Option(..., "--cameras", exists=True, help="transforms.json, info.json or a COLMAP model."),
     video: list[str] = typer.Option(..., "--video", help="VIEW=path.mp4; repeat for several input views."),
     frames: str | None = typer.Option(None, "--frames", help="START:END (end exclusive); default: every frame."),
-    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_CHOICES),
+    quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_HELP),
     physics: str = typer.Option(DEFAULT_PHYSICS, "--physics", help=" | ".join(PHYSICS_MODES) + ": identified from the video, or a preset"),
     source: str | None = typer.Option(
         None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
@@ -107,7 +108,7 @@ def reconstruct(
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=params.quality, physics=params.physics, frames=params.frames,
-            source=params.source, simulation=params,  # a ReconstructParams is its SimulationOptions
+            source=params.source, simulation=params,  # a ReconstructParams is its SimulationConfig
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit(as_json, str(path), **run_fields(path))

@@ -16,6 +16,7 @@ from fluidcore.cameras.single import single_camera
 from fluidcore.physics.config import PBFConfig, Source
 from fluidcore.runs import ReconstructSettings, Run, SourceEstimateRecord
 from fluidcore.runs import Scene as RunScene
+from fluidcore.spec.reconstruct import get
 from service.database import session_scope
 from service.models import Job, JobState, Scene
 from service.storage import run_prefix
@@ -101,7 +102,7 @@ def _finished_reconstruction(http, auth, scene_id: str, loaded, folder: Path, es
     was given whole (`estimate` None) or estimated as `estimate` says; its job id."""
     run = Run.create(
         folder, kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
-        channels=1, background_color=[0.0], settings=ReconstructSettings(quality={}, source_estimate=estimate),
+        channels=1, background_color=[0.0], settings=ReconstructSettings(quality=get("preview"), source_estimate=estimate),
         scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.5, -0.8, 0.0), 0.1, 1)),
     )
     job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene_id}, headers=auth).json()

@@ -10,6 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from fluidcore import video
+from fluidcore.runs import Run
 from fluidnexus.cli import app
 
 runner = CliRunner()
@@ -78,8 +79,8 @@ def test_reconstruct_with_the_simulated_air_saves_it_and_exports_its_velocity(sc
     out = tmp_path / "airy"
     _ok(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}",
          "--frames", "0:2", "--air-cells", "8", "--air-vorticity", "0.3", "--entrainment", "--out", str(out), "--threads", "1"])
-    quality = json.loads((out / "manifest.json").read_text())["settings"]["quality"]
-    assert (quality["air_cells"], quality["air_vorticity"], quality["entrainment"]) == (8, 0.3, True)
+    simulation = Run.open(out).settings.quality.simulation
+    assert (simulation.air_cells, simulation.air_vorticity, simulation.entrainment) == (8, 0.3, True)
     _ok(["export", str(out), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
     with np.load(tmp_path / "d.npz") as data:
         assert str(data["velocity_source"]) == "air"

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from fluidcore.reconstruct.simulation_options import AIR_CELLS
+from fluidcore.spec.simulation import AIR_CELLS
 from fluidcore.spec.controls import WindParams
 from fluidcore.spec.jobs import InteractParams, ReconstructParams
 from fluidnexus.cli import app

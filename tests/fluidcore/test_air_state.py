@@ -14,9 +14,10 @@ from fluidcore import synth
 from fluidcore.physics import Simulator
 from fluidcore.physics.air import scene_air
 from fluidcore.predict import run_predict, run_resimulate
-from fluidcore.reconstruct import Reconstructor, get, prepare, read_inputs
+from fluidcore.reconstruct import Reconstructor, prepare, read_inputs
 from fluidcore.runs import AIR_FIELDS, FrameState, Run, RunError, SavedAir, state_file
 from fluidcore.smoke import SmokeState
+from fluidcore.spec.reconstruct import get
 from tests.support.predict_scenes import plume_run
 
 CELLS = 12  # a coarse grid: the tests need moving air, not resolved air

@@ -11,8 +11,10 @@ import pytest
 
 from fluidcore.physics import PBFConfig, Source
 from fluidcore.runs import (
+    FORMAT_VERSION,
     ContinuationSettings,
     FrameState,
+    PhysicsRecord,
     ReconstructSettings,
     Run,
     RunError,
@@ -20,9 +22,12 @@ from fluidcore.runs import (
     RunRecord,
     state_file,
 )
+from fluidcore.spec.reconstruct import ReconstructConfig, get
+from fluidcore.spec.simulation import SimulationConfig
 from tests.support.run_folder import _camera, _create, _scene, _state
 
 OLD_RUNS = Path(__file__).parent / "fixtures" / "runs_v1"  # written by format version 1 (see its README.md)
+V2_RUNS = Path(__file__).parent / "fixtures" / "runs_v2"  # written by format version 2 (see its README.md)
 
 
 def test_frames_round_trip_and_manifest_records_losses(tmp_path):
@@ -53,7 +58,7 @@ def test_reopening_the_same_run_resumes_and_a_different_one_is_refused(tmp_path)
     again = _create(tmp_path / "run")
     assert again.next_frame() == 1
     with pytest.raises(RunError, match="settings"):
-        _create(tmp_path / "run", settings=ReconstructSettings(quality={"name": "paper"}))
+        _create(tmp_path / "run", settings=ReconstructSettings(quality=get("paper")))
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("mine")
     with pytest.raises(RunError, match="not a run folder"):
@@ -108,9 +113,10 @@ def test_runs_written_before_the_typed_record_are_read_migrated(tmp_path):
     """Version-1 folders from main (kept in tests/fluidcore/fixtures/runs_v1) read as typed records of their
     kind; reading never rewrites them."""
     rec = Run.open(OLD_RUNS / "reconstruct")
-    assert rec.kind is RunKind.RECONSTRUCT and rec.manifest["format_version"] == 2
-    assert isinstance(rec.settings, ReconstructSettings) and rec.settings.physics_mode == "auto"
-    assert rec.settings.visual.per_physical == 2 and [v.kind for v in rec.settings.views][:2] == ["input", "symmetry"]
+    assert rec.kind is RunKind.RECONSTRUCT and rec.manifest["format_version"] == FORMAT_VERSION
+    assert isinstance(rec.settings, ReconstructSettings) and rec.settings.physics.mode == "auto"
+    assert rec.visual_settings().per_physical == 2 and [v.kind for v in rec.settings.views][:2] == ["input", "symmetry"]
+    assert rec.settings.quality.visual.opacity_concentration is False  # version 1 ran before the concentration tie
     assert isinstance(rec.scene.physics, PBFConfig) and rec.scene.physics.h == pytest.approx(0.021333, rel=1e-4)
     assert isinstance(rec.scene.source, Source) and rec.scene.source.rate == 27
     interact = Run.open(OLD_RUNS / "interact")
@@ -132,16 +138,16 @@ def test_version_1_settings_missing_later_fields_get_their_defaults_and_stranger
     assert RunRecord.from_bytes(json.dumps(early).encode(), "early").settings.branch_frame == 2  # first frame - 1
     rec = json.loads((OLD_RUNS / "reconstruct" / "manifest.json").read_text())
     del rec["settings"]["physics"]
-    assert RunRecord.from_bytes(json.dumps(rec).encode(), "rec").settings.physics_mode == "scalarflow"
+    assert RunRecord.from_bytes(json.dumps(rec).encode(), "rec").settings.physics == PhysicsRecord(mode="scalarflow")
     with pytest.raises(RunError, match="kind 'guess'"):
         RunRecord.from_bytes(json.dumps({**old, "kind": "guess"}).encode(), "guess")
-    with pytest.raises(RunError, match="format_version 3"):
-        RunRecord.from_bytes(json.dumps({**old, "format_version": 3}).encode(), "future")
+    with pytest.raises(RunError, match=f"format_version {FORMAT_VERSION + 1}"):
+        RunRecord.from_bytes(json.dumps({**old, "format_version": FORMAT_VERSION + 1}).encode(), "future")
     with pytest.raises(RunError, match="settings do not fit"):
         RunRecord.from_bytes(json.dumps({**old, "format_version": 2, "settings": {"visual": None}}).encode(), "broken")
 
 
-def test_a_version_1_reconstruction_is_continued_into_a_version_2_run(tmp_path):
+def test_a_version_1_reconstruction_is_continued_into_a_current_run(tmp_path):
     from fluidcore.spec.controls import BallParams, InteractionParams
     from fluidcore.predict import run_interact
 
@@ -149,6 +155,47 @@ def test_a_version_1_reconstruction_is_continued_into_a_version_2_run(tmp_path):
     ball = InteractionParams(ball=BallParams(center=(0.0, 0.3, 0.0), radius=0.05))
     out = run_interact(tmp_path / "reconstruct", tmp_path / "what-if", ball, frames=1)
     run = Run.open(out)
-    assert json.loads((out / "manifest.json").read_text())["format_version"] == 2
+    assert json.loads((out / "manifest.json").read_text())["format_version"] == FORMAT_VERSION
     assert run.frames() == [3] and run.settings.branch_frame == 2 and run.settings.ball.radius == 0.05
     assert run.scene.physics == Run.open(tmp_path / "reconstruct").scene.physics  # auto physics: used as identified
+
+
+def test_version_2_runs_read_with_their_quality_nested_and_their_records_typed():
+    """Version-2 folders from main before the nested config (fixtures/runs_v2): the flat quality
+    reads as the `ReconstructConfig` it was (the preview preset; the air run with its air and
+    spreading), the physics and symmetry records as models, the visual settings off the quality."""
+    rec = Run.open(V2_RUNS / "reconstruct")
+    flat = json.loads((V2_RUNS / "reconstruct" / "manifest.json").read_text())["settings"]
+    assert flat["quality"]["visual_per_physical"] == 2 and rec.manifest["format_version"] == FORMAT_VERSION
+    assert rec.settings.quality == get("preview")
+    assert rec.visual_settings().model_dump() == flat["visual"]
+    assert rec.settings.physics.model_dump(mode="json", exclude_none=True) == flat["physics"]
+    assert rec.settings.symmetry.model_dump() == flat["symmetry"]
+    airy = Run.open(V2_RUNS / "recair").settings.quality
+    assert airy.simulation == SimulationConfig(air_cells=16, air_vorticity=0.1, entrainment=True)
+    assert airy.model_copy(update={"simulation": SimulationConfig()}) == get("preview")
+    assert Run.open(V2_RUNS / "predict").visual_settings() == rec.visual_settings()
+    stored = (V2_RUNS / "reconstruct" / "manifest.json").read_bytes()  # as the API fetches it from storage
+    assert RunRecord.from_bytes(stored, "reconstruct").manifest == rec.manifest
+
+
+def test_a_current_record_reads_back_as_it_was_written(tmp_path):
+    run = _create(tmp_path / "run", settings=ReconstructSettings(quality=get("standard").with_overrides(air_cells=32)))
+    assert json.loads((tmp_path / "run" / "manifest.json").read_text())["format_version"] == FORMAT_VERSION
+    again = Run.open(tmp_path / "run").settings.quality
+    assert isinstance(again, ReconstructConfig) and again == get("standard").with_overrides(air_cells=32)
+
+
+def test_a_version_2_reconstruction_is_predicted_as_main_predicted_it(tmp_path):
+    """Continuing the migrated reconstruction writes the frames the version-2 code wrote from it
+    (fixtures/runs_v2/predict): the settings read back are the ones it ran with."""
+    from fluidcore.predict import run_predict
+
+    shutil.copytree(V2_RUNS / "reconstruct", tmp_path / "reconstruct")
+    out = Run.open(run_predict(tmp_path / "reconstruct", tmp_path / "predict", frames=2))
+    then = Run.open(V2_RUNS / "predict")
+    assert out.settings == then.settings and out.frames() == then.frames() == [3, 4]
+    for t in out.frames():
+        now, before = out.read_frame(t), then.read_frame(t)
+        np.testing.assert_allclose(now.positions, before.positions, atol=1e-5)
+        np.testing.assert_allclose(now.gaussians["opacity_logits"], before.gaussians["opacity_logits"], atol=1e-5)

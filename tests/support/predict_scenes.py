@@ -14,8 +14,9 @@ import torch
 
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.physics.air import scene_air
-from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene, VisualSettings
+from fluidcore.runs import FrameState, PhysicsRecord, ReconstructSettings, Run, RunKind, Scene
 from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.spec.reconstruct import get
 from fluidcore.synth import SynthSpec, particle_gaussians
 
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
@@ -39,13 +40,14 @@ def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
 
 
 def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC,
-              quality: dict | None = None, visual: VisualSettings | None = None, physics: str = "scalarflow") -> Path:
+              quality: dict | None = None, physics: str = "scalarflow") -> Path:
     """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
-    (`quality`: what its settings record as the quality, e.g. the fields a test needs; with
-    `air_cells` there the plume is simulated with the air, and every frame saves it; `visual`:
-    how its Gaussians move, one per particle with fixed opacity unless given; `physics`: the
-    physics mode it records, a preset's unless "auto")."""
-    simulator = simulator_of(spec, int((quality or {}).get("air_cells", 0)))
+    (`quality`: overrides of the preview quality its settings record, whose Gaussians are one per
+    particle with fixed opacity unless they say otherwise; with `air_cells` there the plume is
+    simulated with the air, and every frame saves it; `physics`: the physics mode it records, a
+    preset's unless "auto")."""
+    config = get("preview").with_overrides(**{"per_physical": 1, "opacity_concentration": False, **(quality or {})})
+    simulator = simulator_of(spec, config.simulation.air_cells)
     state = simulator.new_state()
     simulator.stabilize(state, 20)
     for _ in range(warmup):
@@ -60,11 +62,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         channels=1,
         background_color=[1.0],
         scene=scene_of(spec),
-        settings=ReconstructSettings(
-            quality=quality or {},
-            visual=visual or VisualSettings(velocity_radius=2.0, per_physical=1, seed=0),
-            physics={"mode": physics},
-        ),
+        settings=ReconstructSettings(quality=config, physics=PhysicsRecord(mode=physics)),
     )
     for t in range(frames):
         if t > 0:

@@ -8,6 +8,7 @@ import numpy as np
 from fluidcore.cameras import Camera
 from fluidcore.physics import PBFConfig, Source
 from fluidcore.runs import FrameState, ReconstructSettings, Run, Scene
+from fluidcore.spec.reconstruct import get
 
 
 def _camera(name: str = "cam") -> Camera:
@@ -36,7 +37,7 @@ def _create(path, **changes):
         channels=1,
         background_color=[1.0],
         scene=_scene(),
-        settings=ReconstructSettings(quality={"name": "preview", "iterations": 5}),
+        settings=ReconstructSettings(quality=get("preview").with_overrides(position_iterations=5)),
     )
     args.update(changes)
     return Run.create(path, **args)

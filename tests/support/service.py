@@ -288,6 +288,7 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     from fluidcore.cameras import Camera
     from fluidcore.physics.config import PBFConfig, Source
     from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene
+    from fluidcore.spec.reconstruct import get
 
     positions = positions or {}
     frames = sorted(positions) or [0]
@@ -298,7 +299,7 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     with tempfile.TemporaryDirectory(prefix="fluidnexus-stored-run-") as tmp:
         run = Run.create(Path(tmp) / "run", kind=RunKind.RECONSTRUCT, cameras={"cam0": camera}, input_views=["cam0"],
                          frame_range=(frames[0], frames[-1] + 1), fps=30.0, channels=1, background_color=[1.0], scene=scene,
-                         settings=ReconstructSettings(quality={}, source_estimate=source_estimate))
+                         settings=ReconstructSettings(quality=get("preview"), source_estimate=source_estimate))
         for t, points in sorted(positions.items()):
             alive = np.ones(len(points), bool)
             alive[-1] = False

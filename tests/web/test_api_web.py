@@ -11,7 +11,7 @@ import pytest
 from tests.support.service import store_run
 
 from tests.support.api import Service, reconstruct
-from fluidcore.reconstruct.simulation_options import AIR_CELLS
+from fluidcore.spec.simulation import AIR_CELLS
 
 ROOT = Path(__file__).resolve().parents[2]
 WEB = ROOT / "web"

@@ -394,7 +394,7 @@ def test_the_forms_judge_values_by_the_apis_limits_as_the_models_do(static_web: 
     value exactly when the parameter model does; its refusal names the range the model declares."""
     from pydantic import ValidationError
 
-    from fluidcore.reconstruct.simulation_options import AIR_CELLS
+    from fluidcore.spec.simulation import AIR_CELLS
     from fluidcore.spec.jobs import InteractParams, ReconstructParams
 
     wind = {"direction": [1, 0, 0], "strength": 1.0}

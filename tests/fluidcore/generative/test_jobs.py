@@ -16,7 +16,7 @@ from fluidcore.generative import models, stages
 from fluidcore.generative.novel_view import to_square
 from fluidcore.generative.refine import to_model_frames
 from fluidcore.predict import job as predict_job
-from fluidcore.reconstruct import get
+from fluidcore.spec.reconstruct import get
 from fluidcore.reconstruct import job as reconstruct_job
 from fluidcore.runs import Run
 

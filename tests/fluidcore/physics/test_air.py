@@ -270,7 +270,7 @@ def test_the_air_runs_on_cuda_as_on_cpu() -> None:
 
 
 def test_a_prediction_simulates_the_air_its_reconstruction_asks_for_and_passes_it_on(tmp_path: Path) -> None:
-    """Quality.air_cells (0 by default) switches the air grid on in prediction, recorded so that a
+    """simulation.air_cells (0 by default) switches the air grid on in prediction, recorded so that a
     continuation keeps it; the default parent predicts with still air as before."""
     still = plume_run(tmp_path / "still", frames=2, warmup=20)
     airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16})
@@ -297,7 +297,7 @@ def test_air_resampled_onto_a_finer_grid_keeps_its_flow() -> None:
 
 
 def test_a_prediction_keeps_the_air_settings_and_continues_a_coarser_parents_air(tmp_path: Path) -> None:
-    """Quality.air_vorticity reaches the prediction and its continuations; a parent whose quality
+    """simulation.air_vorticity reaches the prediction and its continuations; a parent whose quality
     asks for another grid than its frames' air was saved on (an older run continued at a finer
     grid) is continued from its air resampled, not refused."""
     airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16, "air_vorticity": 0.3})
@@ -307,7 +307,7 @@ def test_a_prediction_keeps_the_air_settings_and_continues_a_coarser_parents_air
     assert (chained.settings.air_cells, chained.settings.air_vorticity) == (16, 0.3)
     manifest = Path(airy) / "manifest.json"
     data = json.loads(manifest.read_text())
-    data["settings"]["quality"]["air_cells"] = 24
+    data["settings"]["quality"]["simulation"]["air_cells"] = 24
     manifest.write_text(json.dumps(data))
     finer = Run.open(run_predict(airy, tmp_path / "p3", frames=3))
     air = finer.read_frame(finer.frames()[-1]).air

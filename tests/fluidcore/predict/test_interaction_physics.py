@@ -134,7 +134,7 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     """The whole chain on a run written by the reconstruction itself (fluidcore.synth scene)."""
     from fluidcore import run_frames, synth
     from fluidcore.reconstruct import job as reconstruct_job
-    from fluidcore.reconstruct import get
+    from fluidcore.spec.reconstruct import get
 
     spec = synth.SynthSpec(frames=3, width=24, height=32, views=2)
     cameras = synth.write(synth.generate(spec), tmp_path / "scene")

@@ -20,7 +20,7 @@ from fluidcore.spec.controls import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
 from fluidcore.predict import identification, job, priors, rollout
-from fluidcore.runs import Run, RunError, VisualSettings
+from fluidcore.runs import AppearanceProfile, Run, RunError
 from fluidcore.smoke import Appearance, SmokeState
 
 FRAMES = 6
@@ -168,8 +168,7 @@ def test_a_prediction_follows_the_concentration_only_where_the_reconstruction_as
     smoke's concentration; one recorded without (every run before it) keeps each Gaussian's look.
     Identified ("auto") physics: no appearance prior moves the look besides."""
     fixed = plume_run(tmp_path / "fixed", frames=3, warmup=25, physics="auto")
-    visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0, opacity_concentration=True)
-    following = plume_run(tmp_path / "following", frames=3, warmup=25, visual=visual, physics="auto")
+    following = plume_run(tmp_path / "following", frames=3, warmup=25, quality={"opacity_concentration": True}, physics="auto")
     looks = {}
     for name, source in (("fixed", fixed), ("following", following)):
         run = Run.open(job.run_predict(source, tmp_path / f"predicted_{name}", frames=4))
@@ -349,7 +348,8 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         inside = band == b
         assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)
     assert torch.equal(held.means, risen.means) and torch.equal(held.appearance.log_scales, risen.appearance.log_scales)
-    assert priors.HeightProfile.from_json(json.loads(json.dumps(profile.to_json()))) == profile
+    recorded = AppearanceProfile.model_validate_json(profile.model_dump_json())  # as a chained prediction reads it
+    assert priors.HeightProfile.of(recorded) == profile
 
 
 def test_a_run_chain_moved_to_another_folder_continues(parent: Path, tmp_path: Path) -> None:

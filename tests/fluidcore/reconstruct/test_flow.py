@@ -20,10 +20,10 @@ import torch
 from scipy import ndimage
 
 from fluidcore.cameras import Camera, look_at
-from fluidcore.reconstruct import Reconstructor, get, prepare, read_inputs
+from fluidcore.reconstruct import Reconstructor, prepare, read_inputs
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.init import NOISE_FLOOR
-from fluidcore.reconstruct.presets import Quality
+from fluidcore.spec.reconstruct import ReconstructConfig, get
 from fluidcore import synth
 
 SHIFT = (3.0, -2.0)  # px per frame (u right, v down)
@@ -144,6 +144,6 @@ def test_flow_weight_zero_is_the_path_without_flow(scene, tmp_path):
 
 
 def test_runs_from_before_the_flow_term_refit_without_it():
-    manifest = get("preview").to_json()
+    manifest = get("preview").model_dump(mode="json")
     del manifest["weights"]["flow"]
-    assert Quality.from_json(manifest).weights.flow == 0.0
+    assert ReconstructConfig.model_validate(manifest).weights.flow == 0.0

@@ -19,11 +19,13 @@ from scipy import ndimage
 from typer.testing import CliRunner
 
 from fluidcore import synth
-from fluidcore.reconstruct import get, prepare, read_inputs
+from fluidcore.reconstruct import prepare, read_inputs
 from fluidcore.reconstruct import identify as identify_module
-from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Identified, Observation, PhysicsChoiceError, _Search,
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, PhysicsChoiceError, _Search,
                                            buoyancy_floor, identify, inflow_rate_speed, inlet_rate, rise_speed)
 from fluidcore.physics import PRESETS, Simulator
+from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PriorSource
+from fluidcore.spec.reconstruct import get
 
 INPUT = "view_00"
 
@@ -52,14 +54,14 @@ def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: s
     prior = PRESETS["scalarflow"].alpha * -9.8 / rec.config.length_scale
     assert abs(buoyancy - true_buoyancy) < abs(prior - true_buoyancy)  # it moved off the prior, towards the truth
     record = rec.settings().physics
-    assert record["mode"] == "auto" and record["identified"]["buoyancy"] == pytest.approx(buoyancy)
-    assert record["stabilization_steps"] == rec.stabilization_steps >= 1
+    assert record.mode == "auto" and record.identified.buoyancy == pytest.approx(buoyancy)
+    assert record.stabilization_steps == rec.stabilization_steps >= 1
 
 
 def test_a_preset_keeps_its_buoyancy(rising: synth.SynthScene) -> None:
     rec = _prepare(rising, "scalarflow")
     assert rec.config.alpha == PRESETS["scalarflow"].alpha
-    assert "identified" not in rec.settings().physics and rec.settings().physics["mode"] == "scalarflow"
+    assert rec.settings().physics.identified is None and rec.settings().physics.mode == "scalarflow"
     with pytest.raises(PhysicsChoiceError, match="auto, scalarflow, fluidnexus"):
         _prepare(rising, "phiflow")
 
@@ -170,13 +172,13 @@ def test_identification_tells_a_spreading_plume_from_a_column(rising: synth.Synt
 
 
 def test_without_entrainment_the_scene_keeps_the_papers_column(rising: synth.SynthScene) -> None:
-    """`Quality.entrainment` off (the default): no spreading rate is tried, and the scene every continuation
+    """`simulation.entrainment` off (the default): no spreading rate is tried, and the scene every continuation
     simulates has none; the fit itself never spreads (`Reconstruction.fit_config`)."""
     column = _prepare(rising, "auto")  # the default
-    assert column.config.entrainment == 0.0 and column.settings().physics["entrainment"] == 0.0
-    assert column.settings().physics["identified"]["entrainment"] == 0.0
+    assert column.config.entrainment == 0.0 and column.settings().physics.entrainment == 0.0
+    assert column.settings().physics.identified.entrainment == 0.0
     searched = _prepare(rising, "auto", entrainment=True)
-    assert searched.settings().physics["identified"]["evaluations"] > column.settings().physics["identified"]["evaluations"]
+    assert searched.settings().physics.identified.evaluations > column.settings().physics.identified.evaluations
     assert searched.scene().physics.entrainment == searched.config.entrainment
     assert searched.fit_config.entrainment == 0.0
 
@@ -238,16 +240,18 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     assert inflow_rate_speed(0.1, float("nan")) == 0.1
     source = rising.spec.source()
     buoyancy, drag = 0.3, PRESETS["scalarflow"].drag
-    found = Identified(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
-                       rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
-                       source_center=list(source.center), source_radius=source.radius, entrainment=0.0, prior={})
+    prior = IdentificationPrior(preset="scalarflow", buoyancy=buoyancy, drag=drag, rho0=1.0, held_from_prior=(),
+                                inflow_speed="buoyancy / drag", budget=1, source=PriorSource(center=source.center, radius=source.radius))
+    found = IdentifiedRecord(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
+                             rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
+                             source_center=source.center, source_radius=source.radius, entrainment=0.0, prior=prior)
     monkeypatch.setattr(identify_module, "identify", lambda *args, **kwargs: found)
     budget = 10_000  # no cap: the rates are the inlet's own
     rec = _prepare(rising, "auto", particles_per_frame=budget)
     speed = rec.config.terminal_speed
     assert speed == pytest.approx(buoyancy / drag) and rec.source.velocity[1] == pytest.approx(speed)
-    assert rec.settings().physics["inflow_rate_speed"] == found.rise_speed
+    assert rec.settings().physics.inflow_rate_speed == found.rise_speed
     assert rec.source.rate == inlet_rate(source.radius, found.rise_speed, rec.config, budget)
     assert rec.source.rate > 2 * inlet_rate(source.radius, speed, rec.config, budget)  # three times the speed, so three times the count
     preset = _prepare(rising, "scalarflow", particles_per_frame=budget)
-    assert preset.settings().physics["inflow_rate_speed"] == preset.config.terminal_speed
+    assert preset.settings().physics.inflow_rate_speed == preset.config.terminal_speed

@@ -9,7 +9,7 @@ import pytest
 
 from fluidcore import artifacts, jobs, synth, video
 from fluidcore.reconstruct import job as reconstruct_job
-from fluidcore.reconstruct import get
+from fluidcore.spec.reconstruct import get
 from fluidcore.runs import Run
 
 QUICK = get("preview").with_overrides(position_iterations=3, appearance_iterations=2, first_frame_factor=1)

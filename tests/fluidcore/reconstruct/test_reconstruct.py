@@ -22,9 +22,10 @@ import torch
 
 from fluidcore import metrics, run_frames, synth
 from fluidcore.physics import interpolate_velocity
-from fluidcore.reconstruct import Reconstructor, ReconstructionError, get, prepare, read_inputs
+from fluidcore.reconstruct import Reconstructor, ReconstructionError, prepare, read_inputs
 from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError, parse_source
 from fluidcore.runs import Run
+from fluidcore.spec.reconstruct import get
 
 INPUT = "view_01"
 FRAMES = 5
@@ -177,11 +178,11 @@ def test_prepare_fits_the_views_it_is_given_and_the_reconstruction_is_frozen(sce
     plain = prepare(scene.cameras, inputs, **common)
     source = inputs.targets[0]
     other = scene.cameras["view_00"].scaled(source.camera.width, source.camera.height)
-    drawn = generated_targets(source, [other], {"view_00": source.frames.clone()}, quality.symmetry_weight)
+    drawn = generated_targets(source, [other], {"view_00": source.frames.clone()}, quality.priors.symmetry_weight)
     generated = prepare(scene.cameras, inputs, extra_views=drawn, **common)
     alone = prepare(scene.cameras, inputs, pseudo_views=False, **common)
-    assert [v.kind for v in plain.views] == ["input"] + ["symmetry"] * quality.symmetry_views
-    assert [v.kind for v in generated.views] == ["input", "generated"] and generated.views[1].weight == quality.symmetry_weight
+    assert [v.kind for v in plain.views] == ["input"] + ["symmetry"] * quality.priors.symmetry_views
+    assert [v.kind for v in generated.views] == ["input", "generated"] and generated.views[1].weight == quality.priors.symmetry_weight
     assert [v.kind for v in alone.views] == ["input"]
     assert plain.symmetry == generated.symmetry == alone.symmetry  # the prior's record stays in the manifest
     with pytest.raises(FrozenInstanceError):
@@ -207,16 +208,16 @@ def test_the_source_estimate_and_the_depth_range_of_one_view_are_in_the_manifest
 
 
 def test_a_symmetry_long_side_that_is_not_a_whole_number_of_pixels_from_8_is_refused():
-    from fluidcore.reconstruct.presets import PresetError
+    from fluidcore.spec.reconstruct import PresetError
 
     for bad in (0, 7, -120, 12.5, True, "120"):
         with pytest.raises(PresetError, match="symmetry_long_side"):
             get("preview").with_overrides(symmetry_long_side=bad)
-    assert get("preview").with_overrides(symmetry_long_side=8).symmetry_long_side == 8
+    assert get("preview").with_overrides(symmetry_long_side=8).priors.symmetry_long_side == 8
 
 
 def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypatch):
-    """`Quality.symmetry_long_side`: every symmetry pseudo-view is rendered at that long side,
+    """`priors.symmetry_long_side`: every symmetry pseudo-view is rendered at that long side,
     whatever the coarse-to-fine stage, while the input view keeps the stages; at or above the
     working size, and with None (runs made before the field), the pseudo-views follow the stages."""
     import random
@@ -234,7 +235,7 @@ def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypa
     for side in (24, 64, None):  # the scene is fitted at a long side of 64
         rec = _prepare(scene, frames=2, symmetry_long_side=side)
         working = {v.camera.name: max(v.camera.width, v.camera.height) for v in rec.views}
-        stages = lambda name: {max(loop.MIN_FIT_SIDE, round(working[name] * f)) for f in rec.quality.coarse_to_fine}  # noqa: E731
+        stages = lambda name: {max(loop.MIN_FIT_SIDE, round(working[name] * f)) for f in rec.quality.fit.coarse_to_fine}  # noqa: E731
         n = 4
         center = torch.tensor(rec.source.center, dtype=torch.float32)
         gaussians = Gaussians(center + 0.01 * torch.randn(n, 3), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]] * n),

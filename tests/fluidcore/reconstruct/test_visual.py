@@ -17,11 +17,10 @@ import torch
 from fluidcore.cameras import Camera
 from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source
 from fluidcore.predict.rollout import Rollout
-from fluidcore.reconstruct.presets import LossWeights, PresetError, Quality, get
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import VisualSettings
 from fluidcore.smoke import Appearance, SmokeState, concentration
+from fluidcore.spec.reconstruct import LossWeights, PresetError, ReconstructConfig, VisualSettings, get, quality_fields
 
 RATES = {"color": 0.05, "scale": 0.2, "opacity": 0.05, "rotation": 0.01}
 
@@ -91,8 +90,8 @@ def test_opacities_stay_within_the_spread_of_the_shared_one(spread):
 def test_the_ties_are_quality_fields_that_round_trip_and_take_partial_weight_overrides():
     quality = get("preview").with_overrides(opacity_spread=None, weights={"scale": 8.0})
     assert quality.weights.scale == 8.0 and quality.weights.opacity == LossWeights().opacity
-    assert Quality.from_json(json.loads(json.dumps(quality.to_json(), allow_nan=False))) == quality
-    with pytest.raises(PresetError, match="loss weights"):
+    assert ReconstructConfig.model_validate(json.loads(json.dumps(quality.model_dump(mode="json"), allow_nan=False))) == quality
+    with pytest.raises(PresetError, match="weights.colour"):
         get("preview").with_overrides(weights={"colour": 1.0})
 
 
@@ -185,9 +184,9 @@ def test_diluted_opacity_stays_in_0_1_and_finite(ratio):
 def test_runs_recorded_before_the_concentration_tie_load_and_continue_without_it():
     old = {"velocity_radius": 2.0, "per_physical": 1, "seed": 0}  # what a prediction reads of its parent
     assert VisualSettings.model_validate(old).opacity_concentration is False
-    recorded = get("preview").to_json()
-    del recorded["opacity_concentration"]
-    assert Quality.from_json(recorded).name == "preview"  # an older quality record still loads
+    recorded = get("preview").model_dump(mode="json")
+    del recorded["visual"]["opacity_concentration"]
+    assert ReconstructConfig.model_validate(quality_fields(recorded)).name == "preview"  # an older quality record still loads
     for flag in (True, False):
         quality = get("preview").with_overrides(opacity_concentration=flag)
-        assert VisualSettings.model_validate(quality.visual_settings()).opacity_concentration is flag
+        assert quality.visual_settings().opacity_concentration is flag
