@@ -19,7 +19,7 @@ from service import scenes
 from service.chaining import release_children
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from service.job_states import QUEUED_STAGE, Actor, cancel, waiting_stage
-from service.job_types import InteractParams, JobType
+from service.job_types import InteractParams, JobType, ReconstructParams
 from service.models import SENDING, Artifact, Job, JobState
 from service.queue import JobQueue, send
 from service.runs import read_manifest
@@ -90,9 +90,10 @@ def check_references(
 
     Returns the parent's id when the new job has to wait for it (queued or running)."""
     if job_type.starts_from == "scene":
+        assert isinstance(params, ReconstructParams)  # the one type that starts from a scene
         scene = scenes.owned(session, source_id, owner)
-        box = scenes.capture_geometry(storage, scene)["box"] if params.source is not None else None  # type: ignore[attr-defined]
-        scenes.check_reconstruct_params(params, scene.n_frames, box, "params")  # type: ignore[arg-type]
+        box = scenes.capture_geometry(storage, scene)["box"] if params.source is not None else None
+        scenes.check_reconstruct_params(params, scene.n_frames, box, "params")
         return None
     # Any job that writes a run can be continued: every such type leaves the same run-folder format.
     parent = owned(session, source_id, owner)
