@@ -119,14 +119,20 @@ def _send_by_id(session: Session, job_id: str, queue: JobQueue) -> bool:
 
 
 def _send_unsent(sessions: sessionmaker[Session], queue: JobQueue) -> list[str]:
-    """Send the queued jobs the broker did not take (`send`); those it still refuses stay unsent."""
+    """Send the queued jobs the broker did not take (`send`), oldest first; the first it still
+    refuses ends the pass (the next tries again), so a broker that is down costs one attempt."""
     with session_scope(sessions) as session:
-        unsent = session.scalars(select(Job.id).where(Job.state == JobState.QUEUED, Job.task_id == UNSENT)).all()
+        unsent = session.scalars(
+            select(Job.id).where(Job.state == JobState.QUEUED, Job.task_id == UNSENT).order_by(Job.created_at, Job.id)
+        ).all()
     sent = []
     for job_id in unsent:
         with session_scope(sessions) as session:
-            if take_for_sending(session, job_id, UNSENT) and _send_by_id(session, job_id, queue):
-                sent.append(job_id)
+            if not take_for_sending(session, job_id, UNSENT):
+                continue  # another reaper took it
+            if not _send_by_id(session, job_id, queue):
+                break
+            sent.append(job_id)
     return sent
 
 

@@ -140,3 +140,26 @@ def test_servers_orphans_wait_for_the_queue(service: Service) -> None:
     assert (row.state, row.stage, row.task_id) == (JobState.QUEUED, RESUME_STAGE, UNSENT)
     service.queue.fail = False
     assert reap_stale(service.sessions, service.queue, LEASE) == [orphan] and service.queue.sent == [(orphan, "predict")]
+
+
+def test_a_reaper_pass_tries_a_broker_that_is_still_down_once(
+    service: Service, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    alice = service.key("alice")
+    body = {"type": "reconstruct", "scene_id": scene(service, tmp_path, alice), "params": {}}
+    service.queue.fail = True
+    waiting = [service.client.post("/v1/jobs", json=body, headers=alice).json()["id"] for _ in range(3)]
+    tried: list[str] = []
+    enqueue = service.queue.enqueue
+
+    def counted(job_id: str, job_type: str) -> str:
+        tried.append(job_id)
+        return enqueue(job_id, job_type)
+
+    monkeypatch.setattr(service.queue, "enqueue", counted)
+    assert reap_stale(service.sessions, service.queue, LEASE) == []
+    assert tried == waiting[:1]  # the oldest; then the pass ends
+    for job_id in waiting:
+        waits_for_the_queue(service, job_id)  # the one tried is unsent again, not left "sending"
+    service.queue.fail = False
+    assert reap_stale(service.sessions, service.queue, LEASE) == waiting
