@@ -67,7 +67,7 @@ _DESCRIPTIONS = {
     413: "request body or an uploaded file over its size limit",
     416: "byte range outside the file",
     422: "invalid input (the message names the field)",
-    503: "database, broker or storage unavailable; retry later",
+    503: "database or storage unavailable; retry after `Retry-After` seconds",
 }
 
 
