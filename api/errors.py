@@ -7,7 +7,8 @@ frames") or pydantic's list of field errors. Clients and schema-driven fuzzers c
 because `error_responses` puts exactly that shape into the schema.
 
 A fluidcore `InputError` that reaches a route unhandled (a stored camera file the geometry reader
-refuses, ...) is a 422 with its message; any other exception is a bug: a 500 whose detail is only
+refuses, parameters `service` refuses, ...) is a 422 with its message, the service's `NotFound` a
+404 and its `Conflict` a 409; any other exception is a bug: a 500 whose detail is only
 "internal error (id ...)", its traceback in the API's log under that id (`fluidcore.errors`).
 
 Request JSON is parsed strictly (`StrictJSONRoute`): NaN / Infinity literals and nesting deep
@@ -33,6 +34,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.routing import Match
 
 from fluidcore.errors import InputError, internal_error
+from service.errors import Conflict, NotFound
 from service.storage import StorageError
 from api.uploads import UploadRejected
 
@@ -65,7 +67,7 @@ _DESCRIPTIONS = {
     413: "request body or an uploaded file over its size limit",
     416: "byte range outside the file",
     422: "invalid input (the message names the field)",
-    503: "database, broker or storage unavailable; retry later",
+    503: "database or storage unavailable; retry after `Retry-After` seconds",
 }
 
 
@@ -149,9 +151,17 @@ async def internal_failure(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": internal_error(log, exc, f"{request.method} {request.url.path}")}, status_code=500)
 
 
+async def not_found(request: Request, exc: Exception) -> JSONResponse:
+    return JSONResponse({"detail": str(exc)}, status_code=404)
+
+
+async def conflict(request: Request, exc: Exception) -> JSONResponse:
+    return JSONResponse({"detail": str(exc)}, status_code=409)
+
+
 async def storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
     """Object storage down or full: the request may succeed later, nothing was half-written."""
-    return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503)
+    return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503, headers={"Retry-After": "1"})
 
 
 async def database_busy(request: Request, exc: Exception) -> JSONResponse:
@@ -165,6 +175,8 @@ HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, An
     StorageError: storage_unavailable,
     PoolTimeout: database_busy,
     InputError: input_rejected,
+    NotFound: not_found,
+    Conflict: conflict,
     Exception: internal_failure,
 }
 

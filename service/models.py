@@ -91,7 +91,10 @@ class Scene(Base):
     request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
 
 
-SENDING = "sending"  # Job.task_id while a released job is handed to the broker (service.chaining)
+# Job.task_id of a queued job that has no broker task (service.job_states): SENDING while it is
+# handed to the broker, UNSENT when the broker did not take it (service.queue.send)
+SENDING = "sending"
+UNSENT = "unsent"
 
 
 class Job(Base):
@@ -120,7 +123,7 @@ class Job(Base):
 
     idempotency_key: Mapped[str | None] = mapped_column(String(256), default=None)
     request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
-    task_id: Mapped[str | None] = mapped_column(String(64), default=None)  # the broker's task id, or SENDING
+    task_id: Mapped[str | None] = mapped_column(String(64), default=None)  # the broker's task id, SENDING or UNSENT; NULL: waiting for its parent
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     # Fencing token: raised by every claim; a runner writes to the job only while it still holds

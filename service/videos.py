@@ -11,7 +11,7 @@ from sqlalchemy.orm import Session
 
 from fluidcore.artifacts import SCENE_VIDEOS
 from service.job_types import JobType
-from service.models import Job
+from service.models import Artifact, Job
 from service.storage import job_prefix
 
 VIDEO_FOLDER = "videos"
@@ -40,3 +40,9 @@ def render_jobs(session: Session, job_id: str) -> dict[str, Job]:
         select(Job).where(Job.parent_job_id == job_id, Job.type == JobType.RENDER).order_by(Job.created_at, Job.id)
     ).all()
     return {job.params["video"]: job for job in rows}
+
+
+def stored_videos(session: Session, job_id: str) -> dict[str, Artifact]:
+    """The artifacts of the job's stored videos, by video name."""
+    rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id, Artifact.name.like(f"{VIDEO_FOLDER}/%.mp4")))
+    return {row.name.removeprefix(f"{VIDEO_FOLDER}/").removesuffix(".mp4"): row for row in rows}

@@ -23,12 +23,14 @@ from sqlalchemy.orm import Session, sessionmaker
 from fluidcore.errors import InputError, internal_error
 from fluidcore.jobs import Cancelled
 from fluidcore.names import safe_join
-from service import webhooks
+from service import job_states, webhooks
 from service.chaining import release_children
 from service.database import session_scope
+from service.job_states import RESUME_STAGE, Actor
 from service.job_types import JobType
+from service.jobs import ancestors
 from service.models import Artifact, Job, JobState, Scene, utcnow
-from service.queue import RESUME_STAGE, JobQueue
+from service.queue import JobQueue
 from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
 from service.videos import VIDEO_FOLDER, VIDEO_TYPE, video_kind
@@ -158,7 +160,7 @@ class JobExecutor:
         except LeaseLost:
             raise
         except Cancelled:
-            return self.finish(job_id, JobState.CANCELLED, reporter, stage="cancelled")
+            return self.finish(job_id, JobState.CANCELLED, reporter)
         except InputError as exc:  # what the user can fix names the field: shown as it is
             return self.finish(job_id, JobState.FAILED, reporter, error=str(exc))
         except TRANSIENT_ERRORS:
@@ -172,7 +174,7 @@ class JobExecutor:
             return self.finish(job_id, JobState.FAILED, reporter, error=error)
         finally:
             reporter.stop_heartbeat()
-        return self.finish(job_id, JobState.SUCCEEDED, reporter, stage="done")
+        return self.finish(job_id, JobState.SUCCEEDED, reporter)
 
     def claim(self, job_id: str) -> Claim | None:
         """Mark the job running on this worker, unless it is finished or another worker's lease is live."""
@@ -183,26 +185,23 @@ class JobExecutor:
                 return None
             if JobState(job.state).finished:
                 return None
-            if job.cancel_requested:
-                job.state, job.stage, job.finished_at = JobState.CANCELLED, "cancelled", utcnow()
-                return None
             now = utcnow()
             lease = timedelta(seconds=self.settings.job_lease_seconds)
             if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
-                raise JobBusy((job.heartbeat_at + lease - now).total_seconds())
+                raise JobBusy((job.heartbeat_at + lease - now).total_seconds())  # its runner cancels it, if asked
+            if job.cancel_requested:
+                job_states.cancel(job, Actor.WORKER)
+                return None
             # Found running with an expired lease, or sent again by the reaper (service.queue): the
             # last attempt died (e.g. hard time limit, OOM kill).
             lost = job.state == JobState.RUNNING or job.stage == RESUME_STAGE
             if lost and job.attempts >= self.settings.max_job_attempts:
-                job.state, job.finished_at = JobState.FAILED, now
-                job.error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
+                error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
+                job_states.fail(job, error, Actor.WORKER)
                 return None
-            job.state, job.stage, job.error = JobState.RUNNING, "preparing", None
-            job.started_at = job.started_at or now
-            job.heartbeat_at, job.worker, job.attempts = now, self.worker_name, job.attempts + 1
-            job.lease_token += 1
+            token = job_states.start(job, self.worker_name)
             log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
-            return Claim(job.id, job.type, dict(job.params), job.scene_id, _ancestors(session, job), job.lease_token)
+            return Claim(job.id, job.type, dict(job.params), job.scene_id, ancestors(session, job), token)
 
     def _execute(self, claim: Claim, reporter: ProgressReporter, job_log: JobLog) -> list[Path]:
         folder = self._folder(claim.job_id)
@@ -311,19 +310,24 @@ class JobExecutor:
     # -- end states ----------------------------------------------------------------------------
 
     def finish(
-        self, job_id: str, state: JobState, reporter: ProgressReporter | None = None, stage: str | None = None,
-        error: str | None = None,
+        self, job_id: str, state: JobState, reporter: ProgressReporter | None = None, error: str | None = None
     ) -> str:
-        """Put the job in an end state (also used by the task when transient retries run out)."""
+        """Put the job in an end state (`service.job_states`). Without a reporter: the task gives
+        up after its transient retries, and a job that ended meanwhile is left as it ended."""
         with session_scope(self.sessions) as session:
             job = reporter.owned(session) if reporter is not None else session.get(Job, job_id)
             assert job is not None
-            job.state, job.error, job.finished_at = state, error, utcnow()
-            job.stage = stage or job.stage
+            if reporter is None and JobState(job.state).finished:
+                log.info("job %s already %s; not failed again", job_id, job.state)
+                return str(job.state)
             if reporter is not None:
                 job.stage_seconds = reporter.final_stage_seconds()
             if state == JobState.SUCCEEDED:
-                job.progress = 1.0
+                job_states.succeed(job)
+            elif state == JobState.CANCELLED:
+                job_states.cancel(job, Actor.WORKER)
+            else:
+                job_states.fail(job, error or "", Actor.WORKER)
             webhook = (job.webhook_url, job.owner, webhooks.payload(job)) if job.webhook_url else None
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
         if webhook is not None:
@@ -333,7 +337,7 @@ class JobExecutor:
                                            allow_private=self.settings.webhook_allow_private)
         if self.queue is not None:
             with self.sessions() as session:
-                release_children(session, job_id, self.queue)
+                release_children(session, job_id, self.queue, Actor.WORKER)
         return state.value
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:
@@ -342,19 +346,10 @@ class JobExecutor:
             with session_scope(self.sessions) as session:
                 job = reporter.owned(session)
                 if job.state == JobState.RUNNING:
-                    job.state, job.stage, job.heartbeat_at = JobState.QUEUED, "waiting to retry", None
+                    job_states.give_back(job)
                     job.stage_seconds = reporter.final_stage_seconds()
         except Exception:  # the database itself may be what failed; the lease then expires on its own
             log.exception("could not put job %s back in the queue", job_id)
-
-
-def _ancestors(session: Session, job: Job) -> tuple[str, ...]:
-    chain: list[str] = []
-    parent_id = job.parent_job_id
-    while parent_id is not None:
-        chain.append(parent_id)
-        parent_id = session.scalar(select(Job.parent_job_id).where(Job.id == parent_id))
-    return tuple(chain)
 
 
 class JobLog(logging.Handler):

@@ -3,20 +3,17 @@
 from __future__ import annotations
 
 import re
-from urllib.parse import quote
 
 from fastapi import APIRouter, Header, HTTPException, status
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
 
 from api.deps import OptionalOwnerDep, OwnerDep, SessionDep, SettingsDep, StorageDep, unauthorized
 from api.errors import error_responses
-from api.routers.jobs import owned_job
-from api.schemas import ArtifactList, ArtifactOut
-from api.signing import signed_url, signing_key, verify
-from service.models import Artifact, Job
-from service.settings import Settings
-from service.storage import ObjectNotFound, Storage
+from api.schemas import ArtifactList
+from api.signing import signing_key, verify
+from api.views import artifact_out, artifact_path
+from service import jobs
+from service.storage import ObjectNotFound
 
 router = APIRouter(prefix="/v1/jobs", tags=["artifacts"], responses=error_responses(401, 422, 503))
 
@@ -52,31 +49,14 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None:
     return start, end
 
 
-def artifact_path(job_id: str, name: str) -> str:
-    return f"/v1/jobs/{job_id}/artifacts/{quote(name)}"
-
-
 @router.get("/{job_id}/artifacts", response_model=ArtifactList, responses=error_responses(404))
 def list_artifacts(
     job_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep
 ) -> ArtifactList:
     """MP4s per camera, the orbit video, the exports (one file per frame of the VDB sequence),
     particle-state files and the manifest, with download URLs."""
-    job = owned_job(session, job_id, owner)
-    rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id).order_by(Artifact.name)).all()
-    return ArtifactList(job_id=job.id, items=[artifact_out(row, storage, settings) for row in rows])
-
-
-def artifact_out(row: Artifact, storage: Storage, settings: Settings) -> ArtifactOut:
-    """An artifact as the API lists it, with its download URL and a time-limited one for <video>."""
-    path = artifact_path(row.job_id, row.name)
-    presigned = storage.presign(row.key, settings.presign_seconds) or signed_url(
-        signing_key(settings), path, settings.presign_seconds
-    )
-    return ArtifactOut(
-        name=row.name, kind=row.kind, camera=row.camera, size=row.size, content_type=row.content_type,
-        url=path, presigned_url=presigned,
-    )
+    job = jobs.owned(session, job_id, owner)
+    return ArtifactList(job_id=job.id, items=[artifact_out(row, storage, settings) for row in jobs.artifacts(session, job.id)])
 
 
 @router.get(
@@ -106,16 +86,14 @@ def download_artifact(
     from the artifact listing (what a <video> element can use).
     """
     if owner is not None:
-        job = owned_job(session, job_id, owner)
+        job = jobs.owned(session, job_id, owner)
     elif expires is not None and signature is not None:
         if not verify(signing_key(settings), artifact_path(job_id, name), expires, signature):
             raise HTTPException(status.HTTP_403_FORBIDDEN, "download link is invalid or has expired")
-        job = session.get(Job, job_id)
-        if job is None:
-            raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} not found")
+        job = jobs.get(session, job_id)
     else:
         raise unauthorized()
-    row = session.scalars(select(Artifact).where(Artifact.job_id == job.id, Artifact.name == name)).first()
+    row = jobs.artifact(session, job.id, name)
     if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} has no artifact {name!r}")
     try:

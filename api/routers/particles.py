@@ -15,9 +15,10 @@ from fastapi import APIRouter, HTTPException, Query, status
 
 from api.deps import OwnerDep, SessionDep, StorageDep
 from api.errors import error_responses
-from api.routers.jobs import owned_job
 from api.schemas import AirSample, ParticlesOut, RunScene
-from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, SavedAir, Scene, state_file
+from fluidcore.runs import FrameState, RunError, SavedAir, Scene, state_file
+from service import jobs
+from service.runs import stored_run
 from service.storage import ObjectNotFound, Storage, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["particles"], responses=error_responses(401, 422, 503))
@@ -42,8 +43,9 @@ def get_particles(
 ) -> ParticlesOut:
     """Live particle positions (world units) of one frame, evenly subsampled to at most
     `max_points`, with the run's scene box, up axis and smoke source."""
-    job = owned_job(session, job_id, owner)
-    record, scene = stored_run(storage, job.id)
+    job = jobs.owned(session, job_id, owner)
+    record = stored_run(storage, job.id)
+    scene = record.scene
     frames = record.frames()
     if not frames:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job.id} has not written a frame yet")
@@ -75,18 +77,6 @@ def _air_sample(air: SavedAir, scene: Scene) -> AirSample:
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     return AirSample(points=np.round(points, 5).ravel().tolist(),
                      velocities=np.round(air.velocity_at(points), 6).astype(float).ravel().tolist())
-
-
-def stored_run(storage: Storage, job_id: str) -> tuple[RunRecord, Scene]:
-    """The job's run record and its scene, read from storage (a run that has none yet, or an
-    unreadable one, is a 409)."""
-    try:
-        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job_id)}/{MANIFEST}"), f"job {job_id}'s run")
-        return record, record.scene
-    except ObjectNotFound:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"job {job_id} has no run in storage yet") from None
-    except RunError as exc:
-        raise HTTPException(status.HTTP_409_CONFLICT, str(exc)) from None
 
 
 def _frame(storage: Storage, job_id: str, t: int) -> FrameState:

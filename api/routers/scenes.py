@@ -6,12 +6,10 @@ import hashlib
 import json
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
 from pydantic import ValidationError
-from sqlalchemy import func, select
-from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
@@ -20,12 +18,10 @@ from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
-from fluidcore.reconstruct.source_hint import SourceHintError
-from fluidcore.spec.jobs import ReconstructParams
-from service.job_types import JobType
-from service.models import Job, JobState, Scene, new_id
-from service.queue import QueueUnavailable
-from service.storage import Storage, run_prefix, scene_prefix
+from service import scenes
+from service.errors import DuplicateRequest
+from service.models import Job, Scene, new_id
+from service.storage import Storage, scene_prefix
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
@@ -77,8 +73,9 @@ def create_scene(
     the same key with different files or fields is 422. The scene is stored whole or not at all.
     With `reconstruct`, its params are checked against the upload (frames within the videos,
     source inside the box) before anything is stored, and the scene and its queued
-    reconstruction are stored together: a refused reconstruction (422) or an unreachable queue
-    (503) leaves no scene behind, so a retry never piles up copies."""
+    reconstruction are stored together: a refused reconstruction (422) leaves no scene behind,
+    so a retry never piles up copies. While the job broker is down the reconstruction waits
+    queued ("waiting for the queue") and is sent when the broker answers (`service.queue.send`)."""
     idempotency_key = idempotency_key or None  # an empty header is no key
     if (cameras is None) == (fov is None):
         raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
@@ -104,42 +101,20 @@ def create_scene(
         single = None if fov is None else (fov, distance, up)
         validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
         if params is not None:
-            check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
+            scenes.check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
-        job = None
+        scene = _scene_row(scene_id, owner, name, validated, keys)
+        scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
         try:
-            scene = _scene_row(scene_id, owner, name, validated, keys)
-            scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
-            session.add(scene)
-            if params is not None:
-                session.flush()  # the scene row first: the job refers to it
-                job = Job(owner=owner, type=JobType.RECONSTRUCT, scene_id=scene_id, params=params.model_dump(mode="json"))
-                session.add(job)
-            session.commit()
-        except BaseException as exc:
-            session.rollback()
-            for key in keys.values():
-                storage.delete(key)
-            if isinstance(exc, IntegrityError) and idempotency_key is not None and request_hash is not None:
-                # a concurrent upload with the same key won the race: answer with its scene
-                existing = replay(session, Scene, owner, idempotency_key, request_hash)
-                if existing is not None:
-                    response.headers["Idempotent-Replayed"] = "true"
-                    return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
-            raise
-        if job is not None:
-            try:
-                job.task_id = queue.enqueue(job.id, job.type)
-                session.commit()
-            except QueueUnavailable as exc:  # nothing was queued: take the upload back
-                session.delete(job)
-                session.delete(scene)
-                session.commit()
-                for key in keys.values():
-                    storage.delete(key)
-                raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, str(exc)) from None
+            job = scenes.store(session, storage, queue, scene, list(keys.values()), params)
+        except DuplicateRequest:  # a concurrent upload with the same key won the race: answer with its scene
+            existing = replay(session, Scene, owner, idempotency_key or "", request_hash or "")
+            if existing is None:
+                raise
+            response.headers["Idempotent-Replayed"] = "true"
+            return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
     return scene_out(scene, SceneGeometry.model_validate(geometry), job)
 
 
@@ -152,21 +127,6 @@ def parse_reconstruct(text: str) -> ReconstructParams:
     except ValidationError as exc:
         where = "; ".join(f"reconstruct.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, where) from None
-
-
-def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict[str, Any] | None, field: str) -> None:
-    """A reconstruction against its scene: frames within the videos, the source hint inside the
-    scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
-    One check for POST /v1/jobs and for an upload that asks for a reconstruction."""
-    if params.frames is not None and params.frames[1] > n_frames:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.frames: end {params.frames[1]} is past the scene's {n_frames} frames"
-        )
-    if params.source is not None and box is not None:
-        try:
-            params.source.check_in_box(box["min"], box["max"])
-        except SourceHintError as exc:
-            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{field}.{exc}") from None
 
 
 def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
@@ -182,11 +142,7 @@ def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fiel
 def _queued_with(session: Session, scene: Scene, reconstruct: str | None) -> Job | None:
     """The reconstruction an upload with a `reconstruct` field queued with its scene (a replayed
     upload answers with it); None for an upload without one."""
-    if reconstruct is None:
-        return None
-    return session.scalars(
-        select(Job).where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT).order_by(Job.created_at).limit(1)
-    ).first()
+    return None if reconstruct is None else scenes.reconstruction_of(session, scene)
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -197,10 +153,7 @@ def list_scenes(
     offset: PageOffset = 0,
 ) -> Page[SceneOut]:
     """The caller's scenes, newest first."""
-    total = session.scalar(select(func.count()).select_from(Scene).where(Scene.owner == owner)) or 0
-    rows = session.scalars(
-        select(Scene).where(Scene.owner == owner).order_by(Scene.created_at.desc(), Scene.id).limit(limit).offset(offset)
-    ).all()
+    rows, total = scenes.page(session, owner, limit, offset)
     next_offset = offset + limit if offset + limit < total else None
     return Page[SceneOut](
         items=[scene_out(s) for s in rows], total=total, limit=limit, offset=offset, next_offset=next_offset
@@ -210,61 +163,20 @@ def list_scenes(
 @router.get("/{scene_id}", response_model=SceneOut, responses=error_responses(404))
 def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> SceneOut:
     """The scene, with its geometry in world units (box, source, camera centres) to place a ball."""
-    scene = owned_scene(session, scene_id, owner)
+    scene = scenes.owned(session, scene_id, owner)
     return scene_out(scene, scene_geometry(session, storage, scene))
 
 
 def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeometry:
-    """From the latest succeeded reconstruction of the scene (its run knows the source, how its
-    depth was found and, from one view, the range of depths the view allows; `source.job_id`
-    names that job), else from the uploaded cameras file alone."""
-    from fluidcore import scene_info
-    from fluidcore.runs import MANIFEST, RunRecord
-
-    job = session.scalars(
-        select(Job)
-        .where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT, Job.state == JobState.SUCCEEDED)
-        .order_by(Job.finished_at.desc())
-        .limit(1)
-    ).first()
-    if job is not None:
-        record = RunRecord.from_bytes(storage.read_bytes(f"{run_prefix(job.id)}/{MANIFEST}"), f"job {job.id}'s run")
-        geometry = scene_info.from_run(record)
-        geometry["source"]["job_id"] = job.id
-        return SceneGeometry.model_validate(geometry)
-    return SceneGeometry.model_validate(capture_geometry_of(storage, scene))
-
-
-def capture_geometry_of(storage: Storage, scene: Scene) -> dict[str, Any]:
-    """`fluidcore.scene_info.from_cameras_file` of a stored scene's uploaded camera file."""
-    from fluidcore import scene_info
-
-    with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
-        path = safe_join(tmp, Path(scene.cameras_key).name)
-        storage.get_file(scene.cameras_key, path)
-        return scene_info.from_cameras_file(path)
+    """The scene's geometry (`service.scenes.geometry`: from its latest succeeded reconstruction,
+    else from the uploaded cameras file)."""
+    return SceneGeometry.model_validate(scenes.geometry(session, storage, scene))
 
 
 @router.delete("/{scene_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))
 def delete_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
     """Delete a scene and its files; refused (409) while jobs made from it still exist."""
-    scene = owned_scene(session, scene_id, owner)
-    jobs = session.scalars(select(Job.id).where(Job.scene_id == scene.id)).all()
-    if jobs:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT, f"scene {scene_id} is used by jobs {', '.join(jobs)}; delete them first"
-        )
-    session.delete(scene)
-    session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
-    storage.delete_prefix(f"{scene_prefix(scene.id)}/")
-
-
-def owned_scene(session: Session, scene_id: str, owner: str) -> Scene:
-    """The scene if it exists and belongs to `owner`; 404 otherwise (never 403: ids are not disclosed)."""
-    scene = session.get(Scene, scene_id)
-    if scene is None or scene.owner != owner:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"scene {scene_id} not found")
-    return scene
+    scenes.delete(session, storage, scene_id, owner)
 
 
 def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, keys: dict[str, str]) -> Scene:

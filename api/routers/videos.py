@@ -13,22 +13,21 @@ from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Response, status
 from pydantic import ValidationError
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
 from api.errors import error_responses
-from api.routers.artifacts import artifact_out
-from api.routers.jobs import job_out, owned_job, send
-from api.routers.particles import stored_run
 from api.schemas import VideoList, VideoOut
+from api.views import artifact_out, job_out
 from fluidcore.artifacts import video_names
+from service import jobs
 from fluidcore.spec.jobs import RenderParams
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState
+from service.runs import stored_run
 from service.settings import Settings
 from service.storage import Storage
-from service.videos import VIDEO_FOLDER, artifact_name, render_jobs, video_kind
+from service.videos import artifact_name, render_jobs, stored_videos, video_kind
 
 router = APIRouter(prefix="/v1/jobs", tags=["videos"], responses=error_responses(401, 422, 503))
 
@@ -38,9 +37,8 @@ def list_videos(job_id: str, owner: OwnerDep, session: SessionDep, storage: Stor
     """Every video of the job's run: stored ones with their artifact, the others with the render
     job last asked for (or none); `POST .../videos/{name}` renders a missing one."""
     job = _job_with_videos(session, job_id, owner)
-    rows = session.scalars(select(Artifact).where(Artifact.job_id == job.id, Artifact.name.like(f"{VIDEO_FOLDER}/%.mp4")))
-    stored = {row.name.removeprefix(f"{VIDEO_FOLDER}/").removesuffix(".mp4"): row for row in rows}
-    names = video_names(stored_run(storage, job.id)[0]) if job.state == JobState.SUCCEEDED else []
+    stored = stored_videos(session, job.id)
+    names = video_names(stored_run(storage, job.id)) if job.state == JobState.SUCCEEDED else []
     names += sorted(set(stored) - set(names))  # what a run folder alone shows (a refined prediction's videos)
     renders = render_jobs(session, job.id)
     items = [_video_out(name, stored.get(name), renders.get(name), storage, settings) for name in names]
@@ -65,10 +63,10 @@ def request_video(
     job = _job_with_videos(session, job_id, owner, for_update=True)  # one render per video, however many ask at once
     if job.state != JobState.SUCCEEDED:
         raise HTTPException(status.HTTP_409_CONFLICT, f"job {job.id} is {job.state}; its videos render once it has succeeded")
-    stored = session.scalars(select(Artifact).where(Artifact.job_id == job.id, Artifact.name == artifact_name(video))).first()
+    stored = jobs.artifact(session, job.id, artifact_name(video))
     if stored is not None:
         return _video_out(video, stored, None, storage, settings)
-    names = video_names(stored_run(storage, job.id)[0])
+    names = video_names(stored_run(storage, job.id))
     if video not in names:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job.id} has no video {video!r}; its videos: {', '.join(names)}")
     render = render_jobs(session, job.id).get(video)
@@ -76,15 +74,13 @@ def request_video(
     if render is not None and not JobState(render.state).finished:
         return _video_out(video, None, render, storage, settings)
     render = Job(owner=owner, type=JobType.RENDER, parent_job_id=job.id, params={"video": video})
-    session.add(render)
-    session.commit()
-    send(session, render, queue)
+    jobs.create(session, queue, render, waits_for=None)
     return _video_out(video, None, render, storage, settings)
 
 
 def _job_with_videos(session: Session, job_id: str, owner: str, for_update: bool = False) -> Job:
     """The caller's job, one that writes a run (a render job has no videos of its own: 404)."""
-    job = owned_job(session, job_id, owner, for_update=for_update)
+    job = jobs.owned(session, job_id, owner, for_update=for_update)
     if not JobType(job.type).writes_run:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"job {job_id} renders a video of job {job.parent_job_id}; it has none of its own")
     return job

@@ -303,34 +303,22 @@ def test_cancel(service: Service, scene_id: str) -> None:
     assert response["state"] == "running" and response["cancel_requested"] is True
 
 
-def test_broker_down_fails_the_job_with_503(tmp_path: Path, scene_dir: dict[str, Path]) -> None:
-    for service in make_service(tmp_path, queue=RecordingQueue(fail=True)):
-        alice = service.key("alice")
-        scene = upload(service, alice, scene_dir).json()["id"]
-        response = reconstruct(service, alice, scene)
-        assert response.status_code == 503 and "broker" in response.json()["detail"]
-        jobs = service.client.get("/v1/jobs", headers=alice).json()["items"]
-        assert [j["state"] for j in jobs] == ["failed"]
+def test_storage_down_is_a_503_with_retry_after(sqlite_service: Service, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What docs/service.md promises of every 503: the client is told when to try again."""
+    from service.storage import StorageError
 
+    alice = sqlite_service.key("alice")
 
-def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
-    tmp_path: Path, scene_dir: dict[str, Path]
-) -> None:
-    """Issue 20 item 4: the retry a 503 invites (same Idempotency-Key, broker back) creates and queues
-    a job; it used to replay the failed one with `Idempotent-Replayed: true` forever."""
-    queue = RecordingQueue(fail=True)
-    for service in make_service(tmp_path, queue=queue):
-        alice = service.key("alice")
-        scene = upload(service, alice, scene_dir).json()["id"]
-        body = {"type": "reconstruct", "scene_id": scene, "params": {}}
-        key = {**alice, "Idempotency-Key": "k"}
-        assert service.client.post("/v1/jobs", json=body, headers=key).status_code == 503
-        queue.fail = False
-        retried = service.client.post("/v1/jobs", json=body, headers=key)
-        assert retried.status_code == 202 and "idempotent-replayed" not in retried.headers
-        assert retried.json()["state"] == "queued" and queue.sent == [(retried.json()["id"], "reconstruct")]
-        replayed = service.client.post("/v1/jobs", json=body, headers=key)  # now the key is bound to it
-        assert replayed.headers["idempotent-replayed"] == "true" and replayed.json()["id"] == retried.json()["id"]
+    def down(*_: object) -> bytes:
+        raise StorageError("connection refused (test)")
+
+    monkeypatch.setattr(sqlite_service.storage, "read_bytes", down)
+    with sqlite_service.sessions() as session:
+        session.add(Job(id="j1", owner="alice", type="reconstruct"))
+        session.commit()
+    response = sqlite_service.client.get("/v1/jobs/j1/logs", headers=alice)
+    assert response.status_code == 503 and response.headers["Retry-After"] == "1"
+    assert response.json()["detail"] == "storage unavailable: connection refused (test)"
 
 
 @pytest.mark.parametrize(
@@ -341,13 +329,12 @@ def test_a_503_binds_no_idempotency_key_and_the_retry_queues_the_job(
         ('{"frames": [0', 422, "reconstruct: not JSON"),
         ("[" * 2000 + "]" * 2000, 422, "reconstruct: not JSON (JSON nested too deeply)"),
         ('{"frames": [0, NaN]}', 422, "reconstruct: not JSON"),
-        ('{"frames": [0, 2]}', 503, "broker"),  # accepted, but the queue is down: nothing is kept either
     ],
 )
 def test_an_upload_whose_reconstruction_is_refused_stores_nothing(
     tmp_path: Path, scene_dir: dict[str, Path], reconstruct_field: str, status: int, message: str
 ) -> None:
-    for service in make_service(tmp_path, queue=RecordingQueue(fail=status == 503)):
+    for service in make_service(tmp_path):
         alice = service.key("alice")
         for attempt in range(2):  # a retry does not pile up copies either
             response = service.client.post(

@@ -51,7 +51,7 @@ def test_a_bad_option_is_one_line_naming_it(fields: dict, message: str) -> None:
 def test_a_request_model_that_extends_the_settings_leaves_its_own_fields_out_of_the_config() -> None:
     """The API's reconstruct parameters extend `SimulationConfig`; what a config records of them
     is the simulation settings alone."""
-    from service.job_types import ReconstructParams
+    from fluidcore.spec.jobs import ReconstructParams
 
     params = ReconstructParams(air_cells=16, quality="paper")
     assert type(get("preview").with_simulation(params).simulation) is SimulationConfig

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from service.chaining import release_children
+from service.job_states import Actor
 from service.models import JobState
 from tests.support.service import FAKE_RUNNERS, scene_files, upload_parts
 from tests.support.api import Service, executor, make_service
@@ -61,7 +62,7 @@ def test_a_failed_or_cancelled_parent_fails_the_whole_chain_with_the_reason(serv
     alice, parent, child, grandchild = chain(service, tmp_path)
     assert service.client.post(f"/v1/jobs/{parent}/cancel", headers=alice).json()["state"] == "cancelled"
     with service.sessions() as session:  # what the worker does after ending a job (here: the cancel)
-        assert release_children(session, parent, service.queue) == [child, grandchild]
+        assert release_children(session, parent, service.queue, Actor.WORKER) == [child, grandchild]
     jobs = {j: service.client.get(f"/v1/jobs/{j}", headers=alice).json() for j in (child, grandchild)}
     assert jobs[child]["state"] == "failed" and jobs[child]["error"] == f"parent job {parent} was cancelled"
     assert jobs[grandchild]["state"] == "failed" and jobs[grandchild]["error"] == f"parent job {child} failed"
@@ -73,17 +74,17 @@ def test_a_parent_that_ends_between_the_check_and_the_commit_still_releases_the_
 ) -> None:
     """The worker's release ran before the waiting job was stored, so the API's own release after
     its commit is what sends it."""
-    import api.routers.jobs as jobs
+    import service.jobs as jobs
 
     alice, parent, child, _ = chain(service, tmp_path)
-    check = jobs._check_references
+    check = jobs.check_references
 
     def parent_succeeds_meanwhile(*args):  # type: ignore[no-untyped-def]
         waits_for = check(*args)
         service.set_job(parent, state=JobState.SUCCEEDED)
         return waits_for
 
-    monkeypatch.setattr(jobs, "_check_references", parent_succeeds_meanwhile)
+    monkeypatch.setattr(jobs, "check_references", parent_succeeds_meanwhile)
     late = submit(service, alice, {"type": "predict", "parent_job_id": parent, "params": {"frames": 2}})
     assert late["stage"] == "queued" and service.queue.sent[-1] == (late["id"], "predict")
     assert service.queue.sent.count((child, "predict")) == 1  # and the earlier waiting child, exactly once

@@ -1,0 +1,26 @@
+"""What the service's operations refuse, told apart by kind so each caller answers in its own
+terms (the API: 404, 409, 422; the worker: a log line) without the service knowing HTTP."""
+
+from __future__ import annotations
+
+from fluidcore.errors import InputError
+
+
+class NotFound(LookupError):
+    """A job, scene or artifact that does not exist, or is not the caller's: the two are one
+    answer, so ids are never disclosed."""
+
+
+class Conflict(Exception):
+    """A request that the state of what it names refuses now (a job still running, a scene still
+    used); the message says which."""
+
+
+class RefusedParams(InputError):
+    """Parameters that do not fit what they refer to (a frame past the scene's, a ball outside the
+    parent run's box); the message names the field."""
+
+
+class DuplicateRequest(Exception):
+    """A concurrent request with the same Idempotency-Key stored its row first; nothing of this
+    one was kept (the caller answers with that row)."""

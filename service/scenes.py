@@ -1,0 +1,129 @@
+"""Scenes (uploaded captures) as the API keeps them: an owner's scene, listing, storing an upload
+with the reconstruction it asks for, its geometry, and deleting it. The upload's checks (cameras,
+videos, limits) are the API's (`api.uploads`); this is what happens to a scene once it is valid.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from fluidcore.names import safe_join
+from fluidcore.reconstruct.source_hint import SourceHintError
+from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
+from fluidcore.spec.jobs import ReconstructParams
+from service.job_types import JobType
+from service.models import Job, JobState, Scene
+from service.queue import JobQueue, send
+from service.runs import read_manifest
+from service.storage import Storage, scene_prefix
+
+
+def owned(session: Session, scene_id: str, owner: str) -> Scene:
+    """The scene if it exists and belongs to `owner`; NotFound otherwise (ids are not disclosed)."""
+    scene = session.get(Scene, scene_id)
+    if scene is None or scene.owner != owner:
+        raise NotFound(f"scene {scene_id} not found")
+    return scene
+
+
+def page(session: Session, owner: str, limit: int, offset: int) -> tuple[list[Scene], int]:
+    """One page of the owner's scenes, newest first, and how many they have in all."""
+    total = session.scalar(select(func.count()).select_from(Scene).where(Scene.owner == owner)) or 0
+    rows = session.scalars(
+        select(Scene).where(Scene.owner == owner).order_by(Scene.created_at.desc(), Scene.id).limit(limit).offset(offset)
+    ).all()
+    return list(rows), total
+
+
+def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict[str, Any] | None, field: str) -> None:
+    """A reconstruction against its scene: frames within the videos, the source hint inside the
+    scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
+    One check for a new reconstruct job and for an upload that asks for a reconstruction;
+    `field` names the parameters in the message."""
+    if params.frames is not None and params.frames[1] > n_frames:
+        raise RefusedParams(f"{field}.frames: end {params.frames[1]} is past the scene's {n_frames} frames")
+    if params.source is not None and box is not None:
+        try:
+            params.source.check_in_box(box["min"], box["max"])
+        except SourceHintError as exc:
+            raise RefusedParams(f"{field}.{exc}") from None
+
+
+def store(
+    session: Session, storage: Storage, queue: JobQueue, scene: Scene, keys: list[str], params: ReconstructParams | None
+) -> Job | None:
+    """Store an upload's scene row (its files are at `keys` already) and, with `params`, its
+    reconstruction, in one transaction, then send the job (`service.queue.send`). Anything
+    failing before the commit removes the files: a scene is stored whole or not at all.
+    DuplicateRequest: a concurrent upload with the same Idempotency-Key stored its scene first."""
+    job = None
+    try:
+        session.add(scene)
+        if params is not None:
+            session.flush()  # the scene row first: the job refers to it
+            job = Job(owner=scene.owner, type=JobType.RECONSTRUCT, scene_id=scene.id, params=params.model_dump(mode="json"))
+            session.add(job)
+        session.commit()
+    except BaseException as exc:
+        session.rollback()
+        for key in keys:
+            storage.delete(key)
+        if isinstance(exc, IntegrityError) and scene.idempotency_key is not None:
+            raise DuplicateRequest(f"scene with Idempotency-Key {scene.idempotency_key!r}") from None
+        raise
+    if job is not None:
+        send(session, job, queue)
+    return job
+
+
+def reconstruction_of(session: Session, scene: Scene) -> Job | None:
+    """The first reconstruction queued with the scene (what a replayed upload answers with)."""
+    return session.scalars(
+        select(Job).where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT).order_by(Job.created_at).limit(1)
+    ).first()
+
+
+def geometry(session: Session, storage: Storage, scene: Scene) -> dict[str, Any]:
+    """`fluidcore.scene_info` of the latest succeeded reconstruction of the scene (its run knows
+    the source, how its depth was found and, from one view, the range of depths the view allows;
+    `source.job_id` names that job), else of the uploaded cameras file alone."""
+    from fluidcore import scene_info
+
+    job = session.scalars(
+        select(Job)
+        .where(Job.scene_id == scene.id, Job.type == JobType.RECONSTRUCT, Job.state == JobState.SUCCEEDED)
+        .order_by(Job.finished_at.desc())
+        .limit(1)
+    ).first()
+    if job is None:
+        return capture_geometry(storage, scene)
+    found = scene_info.from_run(read_manifest(storage, job.id))
+    found["source"]["job_id"] = job.id
+    return found
+
+
+def capture_geometry(storage: Storage, scene: Scene) -> dict[str, Any]:
+    """`fluidcore.scene_info.from_cameras_file` of a stored scene's uploaded camera file."""
+    from fluidcore import scene_info
+
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-scene-") as tmp:
+        path = safe_join(tmp, Path(scene.cameras_key).name)
+        storage.get_file(scene.cameras_key, path)
+        return scene_info.from_cameras_file(path)
+
+
+def delete(session: Session, storage: Storage, scene_id: str, owner: str) -> None:
+    """Delete a scene and its files; Conflict while jobs made from it still exist."""
+    scene = owned(session, scene_id, owner)
+    jobs = session.scalars(select(Job.id).where(Job.scene_id == scene.id)).all()
+    if jobs:
+        raise Conflict(f"scene {scene_id} is used by jobs {', '.join(jobs)}; delete them first")
+    session.delete(scene)
+    session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
+    storage.delete_prefix(f"{scene_prefix(scene.id)}/")
