@@ -18,6 +18,7 @@ from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import safe_join
+from fluidcore.spec.jobs import ReconstructParams
 from service import scenes
 from service.errors import DuplicateRequest
 from service.models import Job, Scene, new_id

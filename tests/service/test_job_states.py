@@ -14,7 +14,7 @@ from service import job_states
 from service.database import make_engine, make_sessionmaker, migrate, session_scope
 from service.job_states import Actor, IllegalTransition
 from service.models import Job, JobState, utcnow
-from service_support import sqlite_url
+from tests.support.service import sqlite_url
 
 Q, R, S, F, C = "queued", "running", "succeeded", "failed", "cancelled"
 ALLOWED = {  # (from, to): who may; written out here, not read from the module under test

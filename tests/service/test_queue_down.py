@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from api_support import Service, executor, make_service
+from tests.support.api import Service, executor, make_service
 from service.job_states import RESUME_STAGE, UNSENT_STAGE
 from service.models import UNSENT, Job, JobState, Scene, utcnow
 from service.queue import reap_stale, requeue_orphans
-from service_support import scene_files, store_run, upload_parts
+from tests.support.service import scene_files, store_run, upload_parts
 
 LEASE = 30.0
 
