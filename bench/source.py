@@ -129,7 +129,7 @@ def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int,
                for name, path in videos.items()}
     inputs = read_inputs(cameras, decoded, frame_range=window, quality=preset)
     rec = prepare(cameras, inputs, fps=gt.fps, quality=preset, box=capture_box(gt.cameras_path, cameras), physics=physics)
-    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius), rec.physics
+    return np.asarray(rec.scene.source.center, dtype=np.float64), float(rec.scene.source.radius), rec.physics
 
 
 def rig_source(gt: ScalarFlowScene, view: str, window: tuple[int, int], quality: str) -> tuple[np.ndarray, float]:

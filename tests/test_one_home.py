@@ -17,7 +17,8 @@ from fluidcore.reconstruct.presets import DEFAULT_QUALITY
 TORCH_FREE = (
     "fluidcore.reconstruct.presets",
     "fluidcore.reconstruct",
-    "fluidcore.physics.config",
+    "fluidcore.spec.physics",
+    "fluidcore.spec.scene",
     "fluidcore.physics",
     "fluidcore.predict",
     "fluidcore.interaction",
@@ -165,8 +166,8 @@ def test_the_smoke_mask_has_one_home() -> None:
 def test_the_wind_speed_limit_is_the_physics_configs() -> None:
     """`check_scene` asks PBFConfig for the speed limit instead of re-deriving it from h and dt."""
     from fluidcore.interaction import InteractionError, InteractionParams, WindParams
-    from fluidcore.physics.config import PBFConfig, Source
-    from fluidcore.runs import Scene
+    from fluidcore.spec.physics import PBFConfig, Source
+    from fluidcore.spec.scene import Scene
 
     assert "max_speed" not in inspect.getsource(InteractionParams.check_scene)
     for config in (PBFConfig(h=0.1, dt=0.05), PBFConfig(h=0.1, dt=0.05, max_speed=0.5)):
@@ -193,7 +194,7 @@ def test_a_what_if_needs_a_wind_or_a_ball_alike_at_the_api_and_in_the_job(tmp_pa
 
 
 def test_the_physics_mode_is_checked_where_it_is_interpreted() -> None:
-    """One check of the physics mode on the way from a request to the simulator: `scene_physics`."""
+    """One check of the physics mode on the way from a request to the simulator: `scene_prior`."""
     calls = [path for path, text in _sources("fluidcore").items() if "check_mode(" in text.replace("def check_mode(", "")]
     assert calls == ["fluidcore/reconstruct/identify.py"]
     from fluidcore.reconstruct import identify

@@ -17,7 +17,8 @@ from api.deps import OwnerDep, SessionDep, StorageDep
 from api.errors import error_responses
 from api.routers.jobs import owned_job
 from api.schemas import AirSample, ParticlesOut, RunScene
-from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, SavedAir, Scene, state_file
+from fluidcore.runs import MANIFEST, FrameState, RunError, RunRecord, SavedAir, state_file
+from fluidcore.spec.scene import Scene
 from service.storage import ObjectNotFound, Storage, run_prefix
 
 router = APIRouter(prefix="/v1/jobs", tags=["particles"], responses=error_responses(401, 422, 503))

@@ -21,9 +21,9 @@ import numpy as np
 import torch
 
 from fluidcore.jobs import JobContext, JobInputError
-from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import REFINED_RUN, Run
 from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.spec.scene import SourcePlace
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -148,7 +148,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     rec = prepare(  # the refined input views alone are the targets
         cameras, inputs, fps=run.fps, quality=quality,
         box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=SourceHint(center=scene.source.center, radius=scene.source.radius),
+        source=SourcePlace.of(scene.source),
         physics=origin_settings.physics_mode, pseudo_views=False, device=context.device,
     )
     first = run.frames()[0]

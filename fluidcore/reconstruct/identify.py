@@ -56,9 +56,12 @@ from scipy import ndimage
 
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
-from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
+from fluidcore.physics import PRESETS, Box, PBFConfig, Source
+from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.presets import PHYSICS_MODES
 from fluidcore.reconstruct.views import ViewTarget
+from fluidcore.spec.physics import Vec3
+from fluidcore.spec.scene import Air, Scene, SourcePlace
 
 MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
 # Observed frames the misfit is measured over (the first ones): the whole window of a clip up to
@@ -192,13 +195,39 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
 Candidate = tuple[float, float, float, float]
 
 
+@dataclass(frozen=True)
+class ScenePrior:
+    """A scene before its physics is chosen: box, up and air as the reconstruction sets them, the
+    physics mode (`PHYSICS_MODES`) and its prior preset's physics in this scene's units, and
+    where the source was estimated to be (`place`); what the source seeds, and how fast, is what
+    the physics decides. `seed` seeds the source's particles."""
+
+    box: Box
+    up: Vec3  # unit length
+    air: Air
+    mode: str
+    physics: PBFConfig
+    place: SourcePlace
+    seed: int
+
+    @property
+    def preset(self) -> str:
+        return PHYSICS_MODES[self.mode]
+
+    def scene(self, physics: PBFConfig, place: SourcePlace, rate: int, velocity: np.ndarray) -> Scene:
+        """This scene under `physics`, its source at `place` seeding `rate` particles per step at `velocity`."""
+        source = Source(place.center, place.radius, rate, tuple(float(c) for c in velocity), self.seed)
+        return Scene(self.box.lo, self.box.hi, self.up, physics, source, self.air)
+
+
 class _Search:
     """Rollouts of candidates (cached per candidate) scored against the observation's first
-    frames (cached per candidate and window)."""
+    frames (cached per candidate and window). Each rollout simulates the prior's scene (its air
+    included) under the candidate's physics."""
 
-    def __init__(self, observation: Observation, config: PBFConfig, box: Box, source: Source, up: np.ndarray,
-                 budget: int, device: torch.device | str) -> None:
-        self.observation, self.config, self.box, self.source = observation, config, box, source
+    def __init__(self, observation: Observation, prior: ScenePrior, up: np.ndarray, budget: int,
+                 device: torch.device | str) -> None:
+        self.observation, self.prior = observation, prior
         self.up, self.budget, self.device = up, budget, device
         self.frames = min(len(observation.cells), MAX_FRAMES)
         self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (MAX_AGE + frames, gh, gw) bool
@@ -218,28 +247,29 @@ class _Search:
         key, frames = _key(candidate), self.frames if frames is None else min(frames, self.frames)
         if (key, frames) not in self.scores:
             if key not in self.rollouts:
-                config, source = self.parts(key)
-                self.rollouts[key] = [self._simulate(config, replace(source, seed=source.seed + k)) for k in range(ROLLOUT_SEEDS)]
+                scene = self.scene(key)
+                self.rollouts[key] = [self._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k)))
+                                      for k in range(ROLLOUT_SEEDS)]
             scores = np.mean([self._age_scores(simulated, frames) for simulated in self.rollouts[key]], axis=0)
             age = int(np.argmin(scores))
             self.scores[(key, frames)] = (float(scores[age]), age)
         return self.scores[(key, frames)]
 
-    def parts(self, candidate: Candidate) -> tuple[PBFConfig, Source]:
-        """The simulator's config and source of a candidate (inflow at its terminal speed)."""
+    def scene(self, candidate: Candidate) -> Scene:
+        """The scene a candidate simulates (inflow at its terminal speed)."""
         buoyancy, lift, radius_factor, spreading = candidate
-        config = replace(with_buoyancy(self.config, buoyancy, self.up), entrainment=spreading)
+        config = replace(with_buoyancy(self.prior.physics, buoyancy, self.up), entrainment=spreading)
         speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
-        radius = self.source.radius * radius_factor
-        center = np.asarray(self.source.center) + lift * self.source.radius * self.up
+        place = self.prior.place
+        radius = place.radius * radius_factor
+        center = np.asarray(place.center) + lift * place.radius * self.up
         rate = inlet_rate(radius, speed, config, self.budget)
-        return config, replace(self.source, center=tuple(float(c) for c in center), radius=radius, rate=rate,
-                               velocity=tuple(float(c) for c in speed * self.up))
+        return self.prior.scene(config, SourcePlace(tuple(float(c) for c in center), radius), rate, speed * self.up)
 
-    def _simulate(self, config: PBFConfig, source: Source) -> np.ndarray:
-        """(MAX_AGE + frames, gh, gw) bool: the cells a rollout from an empty box covers after
-        each step (index k = after k + 1 steps)."""
-        simulator = Simulator(config, self.box, source, device=self.device)
+    def _simulate(self, scene: Scene) -> np.ndarray:
+        """(MAX_AGE + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
+        after each step (index k = after k + 1 steps)."""
+        simulator = build_simulator(scene, device=self.device)
         state = simulator.new_state()
         projected = []
         for _ in range(MAX_AGE + self.frames):
@@ -274,13 +304,9 @@ def with_buoyancy(config: PBFConfig, buoyancy: float, up: np.ndarray) -> PBFConf
 
 def identify(
     observation: Observation,
-    config: PBFConfig,
-    box: Box,
-    source: Source,
-    up: Sequence[float],
+    prior: ScenePrior,
     budget: int,
     device: torch.device | str = "cpu",
-    prior_name: str = "",
     spreading_rates: Sequence[float] = SPREADING_RATES,
 ) -> Identified:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
@@ -288,18 +314,19 @@ def identify(
     The inflow speed is the buoyancy's terminal speed rather than a search dimension of its own:
     on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
     buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
-    not pin it down. `config` and `source` are the prior (the preset in this scene's units, the estimated
-    source); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
+    not pin it down. `prior` is the scene to start from (the preset in this scene's units, the estimated
+    source's place); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
     spreading rates tried, the first one before the others (`(0.0,)`: no entrainment).
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
-    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    speed_obs = rise_speed(observation, np.asarray(source.center), 1.0 / config.dt)
+    config, place = prior.physics, prior.place
+    up_v = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+    speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
     prior_buoyancy = float(np.dot(config.body_acceleration, up_v))
     floor = buoyancy_floor(speed_obs, config.drag)
     base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
-    search = _Search(observation, config, box, source, up_v, budget, device)
+    search = _Search(observation, prior, up_v, budget, device)
     best = _best(search, None, [(base * f, 0.0, 1.0, spreading_rates[0]) for f in BUOYANCY_FACTORS], floor)
     a = best[0]
     best = _best(search, best, [(a, 0.0, 1.0, rate) for rate in spreading_rates], floor)
@@ -314,12 +341,12 @@ def identify(
         a, lift, size, spreading = best
         best = _best(search, best, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
     misfit, age = search.misfit(best)
-    _, fitted = search.parts(best)
-    prior = {"preset": prior_name, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
-             "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
-             "source": {"center": list(source.center), "radius": source.radius}}
+    fitted = search.scene(best).source
+    record = {"preset": prior.preset, "buoyancy": prior_buoyancy, "drag": config.drag, "rho0": config.rho0,
+              "held_from_prior": ["drag", "rho0"], "inflow_speed": "buoyancy / drag", "budget": budget,
+              "source": {"center": list(place.center), "radius": place.radius}}
     return Identified(max(best[0], floor), float(np.dot(fitted.velocity, up_v)), fitted.rate, age, misfit, speed_obs, floor,
-                      len(search.rollouts), list(fitted.center), fitted.radius, best[3], prior)
+                      len(search.rollouts), list(fitted.center), fitted.radius, best[3], record)
 
 
 def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], floor: float,
@@ -367,8 +394,7 @@ class PhysicsChoiceError(InputError):
 class ScenePhysics:
     """The physics a reconstruction (and every prediction from it) simulates with."""
 
-    config: PBFConfig
-    source: Source
+    scene: Scene
     stabilization_steps: int  # steps the source emits before frame 0
     record: dict  # for the manifest: mode, prior preset, identified values (or why none)
 
@@ -379,27 +405,36 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def scene_physics(
-    mode: str,
-    view: ViewTarget,
-    center: np.ndarray,
-    radius: float,
-    box: Box,
-    up: np.ndarray,
-    fps: float,
-    budget: int,
-    seed: int,
-    device: torch.device | str = "cpu",
-    *,
-    entrainment: bool,
-) -> ScenePhysics:
-    """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
-    background and noise), with the source estimated at (center, radius).
+def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePlace, air: Air, seed: int) -> ScenePrior:
+    """The scene of a reconstruction before its physics is chosen: the prior preset of the
+    physics `mode` in this scene's units, the source at its estimated `place` (at least half a
+    kernel radius wide).
 
     The kernel radius is a resolution choice in the scene's own units (its box's height over
-    KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
-    "auto", in world units, so no length scale of another dataset enters them; a preset name
-    keeps that preset's buoyancy (the paper's setting for its datasets). `entrainment`: whether the
+    KERNEL_RADII_PER_BOX), and the preset's buoyancy is converted with it (`KERNEL_RADIUS_SIM`).
+    """
+    preset = PHYSICS_MODES[check_mode(mode)]
+    h = float(np.abs(np.subtract(box.hi, box.lo)) @ np.abs(up)) / KERNEL_RADII_PER_BOX
+    gravity = tuple(float(c) for c in -9.8 * up)
+    physics = replace(PRESETS[preset], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
+    return ScenePrior(box, tuple(float(c) for c in up), air, mode, physics,
+                      SourcePlace(place.center, max(place.radius, 0.5 * h)), seed)
+
+
+def scene_physics(
+    view: ViewTarget,
+    prior: ScenePrior,
+    *,
+    budget: int,
+    entrainment: bool,
+    device: torch.device | str = "cpu",
+) -> ScenePhysics:
+    """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
+    background and noise), starting from `prior` (`scene_prior`).
+
+    The buoyancy, source and plume age come from `identify` when the prior's mode is "auto", in world
+    units, so no length scale of another dataset enters them; a preset name keeps that preset's
+    buoyancy (the paper's setting for its datasets). `entrainment`: whether the
     identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's
     column. The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
     carries at rest density (`inlet_rate`, capped by `budget`) at the faster of that speed and
@@ -407,32 +442,28 @@ def scene_physics(
     """
     from fluidcore.reconstruct.init import smoke_mask
 
-    prior_name = PHYSICS_MODES[check_mode(mode)]
-    h = float(np.abs(np.subtract(box.hi, box.lo)) @ np.abs(up)) / KERNEL_RADII_PER_BOX
-    gravity = tuple(float(c) for c in -9.8 * up)
-    prior = replace(PRESETS[prior_name], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
-    source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
-    record: dict = {"mode": mode, "prior_preset": prior_name, "kernel_radius": h}
+    up, h, place = np.asarray(prior.up), prior.physics.h, prior.place
+    record: dict = {"mode": prior.mode, "prior_preset": prior.preset, "kernel_radius": h}
     observed_rise = 0.0  # a preset's inlet is filled at its own terminal speed
-    if mode == "auto":
+    if prior.mode == "auto":
         camera = view.camera
+        center = np.asarray(place.center)
         masks = smoke_mask(view.frames, view.background, view.noise)
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, box, source, up, budget, device, prior_name,
-                         SPREADING_RATES if entrainment else (0.0,))
-        config = replace(with_buoyancy(prior, found.buoyancy, up), entrainment=found.entrainment)
-        source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
+        found = identify(observation, prior, budget, device, SPREADING_RATES if entrainment else (0.0,))
+        config = replace(with_buoyancy(prior.physics, found.buoyancy, up), entrainment=found.entrainment)
+        place = SourcePlace(tuple(found.source_center), found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps
         observed_rise = found.rise_speed
         record["identified"] = found.to_json()
     else:
-        config, steps = prior, PRESET_STABILIZATION_STEPS
+        config, steps = prior.physics, PRESET_STABILIZATION_STEPS
     buoyancy = float(np.dot(config.body_acceleration, up))
     speed = config.terminal_speed
     carried = inflow_rate_speed(speed, observed_rise)
-    source = replace(source, rate=inlet_rate(source.radius, carried, config, budget), velocity=tuple(float(c) for c in speed * up))
-    record.update({"buoyancy": buoyancy, "inflow_speed": speed, "inflow_rate": source.rate, "inflow_rate_speed": carried,
+    scene = prior.scene(config, place, inlet_rate(place.radius, carried, config, budget), speed * up)
+    record.update({"buoyancy": buoyancy, "inflow_speed": speed, "inflow_rate": scene.source.rate, "inflow_rate_speed": carried,
                    "drag": config.drag, "rho0": config.rho0, "entrainment": config.entrainment, "stabilization_steps": steps})
-    return ScenePhysics(config, source, steps, record)
+    return ScenePhysics(scene, steps, record)

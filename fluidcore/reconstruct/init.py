@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fluidcore.errors import InputError
+from fluidcore.spec.scene import SourcePlace
 
 if TYPE_CHECKING:
     import torch
@@ -81,6 +82,10 @@ class SourceEstimate:
     depth_cue: str  # how the centre's depth was found: "given", "triangulated", "generated views", "floor" or "box axis"
     depth_range: tuple[np.ndarray, np.ndarray] | None  # one view: the nearest and farthest centres (3,) in the box on its ray
     generated: dict[str, float] = field(default_factory=dict)  # generated view -> its ray's weight in the triangulation
+
+    @property
+    def place(self) -> SourcePlace:
+        return SourcePlace(tuple(self.center), self.radius)
 
 
 @dataclass(frozen=True)

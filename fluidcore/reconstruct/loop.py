@@ -42,19 +42,20 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
-from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
-from fluidcore.physics.air import scene_air
+from fluidcore.physics import Box, interpolate_velocity
+from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.identify import scene_physics
+from fluidcore.reconstruct.identify import scene_physics, scene_prior
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, MIN_FIT_SIDE, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord
+from fluidcore.runs import ReconstructSettings, Run, RunKind, SourceEstimateRecord
 from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.spec.scene import Air, Scene, SourcePlace
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -90,10 +91,7 @@ class Reconstruction:
     background_color: np.ndarray
     background_images: dict[str, np.ndarray]
     smoke_color: np.ndarray
-    config: PBFConfig
-    box: Box
-    source: Source
-    up: np.ndarray
+    scene: Scene  # what the reconstruction simulates, and every prediction from it
     quality: Quality
     physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
     stabilization_steps: int
@@ -103,22 +101,13 @@ class Reconstruction:
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     @property
-    def fit_config(self) -> PBFConfig:
-        """The physics the fit steps with: the scene's without entrainment. The plume's spreading
+    def fit_scene(self) -> Scene:
+        """The scene the fit steps: the scene without entrainment. The plume's spreading
         (`PBFConfig.entrainment`, identified from the input view) is for the free simulation
         that continues the fit; inside the fit it spread the particles along the input ray, which
         one view does not pin back (dev scene F, seed 0: novel views 32.20 -> 31.30 dB with it,
         docs/bench_generalise.md, "Entrainment")."""
-        return replace(self.config, entrainment=0.0)
-
-    def scene(self) -> Scene:
-        return Scene(
-            box_lo=self.box.lo,
-            box_hi=self.box.hi,
-            up=tuple(map(float, self.up)),
-            physics=self.config,
-            source=self.source,
-        )
+        return replace(self.scene, physics=replace(self.scene.physics, entrainment=0.0))
 
     def settings(self) -> ReconstructSettings:
         return ReconstructSettings(
@@ -178,7 +167,7 @@ def prepare(
     quality: Quality,
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
-    source: SourceHint | None = None,
+    source: SourceHint | SourcePlace | None = None,
     physics: str = DEFAULT_PHYSICS,
     extra_views: Sequence[ViewTarget] = (),
     pseudo_views: bool = True,
@@ -187,7 +176,8 @@ def prepare(
     """Background, source and physics for reconstructing `inputs`, and every view it fits.
 
     `source` is where the user knows the source to be (its radius, if not given, is measured at
-    that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
+    that depth), or the place of the source of a run this one refines; otherwise it is estimated
+    from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
     (the generative novel views of a single input view): those of kind "generated" join the
     source estimate's triangulation at their loss weight (`init.estimate_source`), so the
@@ -204,31 +194,29 @@ def prepare(
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)
 
-    if source is not None:
+    if isinstance(source, SourceHint):
         source.check_in_box(*box)
+    place = source.place if isinstance(source, SourceHint) else source
     estimate_record = None
-    if source is None or source.radius is None:
+    if place is None:
         generated = [  # the novel-view model's views close the depth one input view leaves open
             init.GeneratedView(v.camera, first_second(v), v.weight)
             for v in extra_views if v.kind == "generated"
         ]
         estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
-        center, radius = estimate.center, estimate.radius
+        place = estimate.place
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,
             depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
             pixels={name: tuple(map(float, px)) for name, px in estimate.pixels.items()},
             generated=estimate.generated,
         )
-    else:
-        center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.particles_per_frame, quality.seed, device,
-                           entrainment=quality.entrainment)
-    config, src = chosen.config, chosen.source
-    center = np.asarray(src.center)
+    prior = scene_prior(physics, sim_box, up_v, fps, place, Air(quality.air_cells, quality.air_vorticity), quality.seed)
+    chosen = scene_physics(first, prior, budget=quality.particles_per_frame, entrainment=quality.entrainment,
+                           device=device)
+    center = np.asarray(chosen.scene.source.center)
     pseudo, symmetry = [], None
     if quality.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
         agreement = mirror_agreement(targets[0], center, up_v)
@@ -247,16 +235,13 @@ def prepare(
         background_color=background_color.astype(np.float32),
         background_images=inputs.background_images,
         smoke_color=smoke_color,
-        config=config,
-        box=sim_box,
-        source=src,
-        up=up_v,
+        scene=chosen.scene,
         quality=quality,
         physics=chosen.record,
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
         flow=flow,
-        source_hint=None if source is None else source.model_dump(mode="json"),
+        source_hint=None if source is None else source.to_json(),
         source_estimate=estimate_record,
     )
 
@@ -280,10 +265,9 @@ class Reconstructor:
     def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
         self.rec = rec
         self.device = torch.device(device)
-        # with quality.air_cells the air is part of the state: stepped from the fitted particles of
+        # with the scene's air the air is part of the state: stepped from the fitted particles of
         # each frame, saved with it, and continued by every prediction and branch of the run
-        air = scene_air(rec.box, rec.fit_config, rec.quality.air_cells, vorticity=rec.quality.air_vorticity)
-        self.simulator = Simulator(rec.fit_config, rec.box, rec.source, air=air, device=self.device)
+        self.simulator = build_simulator(rec.fit_scene, device=self.device)
 
     def open_run(self, out_dir) -> Run:
         rec = self.rec
@@ -296,7 +280,7 @@ class Reconstructor:
             fps=rec.fps,
             channels=rec.channels,
             background_color=rec.background_color.tolist(),
-            scene=rec.scene(),
+            scene=rec.scene,
             settings=rec.settings(),
         )
         if rec.background_images and not run.background_images():
@@ -321,7 +305,7 @@ class Reconstructor:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
         """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
-        rec, q, config = self.rec, self.rec.quality, self.rec.fit_config
+        rec, q, config = self.rec, self.rec.quality, self.simulator.config
         index = t - rec.frame_range[0]
         seed = q.seed * 1_000_003 + t
         generator = torch.Generator().manual_seed(seed)
@@ -373,7 +357,7 @@ class Reconstructor:
         state.positions[slots] = p
         state.velocities[slots] = velocities
         losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
-        smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
+        smoke = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
 

@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from fluidcore.errors import InputError
+from fluidcore.spec.scene import SourcePlace
 
 Vec3 = tuple[float, float, float]
 
@@ -33,6 +34,15 @@ class SourceHint(BaseModel):
 
     center: Vec3
     radius: float | None = Field(default=None, gt=0.0)
+
+    @property
+    def place(self) -> SourcePlace | None:
+        """The whole place when the radius is given; None when it is to be measured."""
+        return None if self.radius is None else SourcePlace(self.center, self.radius)
+
+    def to_json(self) -> dict:
+        """The manifest's record of the hint (`ReconstructSettings.source_hint`)."""
+        return self.model_dump(mode="json")
 
     def check_in_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
         """The centre must lie in the scene box (where the reconstruction simulates)."""
