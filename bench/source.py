@@ -120,15 +120,14 @@ def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int,
     and the manifest's record of the physics it chose (what identification found)."""
     from fluidcore import video
     from fluidcore.cameras import capture_box, render_size
-    from fluidcore.reconstruct.loop import prepare, read_inputs
+    from fluidcore.reconstruct.pipeline import Footage, prepared
     from fluidcore.reconstruct.presets import get
 
     preset = get(quality).with_overrides(seed=seed)
     cameras = {name: camera.pinhole() for name, camera in gt.cameras.items()}
     decoded = {name: video.read_frames(path, window[0], window[1], size=render_size(cameras[name].width, cameras[name].height, preset.long_side))
                for name, path in videos.items()}
-    inputs = read_inputs(cameras, decoded, frame_range=window, quality=preset)
-    rec = prepare(cameras, inputs, fps=gt.fps, quality=preset, box=capture_box(gt.cameras_path, cameras), physics=physics)
+    rec = prepared(Footage(cameras, decoded, window, gt.fps, capture_box(gt.cameras_path, cameras)), preset, physics=physics)
     return np.asarray(rec.scene.source.center, dtype=np.float64), float(rec.scene.source.radius), rec.physics
 
 

@@ -119,13 +119,12 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     prediction started from, seeing only the input camera(s), and starts from the prediction's
     first frame. Stages: "refine futures" (per window batch), "reconstruct refined" (per frame).
     """
-    from fluidcore.run_frames import render_frames
+    from fluidcore.cameras import render_size
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
-    from fluidcore.reconstruct.job import fit
-    from fluidcore.reconstruct.loop import prepare, read_inputs
-    from fluidcore.cameras import render_size
+    from fluidcore.reconstruct.pipeline import Footage, reconstruct
     from fluidcore.reconstruct.presets import Quality
+    from fluidcore.run_frames import render_frames
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
@@ -144,16 +143,13 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
-    inputs = read_inputs(cameras, videos, frame_range=run.frame_range, quality=quality, device=context.device)
-    rec = prepare(  # the refined input views alone are the targets
-        cameras, inputs, fps=run.fps, quality=quality,
-        box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=SourcePlace.of(scene.source),
-        physics=origin_settings.physics_mode, pseudo_views=False, device=context.device,
-    )
+    footage = Footage(cameras, videos, run.frame_range, run.fps, (np.asarray(scene.box_lo), np.asarray(scene.box_hi)),
+                      scene.up, SourcePlace.of(scene.source))
     first = run.frames()[0]
-    fit(rec, run.path / REFINED_RUN, context=context,
-        status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")
+    reconstruct(  # the refined input views alone are the targets
+        footage, quality, run.path / REFINED_RUN, physics=origin_settings.physics_mode, pseudo_views=False,
+        first_state=run.read_frame(first), status={"refinement": status}, stage="reconstruct refined", context=context,
+    )
     return f"{status}; reconstructed on them from frame {first} in {REFINED_RUN}/"
 
 
