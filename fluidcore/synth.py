@@ -31,7 +31,7 @@ from fluidcore.physics.build import build_simulator
 from fluidcore.render import Gaussians, render
 from fluidcore.spec.scene import Scene
 
-SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.identify)
+SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.scene_physics)
 
 
 class SynthError(InputError):

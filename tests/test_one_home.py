@@ -152,9 +152,9 @@ def test_the_smoke_mask_has_one_home() -> None:
     the smoke where `init.smoke_mask` (or, with the contrast in hand, `init.is_smoke`) says."""
     import torch
 
-    from fluidcore.reconstruct import flow, identify, init, loop, views
+    from fluidcore.reconstruct import flow, init, loop, scene_physics, views
 
-    for function in (loop.prepare, identify.scene_physics, views.mirror_agreement, flow.input_flow):
+    for function in (loop.prepare, scene_physics.scene_physics, views.mirror_agreement, flow.input_flow):
         text = inspect.getsource(function)
         assert "smoke_mask(" in text or "is_smoke(" in text, function.__name__
         assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__
@@ -196,10 +196,10 @@ def test_a_what_if_needs_a_wind_or_a_ball_alike_at_the_api_and_in_the_job(tmp_pa
 def test_the_physics_mode_is_checked_where_it_is_interpreted() -> None:
     """One check of the physics mode on the way from a request to the simulator: `scene_prior`."""
     calls = [path for path, text in _sources("fluidcore").items() if "check_mode(" in text.replace("def check_mode(", "")]
-    assert calls == ["fluidcore/reconstruct/identify.py"]
-    from fluidcore.reconstruct import identify
+    assert calls == ["fluidcore/reconstruct/scene_physics.py"]
+    from fluidcore.reconstruct import scene_physics
 
-    assert inspect.getsource(identify).count("check_mode(") == 2  # its definition and its one call
+    assert inspect.getsource(scene_physics).count("check_mode(") == 2  # its definition and its one call
 
 
 def test_the_scene_box_falls_back_to_the_cameras_in_one_place() -> None:

@@ -46,7 +46,7 @@ from fluidcore.physics import Box, interpolate_velocity
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.identify import scene_physics, scene_prior
+from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, MIN_FIT_SIDE, Quality
 from fluidcore.reconstruct.source_hint import SourceHint
@@ -93,7 +93,7 @@ class Reconstruction:
     smoke_color: np.ndarray
     scene: Scene  # what the reconstruction simulates, and every prediction from it
     quality: Quality
-    physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.identify)
+    physics: dict  # the manifest's record of how the physics was chosen (fluidcore.reconstruct.scene_physics)
     stabilization_steps: int
     symmetry: dict | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any

@@ -20,9 +20,10 @@ from typer.testing import CliRunner
 
 from fluidcore import synth
 from fluidcore.reconstruct import get, prepare, read_inputs
-from fluidcore.reconstruct import identify as identify_module
-from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Identified, Observation, PhysicsChoiceError, ScenePrior,
-                                           _Search, buoyancy_floor, identify, inflow_rate_speed, inlet_rate, rise_speed)
+from fluidcore.reconstruct import scene_physics
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Identified, Observation, ScenePrior, _Search,
+                                           buoyancy_floor, identify, inlet_rate, rise_speed)
+from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
 from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
 from fluidcore.spec.scene import Air, SourcePlace
 
@@ -246,7 +247,7 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     found = Identified(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
                        rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
                        source_center=list(source.center), source_radius=source.radius, entrainment=0.0, prior={})
-    monkeypatch.setattr(identify_module, "identify", lambda *args, **kwargs: found)
+    monkeypatch.setattr(scene_physics, "identify", lambda *args, **kwargs: found)
     budget = 10_000  # no cap: the rates are the inlet's own
     rec = _prepare(rising, "auto", particles_per_frame=budget)
     speed = rec.scene.physics.terminal_speed
