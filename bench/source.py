@@ -5,7 +5,7 @@
 
 For each scene, only the input view's video is read (as a reconstruction reads it), and
 `fluidcore.reconstruct.loop.prepare` runs twice: with a preset's physics, which keeps the image
-estimate of the source (`fluidcore.reconstruct.init.estimate_source`), and with `--physics`
+estimate of the source (`fluidcore.reconstruct.source_estimate.estimate_source`), and with `--physics`
 (default auto), whose identification may move and resize it, once per `--seeds` seed (the
 source's particle seeding, which the identification's rollouts start from). Both are compared
 with the truth:

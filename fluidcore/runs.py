@@ -130,7 +130,7 @@ class ViewRecord(BaseModel):
 
 
 class SourceEstimateRecord(BaseModel):
-    """How the source's place was found from the input videos (`fluidcore.reconstruct.init.
+    """How the source's place was found from the input videos (`fluidcore.reconstruct.source_estimate.
     estimate_source`): the depth cue, and for one view the stretch of its ray inside the box
     where the centre could lie as well (world units), which the source hint can then pin."""
 

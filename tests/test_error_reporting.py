@@ -44,12 +44,12 @@ def test_every_fluidcore_error_a_user_can_fix_derives_from_input_error() -> None
     from fluidcore import exports, interaction, jobs, metrics, runs, synth, video
     from fluidcore.cameras import camera
     from fluidcore.generative import finetune, models, novel_view, refine
-    from fluidcore.reconstruct import identify, init, loop, presets, scene_physics, source_hint
+    from fluidcore.reconstruct import identify, images, loop, presets, scene_physics, source_hint
     from fluidcore.render import gaussians
     from fluidcore.spec import physics, scene
 
     kinds = [
-        exports.ExportError, source_hint.SourceHintError, init.EstimationError, presets.PresetError,
+        exports.ExportError, source_hint.SourceHintError, images.EstimationError, presets.PresetError,
         loop.ReconstructionError, identify.IdentificationError, scene_physics.PhysicsChoiceError, camera.CameraError,
         novel_view.NovelViewError, refine.RefineError, finetune.FinetuneError, jobs.JobInputError, metrics.MetricError,
         physics.PhysicsInputError, scene.SceneError, gaussians.RenderError, runs.RunError, interaction.InteractionError, video.VideoError,

@@ -149,10 +149,10 @@ def test_every_job_type_writes_the_run_kind_of_its_name() -> None:
 
 def test_the_smoke_mask_has_one_home() -> None:
     """Source estimate, physics identification, mirror agreement and flow confidence all take
-    the smoke where `init.smoke_mask` (or, with the contrast in hand, `init.is_smoke`) says."""
+    the smoke where `images.smoke_mask` (or, with the contrast in hand, `images.is_smoke`) says."""
     import torch
 
-    from fluidcore.reconstruct import flow, init, loop, scene_physics, views
+    from fluidcore.reconstruct import flow, images, loop, scene_physics, views
 
     for function in (loop.prepare, scene_physics.scene_physics, views.mirror_agreement, flow.input_flow):
         text = inspect.getsource(function)
@@ -160,7 +160,7 @@ def test_the_smoke_mask_has_one_home() -> None:
         assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__
     frames = torch.tensor([[[[0.5, 0.5, 0.5], [0.5, 0.54, 0.5]], [[0.3, 0.9, 0.5], [0.51, 0.51, 0.51]]]])  # (1, 2, 2, 3)
     background, noise = torch.tensor([0.5, 0.5, 0.5]), torch.tensor([0.01, 0.01, 0.001])
-    assert init.smoke_mask(frames, background, noise).tolist() == [[[False, False], [True, True]]]  # 4 noise units are not smoke, 10 are (in the quietest channel)
+    assert images.smoke_mask(frames, background, noise).tolist() == [[[False, False], [True, True]]]  # 4 noise units are not smoke, 10 are (in the quietest channel)
 
 
 def test_the_wind_speed_limit_is_the_physics_configs() -> None:

@@ -23,7 +23,7 @@ per seeding (a second or two) and compares what the image fit cannot change late
 is. The search is coarse to fine (five buoyancies in log steps around one read off the video's
 rise speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
 widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
-image estimate of `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom
+image estimate of `fluidcore.reconstruct.source_estimate.estimate_source`, resting on the same bottom
 edge, and its height half a radius either way, since a smoke edge biases both; then two finer
 buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
 choice unless one of its own candidates beats it. The rise is scored over the whole observed
@@ -105,7 +105,7 @@ class Observation:
     def from_masks(cls, camera: Camera, masks: np.ndarray, cell: int, center: np.ndarray, up: np.ndarray) -> Observation:
         """Pool (T, H, W) bool masks into cells of `cell` x `cell` pixels; heights are measured
         along the direction in which `up` points in the image at `center`."""
-        from fluidcore.reconstruct.init import image_up
+        from fluidcore.reconstruct.rays import image_up
 
         t, h, w = masks.shape
         gh, gw = h // cell, w // cell
@@ -330,7 +330,7 @@ def identify(
     a = best[0]
     best = _best(search, best, [(a, 0.0, 1.0, rate) for rate in spreading_rates], floor)
     spreading = best[3]
-    # A resized source keeps resting on the smoke's bottom edge (init.source_in_view): its centre
+    # A resized source keeps resting on the smoke's bottom edge (source_estimate.source_in_view): its centre
     # moves up by (size - 1) radii; only then is the height searched on its own. Both over the
     # first SOURCE_FRAMES frames only (see there).
     best = _best(search, best, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor, SOURCE_FRAMES)

@@ -44,11 +44,12 @@ from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, interpolate_velocity
 from fluidcore.physics.build import build_simulator
-from fluidcore.reconstruct import init
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
+from fluidcore.reconstruct.images import estimate_background, resize_image, smoke_mask, to_float
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.presets import DEFAULT_PHYSICS, MIN_FIT_SIDE, Quality
+from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
+from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source, source_frames
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
@@ -148,11 +149,11 @@ def read_inputs(
     for name, frames in videos.items():
         camera = cameras[name]
         width, height = render_size(camera.width, camera.height, quality.long_side)
-        data = init.to_float(frames, channels)
-        data = np.stack([init.resize_image(f, width, height) for f in data])
-        background = init.estimate_background(data)
+        data = to_float(frames, channels)
+        data = np.stack([resize_image(f, width, height) for f in data])
+        background = estimate_background(data)
         if background.image is not None:
-            backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
+            backgrounds[name] = resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
         noise = torch.from_numpy(background.noise).to(device)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device), noise))
@@ -180,14 +181,14 @@ def prepare(
     from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
     (the generative novel views of a single input view): those of kind "generated" join the
-    source estimate's triangulation at their loss weight (`init.estimate_source`), so the
+    source estimate's triangulation at their loss weight (`estimate_source`), so the
     identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
     (a refinement fits its refined input views only).
     """
     targets, channels = list(inputs.targets), inputs.channels
     def first_second(view: ViewTarget) -> np.ndarray:  # the smoke the source estimate and the smoke colour read
-        return init.smoke_mask(view.frames[: init.source_frames(fps, len(view.frames))], view.background, view.noise)
+        return smoke_mask(view.frames[: source_frames(fps, len(view.frames))], view.background, view.noise)
 
     masks = {v.camera.name: first_second(v) for v in targets}
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
@@ -200,10 +201,10 @@ def prepare(
     estimate_record = None
     if place is None:
         generated = [  # the novel-view model's views close the depth one input view leaves open
-            init.GeneratedView(v.camera, first_second(v), v.weight)
+            GeneratedView(v.camera, first_second(v), v.weight)
             for v in extra_views if v.kind == "generated"
         ]
-        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
+        estimate = estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
         place = estimate.place
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,

@@ -101,7 +101,7 @@ def scene_physics(
     carries at rest density (`inlet_rate`, capped by `budget`) at the faster of that speed and
     the rise speed of the observed smoke (`inflow_rate_speed`).
     """
-    from fluidcore.reconstruct.init import smoke_mask
+    from fluidcore.reconstruct.images import smoke_mask
 
     up, h, place = np.asarray(prior.up), prior.physics.h, prior.place
     record: dict = {"mode": prior.mode, "prior_preset": prior.preset, "kernel_radius": h}

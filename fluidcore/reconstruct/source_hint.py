@@ -1,6 +1,6 @@
 """Where the smoke comes from, when the user knows it: the one parameter model of a source hint.
 
-One view leaves the source's depth open (`fluidcore.reconstruct.init.estimate_source` puts it
+One view leaves the source's depth open (`fluidcore.reconstruct.source_estimate.estimate_source` puts it
 where the input ray passes closest to the box's vertical axis), and the whole 3D plume inherits
 that guess: on the dev scene a source 4 cm off that axis costs 8 dB of novel-view PSNR
 (docs/bench_generalise.md). Someone who measured their rig can say where the source is.
