@@ -21,6 +21,9 @@ from fluidcore.reconstruct.simulation_options import SimulationOptions
 from fluidcore.reconstruct.source_hint import SourceHint
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from fluidcore.cameras import Camera
     from fluidcore.generative.stages import GenerativeSettings
 
 
@@ -83,19 +86,32 @@ def run_reconstruct(
             raise JobInputError(str(exc)) from None
     frame_range = _frame_range(infos, frames)
     fps = infos[next(iter(videos))].fps
-    decoded = {  # undistorted: from here on every camera is the pinhole the renderer models
+    pinholes = {name: camera.pinhole() for name, camera in cameras.items()}
+    context.progress(0.0, "prepare")
+    # handed over, not kept: the pipeline lets the decoded frames go once they are its targets
+    return reconstruct(
+        Footage(pinholes, _decoded(cameras, videos, frame_range, preset.long_side), frame_range, fps,
+                camera_io.capture_box(cameras_path, pinholes), source=source),
+        preset, out_dir, physics=physics, generative=generative or GenerativeSettings(), context=context,
+        progress_bar=progress_bar,
+    )
+
+
+def _decoded(cameras: Mapping[str, Camera], videos: Mapping[str, str | os.PathLike[str]], frame_range: tuple[int, int],
+             long_side: int) -> dict[str, np.ndarray]:
+    """The frames of `frame_range` of each video at the working size, undistorted: from here on
+    every camera is the pinhole the renderer models."""
+    from fluidcore import cameras as camera_io
+    from fluidcore import video
+
+    return {
         name: camera_io.undistort_frames(
             cameras[name],
             video.read_frames(
-                path, frame_range[0], frame_range[1], size=camera_io.render_size(cameras[name].width, cameras[name].height, preset.long_side)
+                path, frame_range[0], frame_range[1], size=camera_io.render_size(cameras[name].width, cameras[name].height, long_side)
             ),
         )
         for name, path in videos.items()
     }
-    cameras = {name: camera.pinhole() for name, camera in cameras.items()}
-    footage = Footage(cameras, decoded, frame_range, fps, camera_io.capture_box(cameras_path, cameras), source=source)
-    context.progress(0.0, "prepare")
-    return reconstruct(footage, preset, out_dir, physics=physics, generative=generative or GenerativeSettings(),
-                       context=context, progress_bar=progress_bar)
 
 

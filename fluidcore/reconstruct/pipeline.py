@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -78,6 +78,7 @@ def reconstruct(
     """
     inputs = read_inputs(footage.cameras, footage.videos, frame_range=footage.frame_range, quality=quality,
                          device=context.device)
+    footage = replace(footage, videos={})  # the targets hold the frames now: a job's decoded ones can go
     novel = None
     if generative is not None:
         from fluidcore.generative.stages import GENERATED_DIR, save_generated_views
