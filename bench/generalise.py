@@ -417,7 +417,7 @@ class Protocol:
 
 def smoke_mask(frame: Any, background: Any) -> Any:
     """(H, W) bool: where a uint8 (H, W, 3) frame differs from the background colour (3,) by more
-    than SMOKE_LEVEL in some channel. Not `fluidcore.reconstruct.init.smoke_mask`, which masks an
+    than SMOKE_LEVEL in some channel. Not `fluidcore.reconstruct.images.smoke_mask`, which masks an
     input video in units of its own noise: this one scores a render and the truth with one fixed
     level for both, so neither's noise (a render has none) moves the comparison."""
     import numpy as np

@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from fluidcore.spec.scene import SourcePlace
 from fluidnexus.reporting import UserError
 
 DENSITY_THRESHOLD = 0.05  # GT density above which a voxel counts as smoke (the dev protocol)
@@ -87,13 +88,13 @@ class GroundTruth:
     def top_height(self, t: int) -> float | None:
         return None
 
-    def source_truth(self) -> tuple[np.ndarray, float] | None:
-        """The true source: (centre (3,) world, radius world units), where the layout records it."""
+    def source_truth(self) -> SourcePlace | None:
+        """The true source's place (world units), where the layout records it."""
         return None
 
     def source_height(self) -> float | None:
         truth = self.source_truth()
-        return None if truth is None else float(truth[0][1])
+        return None if truth is None else truth.center[1]
 
     def variants(self) -> list[Variant]:
         return []
@@ -146,9 +147,9 @@ class PhiFlowScene(GroundTruth):
         smoke = density > DENSITY_THRESHOLD
         return float(np.quantile(centres[smoke][:, 1], TOP_QUANTILE)) if smoke.any() else None
 
-    def source_truth(self) -> tuple[np.ndarray, float] | None:
+    def source_truth(self) -> SourcePlace | None:
         source = self.meta["source"]
-        return np.asarray(source["center_world"], dtype=np.float64), float(source["radius"])
+        return SourcePlace(source["center_world"], source["radius"])
 
     def variants(self) -> list[Variant]:
         protocol = self.protocol
@@ -240,9 +241,9 @@ class SynthScene(GroundTruth):
         truth = self.velocity(t)
         return None if truth is None or len(truth[0]) == 0 else float(np.quantile(truth[0][:, 1], TOP_QUANTILE))
 
-    def source_truth(self) -> tuple[np.ndarray, float] | None:
+    def source_truth(self) -> SourcePlace | None:
         source = json.loads((self.root / "synth.json").read_text())["source"]
-        return np.asarray(source["center"], dtype=np.float64), float(source["radius"])
+        return SourcePlace(source["center"], source["radius"])
 
 
 class ScalarFlowScene(GroundTruth):

@@ -87,9 +87,11 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     """Simulator and state of the benchmark plume with n particles, plus a re-seeding function."""
     import torch
 
+    from fluidcore.physics import ParticleState, Source, Sphere, wind_force
+    from fluidcore.physics.build import build_simulator
     from fluidcore.spec.controls import WindParams
-    from fluidcore.physics import Box, ParticleState, Simulator, Source, Sphere, wind_force
     from fluidcore.physics.source import emit
+    from fluidcore.spec.scene import Scene
 
     packing, thinning = (1.6, 0.0) if scene == "violent" else (1.0, 0.6)  # density at the bottom; its fall to the top
     volume = n / (8.0 * config.rho0 * packing * (1.0 - thinning / 2.0)) * config.h**3
@@ -104,18 +106,19 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     velocities = torch.zeros(n, 3)
     velocities[:, 1] = 0.1
     state = ParticleState.from_positions(positions.to(device), velocities.to(device))
-    box = Box((-3 * radius, -radius, -3 * radius), (3 * radius, height, 3 * radius))
     violent = scene == "violent"
+    jet = radius / 3.0 if violent else radius
+    # the jet seeds nothing by itself: `reseed` puts back what left the box, keeping the count fixed
+    plume_scene = Scene((-3 * radius, -radius, -3 * radius), (3 * radius, height, 3 * radius), (0.0, 1.0, 0.0), config,
+                        Source((0.0, jet, 0.0), jet, 0, (0.0, 0.1, 0.0), seed=1))
     wind = WindParams(direction=(1.0, 0.0, 0.0), strength=3.0, growth=2.0 / height)
     force = wind_force(wind, blowing=lambda time: True) if violent else None
     spheres = [Sphere((0.0, 0.3 * height, 0.0), 0.5 * radius, velocity=(0.0, 0.3, 0.0))] if violent else []
-    sim = Simulator(config, box, spheres=spheres, force=force, device=device, backend=backend)
-    jet = radius / 3.0 if violent else radius
+    sim = build_simulator(plume_scene, spheres=spheres, force=force, device=device, backend=backend)
 
     def reseed(count: int) -> None:
         if count:
-            source = Source((0.0, jet, 0.0), jet, count, (0.0, 0.1, 0.0), seed=1)
-            state.add(*emit(source, state.step, device))
+            state.add(*emit(replace(plume_scene.source, rate=count), state.step, device))
 
     return sim, state, reseed
 

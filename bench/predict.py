@@ -151,7 +151,7 @@ def _score(cameras, truths, input_view, input_path, reconstruction, predicted, r
 
     from fluidcore import video
     from fluidcore.run_frames import render_frames, to_uint8_rgb
-    from fluidcore.reconstruct.init import resize_image
+    from fluidcore.reconstruct.images import resize_image
     from fluidcore.runs import Run
 
     recon, pred_run, resim_run = Run.open(reconstruction), Run.open(predicted), Run.open(resimulated)

@@ -5,7 +5,7 @@
 
 For each scene, only the input view's video is read (as a reconstruction reads it), and
 `fluidcore.reconstruct.loop.prepare` runs twice: with a preset's physics, which keeps the image
-estimate of the source (`fluidcore.reconstruct.init.estimate_source`), and with `--physics`
+estimate of the source (`fluidcore.reconstruct.source_estimate.estimate_source`), and with `--physics`
 (default auto), whose identification may move and resize it, once per `--seeds` seed (the
 source's particle seeding, which the identification's rollouts start from). Both are compared
 with the truth:
@@ -35,6 +35,7 @@ if __package__ in (None, ""):  # `python bench/source.py`
 
 from bench.gt_scenes import GroundTruth, ScalarFlowScene, open_scene  # noqa: E402
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
+from fluidcore.spec.scene import SourcePlace  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
 IMAGE_ESTIMATE_PHYSICS = "scalarflow"  # any preset: presets keep the image estimate of the source
@@ -102,10 +103,10 @@ def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str,
     if truth is None:
         raise UserError(f"{gt.root}: no recorded source to compare with")
     row: dict[str, Any] = {"scene": str(gt.root), "view": view, "frames": list(window), "truth_kind": truth_kind,
-                           "truth": {"center": truth[0].tolist(), "radius": truth[1]}}
+                           "truth": truth.to_json()}
     def estimate(mode: str, seed: int) -> dict[str, Any]:
-        center, radius, chosen = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode, seed)
-        return {"center": center.tolist(), "radius": radius, **errors(camera, center, radius, truth), "physics": chosen}
+        place, chosen = prepared_source(gt, {view: gt.input_path(view)}, window, quality, mode, seed)
+        return {**place.to_json(), **errors(camera, place, truth), "physics": chosen}
 
     row["image"] = estimate(IMAGE_ESTIMATE_PHYSICS, seeds[0])  # a preset keeps the image estimate: no seed enters it
     row["seeds"] = {str(seed): estimate(physics, seed) for seed in seeds}
@@ -114,41 +115,39 @@ def scene_row(gt: GroundTruth, view: str, window: tuple[int, int], quality: str,
 
 
 def prepared_source(gt: GroundTruth, videos: dict[str, Path], window: tuple[int, int], quality: str,
-                    physics: str, seed: int = 0) -> tuple[np.ndarray, float, dict]:
-    """The source `prepare` starts a reconstruction of `videos` from (centre, radius, world units),
+                    physics: str, seed: int = 0) -> tuple[SourcePlace, dict[str, Any]]:
+    """The place of the source `prepare` starts a reconstruction of `videos` from (world units),
     and the manifest's record of the physics it chose (what identification found)."""
     from fluidcore import video
     from fluidcore.cameras import capture_box, render_size
-    from fluidcore.reconstruct.loop import prepare, read_inputs
+    from fluidcore.reconstruct.pipeline import Footage, prepared
     from fluidcore.spec.reconstruct import get
 
     preset = get(quality).with_overrides(seed=seed)
     cameras = {name: camera.pinhole() for name, camera in gt.cameras.items()}
     decoded = {name: video.read_frames(path, window[0], window[1], size=render_size(cameras[name].width, cameras[name].height, preset.fit.long_side))
                for name, path in videos.items()}
-    inputs = read_inputs(cameras, decoded, frame_range=window, quality=preset)
-    rec = prepare(cameras, inputs, fps=gt.fps, quality=preset, box=capture_box(gt.cameras_path, cameras), physics=physics)
-    return np.asarray(rec.source.center, dtype=np.float64), float(rec.source.radius), rec.physics.model_dump(mode="json")
+    rec = prepared(Footage(cameras, decoded, window, gt.fps, capture_box(gt.cameras_path, cameras)), preset, physics=physics)
+    return SourcePlace.of(rec.scene.source), rec.physics.model_dump(mode="json")
 
 
-def rig_source(gt: ScalarFlowScene, view: str, window: tuple[int, int], quality: str) -> tuple[np.ndarray, float]:
+def rig_source(gt: ScalarFlowScene, view: str, window: tuple[int, int], quality: str) -> SourcePlace:
     """ScalarFlow's source triangulated from every camera of the rig (input video + held-out clips)."""
     videos = {name: gt.input_path(view) if name == view else gt.truth_path(name) for name in [view, *gt.views()]}
-    center, radius, _ = prepared_source(gt, videos, window, quality, IMAGE_ESTIMATE_PHYSICS)
-    return center, radius
+    return prepared_source(gt, videos, window, quality, IMAGE_ESTIMATE_PHYSICS)[0]
 
 
-def errors(camera: Any, center: np.ndarray, radius: float, truth: tuple[np.ndarray, float]) -> dict[str, float]:
+def errors(camera: Any, estimate: SourcePlace, truth: SourcePlace) -> dict[str, float]:
     """Radius ratio and the centre's error split along the input ray (depth), along up (height)
     and across (the horizontal rest), world units."""
-    offset = center - truth[0]
-    ray = truth[0] - camera.center()
+    offset = np.asarray(estimate.center) - np.asarray(truth.center)
+    ray = np.asarray(truth.center) - camera.center()
     ray = ray / np.linalg.norm(ray)
     depth = float(offset @ ray)
     rest = offset - depth * ray
     up = np.array([0.0, 1.0, 0.0])  # every benchmark scene's world is y-up
     height = float(rest @ up)
-    return {"radius_ratio": radius / truth[1], "depth": depth, "height": height,
+    return {"radius_ratio": estimate.radius / truth.radius, "depth": depth, "height": height,
             "across": float(np.linalg.norm(rest - height * up)), "distance": float(np.linalg.norm(offset))}
 
 

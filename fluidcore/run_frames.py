@@ -15,7 +15,7 @@ FrameDone = Callable[[], None]  # called after each rendered frame
 def run_background(run, camera) -> np.ndarray | float | list[float]:  # noqa: ANN001 - Run, Camera
     """What empty space looks like from `camera` in `run`: the static background image of that
     camera when the run (or its parent) estimated one, otherwise the background colour."""
-    from fluidcore.reconstruct.init import resize_image
+    from fluidcore.reconstruct.images import resize_image
 
     current = run
     while current is not None:

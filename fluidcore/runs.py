@@ -26,7 +26,8 @@ Layout (format version 3)::
     channels                 1 (grey smoke) or 3
     background_color         list of C floats: what empty space looks like from any camera
     scene                    {"box": {"lo", "hi"}, "up", "physics": PBFConfig fields, "source": Source fields}
-                             (`Scene`: read back as the typed PBFConfig and Source)
+                             (`fluidcore.spec.scene.Scene`: read back as the typed PBFConfig and
+                             Source, with the air of the settings: `RunRecord.scene`)
     settings                 the settings that produced the run, one model per kind:
                              `ReconstructSettings` or `ContinuationSettings` (every field written;
                              version 1 left out what a feature added later, read as its default;
@@ -68,7 +69,7 @@ import json
 import os
 import platform
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -79,8 +80,8 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
-from fluidcore.physics.config import PBFConfig, PhysicsInputError, Source
 from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
+from fluidcore.spec.scene import Air, Scene, SceneError
 
 FORMAT = "fluidnexus-run"
 FORMAT_VERSION = 3
@@ -121,7 +122,7 @@ class ViewRecord(BaseModel):
 
 
 class SourceEstimateRecord(BaseModel):
-    """How the source's place was found from the input videos (`fluidcore.reconstruct.init.
+    """How the source's place was found from the input videos (`fluidcore.reconstruct.source_estimate.
     estimate_source`): the depth cue, and for one view the stretch of its ray inside the box
     where the centre could lie as well (world units), which the source hint can then pin."""
 
@@ -251,68 +252,6 @@ Settings = ReconstructSettings | ContinuationSettings
 
 def settings_model(kind: RunKind) -> type[Settings]:
     return ReconstructSettings if kind is RunKind.RECONSTRUCT else ContinuationSettings
-
-
-@dataclass(frozen=True)
-class Scene:
-    """Where the particles live and under which physics: enough to rebuild the Simulator.
-
-    `physics` is the scene's `PBFConfig` (world units, with the `length_scale` and kernel radius
-    `h` chosen for this scene), `source` its `Source`, `box` the simulation box; `up` is the
-    scene's up axis.
-    """
-
-    box_lo: tuple[float, float, float]
-    box_hi: tuple[float, float, float]
-    up: tuple[float, float, float]
-    physics: PBFConfig
-    source: Source
-
-    def __post_init__(self) -> None:
-        for name in ("box_lo", "box_hi", "up"):
-            value = np.asarray(getattr(self, name), dtype=np.float64)
-            if value.shape != (3,) or not np.all(np.isfinite(value)):
-                raise RunError(f"scene.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
-        if not np.all(np.asarray(self.box_lo) < np.asarray(self.box_hi)):
-            raise RunError("scene.box_lo must be below scene.box_hi on every axis")
-
-    def to_json(self) -> dict[str, Any]:
-        return json.loads(
-            json.dumps(
-                {
-                    "box": {"lo": list(self.box_lo), "hi": list(self.box_hi)},
-                    "up": list(self.up),
-                    "physics": asdict(self.physics),
-                    "source": asdict(self.source),
-                }
-            )
-        )
-
-    @classmethod
-    def from_json(cls, data: Mapping[str, Any]) -> Scene:
-        def tuples(d: Mapping[str, Any]) -> dict[str, Any]:
-            return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-
-        try:
-            return cls(
-                box_lo=tuple(map(float, data["box"]["lo"])),
-                box_hi=tuple(map(float, data["box"]["hi"])),
-                up=tuple(map(float, data["up"])),
-                physics=PBFConfig(**tuples(data["physics"])),
-                source=Source(**tuples(data["source"])),
-            )
-        except (KeyError, TypeError, PhysicsInputError) as exc:
-            raise RunError(f"scene: malformed ({exc})") from None
-
-    def simulator_parts(self) -> tuple[PBFConfig, Any, Source]:
-        """(PBFConfig, Box, Source) as recorded: what a continuation passes to `Simulator`."""
-        from fluidcore.physics import Box
-
-        return self.physics, Box(self.box_lo, self.box_hi), self.source
-
-    def with_buoyancy_scaled(self, factor: float) -> Scene:
-        """This scene with its buoyancy (`PBFConfig.alpha`) times `factor`."""
-        return replace(self, physics=replace(self.physics, alpha=self.physics.alpha * factor))
 
 
 @dataclass(frozen=True)
@@ -603,7 +542,20 @@ class RunRecord:
 
     @property
     def scene(self) -> Scene:
-        return Scene.from_json(self.manifest["scene"])
+        """The scene record with the air the run simulates (recorded in its settings); a malformed
+        one is this run's error."""
+        try:
+            return Scene.from_json(self.manifest["scene"], self._air())
+        except SceneError as exc:
+            raise RunError(str(exc)) from None
+
+    def _air(self) -> Air:
+        """The air of the run's simulator: a reconstruction's quality says it, a continuation's
+        settings pass it on; a run written before the air was simulated has still air."""
+        settings = self.settings
+        if isinstance(settings, ReconstructSettings):
+            return Air(settings.quality.simulation.air_cells, settings.quality.simulation.air_vorticity)
+        return Air(settings.air_cells, settings.air_vorticity)
 
     @property
     def input_views(self) -> list[str]:

@@ -26,10 +26,12 @@ import torch
 
 from fluidcore.cameras import Camera, look_at, write_transforms
 from fluidcore.errors import InputError
-from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
+from fluidcore.physics import PRESETS, Box, PBFConfig, Source
+from fluidcore.physics.build import build_simulator
 from fluidcore.render import Gaussians, render
+from fluidcore.spec.scene import Scene
 
-SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.identify)
+SIM_BOX_HEIGHT = 75.0  # the box's height in the preset's units (2 per kernel radius: the rule of fluidcore.reconstruct.scene_physics)
 
 
 class SynthError(InputError):
@@ -85,6 +87,11 @@ class SynthSpec:
         velocity = (0.0, config.terminal_speed, 0.0)
         return Source((0.0, 1.5 * self.source_radius, 0.0), self.source_radius, self.particles_per_step, velocity, self.seed)
 
+    def scene(self) -> Scene:
+        """The plume's scene: y up, still air."""
+        box = self.box()
+        return Scene(box.lo, box.hi, (0.0, 1.0, 0.0), self.config(), self.source())
+
     def cameras(self) -> dict[str, Camera]:
         """`views` cameras on a half circle (-90..+90 degrees) around the plume, view_00..."""
         mid = np.array([0.0, 0.45 * self.box_size[1], 0.0])
@@ -123,7 +130,7 @@ def particle_gaussians(positions: torch.Tensor, spec: SynthSpec) -> Gaussians:
 
 def generate(spec: SynthSpec) -> SynthScene:
     """Simulate and render the scene in memory (the 20 stabilisation steps come first)."""
-    simulator = Simulator(spec.config(), spec.box(), spec.source())
+    simulator = build_simulator(spec.scene())
     state = simulator.new_state()
     simulator.stabilize(state, 20)
     cameras = spec.cameras()

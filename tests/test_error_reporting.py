@@ -41,19 +41,18 @@ def logged_traceback(caplog: pytest.LogCaptureFixture, incident: str) -> BaseExc
 
 
 def test_every_fluidcore_error_a_user_can_fix_derives_from_input_error() -> None:
-    from fluidcore import exports, interaction, jobs, metrics, runs, synth, video
+    from fluidcore import exports, jobs, metrics, runs, synth, video
     from fluidcore.cameras import camera
     from fluidcore.generative import finetune, models, novel_view, refine
-    from fluidcore.physics import config
-    from fluidcore.reconstruct import identify, init, loop, source_hint
+    from fluidcore.reconstruct import identify, images, loop, scene_physics, source_hint
     from fluidcore.render import gaussians
-    from fluidcore.spec import reconstruct, simulation
+    from fluidcore.spec import controls, physics, reconstruct, scene, simulation
 
     kinds = [
-        exports.ExportError, source_hint.SourceHintError, init.EstimationError, reconstruct.PresetError, simulation.SimulationConfigError,
-        loop.ReconstructionError, identify.IdentificationError, identify.PhysicsChoiceError, camera.CameraError,
+        exports.ExportError, source_hint.SourceHintError, images.EstimationError, reconstruct.PresetError, simulation.SimulationConfigError,
+        loop.ReconstructionError, identify.IdentificationError, scene_physics.PhysicsChoiceError, camera.CameraError,
         novel_view.NovelViewError, refine.RefineError, finetune.FinetuneError, jobs.JobInputError, metrics.MetricError,
-        config.PhysicsInputError, gaussians.RenderError, runs.RunError, interaction.InteractionError, video.VideoError,
+        physics.PhysicsInputError, scene.SceneError, gaussians.RenderError, runs.RunError, controls.InteractionError, video.VideoError,
         synth.SynthError, models.MissingWeights,
     ]
     assert [k.__name__ for k in kinds if not issubclass(k, InputError)] == []

@@ -18,7 +18,8 @@ TORCH_FREE = (
     "fluidcore.spec.reconstruct",
     "fluidcore.spec.simulation",
     "fluidcore.reconstruct",
-    "fluidcore.physics.config",
+    "fluidcore.spec.physics",
+    "fluidcore.spec.scene",
     "fluidcore.physics",
     "fluidcore.predict",
     "fluidcore.spec.controls",
@@ -148,25 +149,25 @@ def test_every_job_type_writes_the_run_kind_of_its_name() -> None:
 
 def test_the_smoke_mask_has_one_home() -> None:
     """Source estimate, physics identification, mirror agreement and flow confidence all take
-    the smoke where `init.smoke_mask` (or, with the contrast in hand, `init.is_smoke`) says."""
+    the smoke where `images.smoke_mask` (or, with the contrast in hand, `images.is_smoke`) says."""
     import torch
 
-    from fluidcore.reconstruct import flow, identify, init, loop, views
+    from fluidcore.reconstruct import flow, images, loop, scene_physics, views
 
-    for function in (loop.prepare, identify.scene_physics, views.mirror_agreement, flow.input_flow):
+    for function in (loop.prepare, scene_physics.scene_physics, views.mirror_agreement, flow.input_flow):
         text = inspect.getsource(function)
         assert "smoke_mask(" in text or "is_smoke(" in text, function.__name__
         assert "THRESHOLD" not in text and "threshold" not in inspect.signature(function).parameters, function.__name__
     frames = torch.tensor([[[[0.5, 0.5, 0.5], [0.5, 0.54, 0.5]], [[0.3, 0.9, 0.5], [0.51, 0.51, 0.51]]]])  # (1, 2, 2, 3)
     background, noise = torch.tensor([0.5, 0.5, 0.5]), torch.tensor([0.01, 0.01, 0.001])
-    assert init.smoke_mask(frames, background, noise).tolist() == [[[False, False], [True, True]]]  # 4 noise units are not smoke, 10 are (in the quietest channel)
+    assert images.smoke_mask(frames, background, noise).tolist() == [[[False, False], [True, True]]]  # 4 noise units are not smoke, 10 are (in the quietest channel)
 
 
 def test_the_wind_speed_limit_is_the_physics_configs() -> None:
     """`check_scene` asks PBFConfig for the speed limit instead of re-deriving it from h and dt."""
     from fluidcore.spec.controls import InteractionError, InteractionParams, WindParams
-    from fluidcore.physics.config import PBFConfig, Source
-    from fluidcore.runs import Scene
+    from fluidcore.spec.physics import PBFConfig, Source
+    from fluidcore.spec.scene import Scene
 
     assert "max_speed" not in inspect.getsource(InteractionParams.check_scene)
     for config in (PBFConfig(h=0.1, dt=0.05), PBFConfig(h=0.1, dt=0.05, max_speed=0.5)):
@@ -193,12 +194,12 @@ def test_a_what_if_needs_a_wind_or_a_ball_alike_at_the_api_and_in_the_job(tmp_pa
 
 
 def test_the_physics_mode_is_checked_where_it_is_interpreted() -> None:
-    """One check of the physics mode on the way from a request to the simulator: `scene_physics`."""
+    """One check of the physics mode on the way from a request to the simulator: `scene_prior`."""
     calls = [path for path, text in _sources("fluidcore").items() if "check_mode(" in text.replace("def check_mode(", "")]
-    assert calls == ["fluidcore/reconstruct/identify.py"]
-    from fluidcore.reconstruct import identify
+    assert calls == ["fluidcore/reconstruct/scene_physics.py"]
+    from fluidcore.reconstruct import scene_physics
 
-    assert inspect.getsource(identify).count("check_mode(") == 2  # its definition and its one call
+    assert inspect.getsource(scene_physics).count("check_mode(") == 2  # its definition and its one call
 
 
 def test_the_scene_box_falls_back_to_the_cameras_in_one_place() -> None:

@@ -16,7 +16,8 @@ from fastapi import APIRouter, HTTPException, Query, status
 from api.deps import OwnerDep, SessionDep, StorageDep
 from api.errors import error_responses
 from api.schemas import AirSample, ParticlesOut, RunScene
-from fluidcore.runs import FrameState, RunError, SavedAir, Scene, state_file
+from fluidcore.runs import FrameState, RunError, SavedAir, state_file
+from fluidcore.spec.scene import Scene
 from service import jobs
 from service.runs import stored_run
 from service.storage import ObjectNotFound, Storage, run_prefix

@@ -2,7 +2,7 @@
 
 Units: world lengths, seconds; density is dimensionless (1 = 8 particles per h^3, so the
 paper's rho0 values keep their meaning); gravity is scaled by `PBFConfig.length_scale`
-(see `config`). The density constraint is one-sided (only rho > rho0 is corrected), and the
+(see `fluidcore.spec.physics`). The density constraint is one-sided (only rho > rho0 is corrected), and the
 residual reported everywhere (StepStats, the benchmark) is max(0, rho/rho0 - 1).
 
 Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
@@ -15,10 +15,10 @@ buoyancy and the wind drive and that the particles drag towards.
 """
 
 from fluidcore.lazy import lazy_exports
-from fluidcore.physics.config import PRESETS, Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
+from fluidcore.spec.physics import PRESETS, Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
 
 # Everything below needs torch; it loads on first use, so torch-free callers (the API reading a
-# preset or a scene) can import this package and `fluidcore.physics.config`.
+# preset or a scene) can import this package and `fluidcore.spec.physics`.
 _LAZY = {
     "AirField": "forces",
     "AirGrid": "air",

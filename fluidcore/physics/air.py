@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from fluidcore.physics import checks
-from fluidcore.physics.config import Box, PBFConfig, PhysicsInputError, Sphere, Vec3
 from fluidcore.physics.forces import ForceField
+from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Sphere, Vec3
 from fluidcore.spec.simulation import AIR_CELLS  # the one range of the grid's cells, and why it is that
 
 MIN_CELLS_PER_AXIS = 2  # trilinear sampling and central differences need two cells on every axis
@@ -382,15 +382,6 @@ class AirGrid:
             shape = [n + (a == axis) for a, n in enumerate(self.shape)]
             self._coords[key] = face_coords(shape, axis, device)
         return self._coords[key]
-
-
-def scene_air(box: Box, config: PBFConfig, cells: int, force: ForceField | None = None,
-              vorticity: float = 0.0) -> AirGrid | None:
-    """The air grid of a scene with `cells` cells on its box's long side (0: None, still air), its
-    floor where the scene's gravity points, and vorticity confinement `vorticity` (AirGrid's
-    epsilon): reconstruction (S1) and prediction (S2) build it from the same settings, so a
-    continuation steps the air its parent saved (`AirGrid.resample` when the cells differ)."""
-    return AirGrid(box, cells, down=config.gravity, force=force, vorticity=vorticity) if cells else None
 
 
 def floor_face(down: Vec3) -> tuple[int, int]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import PhysicsInputError
+from fluidcore.spec.physics import PhysicsInputError
 
 
 def points(value: object, name: str, n: int | None = None) -> Tensor:

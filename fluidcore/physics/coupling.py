@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import Sphere
+from fluidcore.spec.physics import Sphere
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import PBFConfig
+from fluidcore.spec.physics import PBFConfig
 
 MAX_SLABS = 4096  # a slab per kernel radius; a scene taller than 4096 h is cut into coarser slabs
 

@@ -10,8 +10,8 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import PBFConfig, Vec3
 from fluidcore.physics.sph import differences, pair_geometry, poly6, spiky_gradient
+from fluidcore.spec.physics import PBFConfig, Vec3
 
 if TYPE_CHECKING:  # the edge type is only read here; physics imports nothing from the edge
     from fluidcore.spec.controls import WindParams

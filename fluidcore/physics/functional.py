@@ -12,13 +12,13 @@ import torch
 from torch import Tensor
 
 from fluidcore.physics import checks, fused, sph
-from fluidcore.physics.config import PBFConfig, PhysicsInputError
 from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.solver import residual
 from fluidcore.physics.sph import poly6
 from fluidcore.physics.step import advance, neighbour_list, use_fused
 from fluidcore.physics.verlet import NeighbourCache
+from fluidcore.spec.physics import PBFConfig, PhysicsInputError
 
 
 def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: ForceField | None = None,

@@ -11,9 +11,9 @@ import torch
 from torch import Tensor
 
 from fluidcore import kernels
-from fluidcore.physics.config import PBFConfig
 from fluidcore.physics.neighbours import NeighbourList, cell_coords, cell_table, encode
 from fluidcore.physics.solver import Solution
+from fluidcore.spec.physics import PBFConfig
 
 _i64, _f32, _int, _ptr = ctypes.c_int64, ctypes.c_float, ctypes.c_int, ctypes.c_void_p
 

@@ -9,11 +9,11 @@ import torch
 
 from fluidcore.physics import checks, source as seeding
 from fluidcore.physics.air import AirGrid, AirState, floor_face
-from fluidcore.physics.config import Box, PBFConfig, PhysicsInputError, Source, Sphere
 from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
 from fluidcore.physics.state import ParticleState
 from fluidcore.physics.step import BACKENDS, advance, use_fused
+from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Sphere
 
 
 @dataclass(frozen=True)
@@ -98,6 +98,13 @@ class Simulator:
             seeded=seeded,
             retired=slots.shape[0] - n_alive,
         )
+
+    def adopt_air(self, state: ParticleState) -> None:
+        """Put the air `state` carries onto this simulator's air grid (`AirGrid.resample`), so a
+        state saved on another grid (a continuation at other cells than its parent's) steps on
+        from its own air; nothing to do without a grid or without saved air."""
+        if isinstance(self.air, AirGrid) and state.air is not None:
+            state.air = self.air.resample(state.air)
 
     def stabilize(self, state: ParticleState, steps: int = 20) -> None:
         """Run `steps` steps ending at time 0 (the paper's N_stable = 20 before the first frame)."""

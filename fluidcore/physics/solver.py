@@ -18,9 +18,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import PBFConfig
 from fluidcore.physics.neighbours import NeighbourList
 from fluidcore.physics.sph import SELF_DENSITY, pair_geometry, poly6, spiky_gradient
+from fluidcore.spec.physics import PBFConfig
 
 
 @dataclass(frozen=True)

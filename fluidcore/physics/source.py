@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from fluidcore.physics.config import Source
+from fluidcore.spec.physics import Source
 
 _STEP_STRIDE = 1_000_003  # a prime: (seed, step) -> distinct generator seeds for any realistic run
 

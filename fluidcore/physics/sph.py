@@ -1,7 +1,7 @@
 """SPH kernels in the dimensionless density units of `config` (torch reference, differentiable).
 
 Density uses Poly6 and constraint gradients use the Spiky gradient (Macklin & Mueller 2013),
-both multiplied by (h/2)^3 so that density 1 means 8 particles per h^3 (see `config`).
+both multiplied by (h/2)^3 so that density 1 means 8 particles per h^3 (see `fluidcore.spec.physics`).
 Pairs are given as index tensors (i, j), i != j; the self term W(0) is added separately.
 """
 

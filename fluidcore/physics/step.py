@@ -25,12 +25,12 @@ from torch import Tensor
 
 from fluidcore.physics import coupling, entrainment, forces, fused
 from fluidcore.physics.checks import points
-from fluidcore.physics.config import PBFConfig, PhysicsInputError, Sphere
 from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.neighbours import NeighbourList, cell_table, neighbours_torch
 from fluidcore.physics.solver import solve_torch
 from fluidcore.physics.sph import density as sph_density
 from fluidcore.physics.verlet import NeighbourCache
+from fluidcore.spec.physics import PBFConfig, PhysicsInputError, Sphere
 
 BACKENDS = ("auto", "torch", "fused")
 

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from fluidcore.physics import fused
-from fluidcore.physics.config import PhysicsInputError
 from fluidcore.physics.neighbours import NeighbourList, neighbours_torch
+from fluidcore.spec.physics import PhysicsInputError
 
 
 class NeighbourCache:

@@ -5,14 +5,15 @@ the reconstruction's own last frames (the observed window only, never the future
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 import torch
 
-from fluidcore.physics import ParticleState, Simulator
-from fluidcore.runs import FrameState, Run, Scene
+from fluidcore.physics import ParticleState
+from fluidcore.physics.build import build_simulator
+from fluidcore.runs import FrameState, Run
 from fluidcore.smoke import SmokeState
+from fluidcore.spec.scene import Scene
 
 CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
 # candidate multiples of the preset buoyancy; never 0: smoke the video showed rising keeps rising
@@ -28,7 +29,8 @@ def calibrate_buoyancy(
     The preset alpha is a property of a dataset, not of this plume: a reconstruction whose column
     is denser than rest density feels no drag inside it (drag scales with 1 - rho/rho0), so with
     the preset buoyancy a free simulation accelerates the column well beyond the speed the video
-    showed. Each candidate re-simulates the window from the reconstructed state at its start and
+    showed. Each candidate re-simulates the window from the reconstructed state at its start (the
+    scene's air included, when it simulates one) and
     is scored by the mean squared distance, over every frame of the window, between simulated and
     reconstructed positions of the particles alive in both. Returns (scale, error per scale).
     """
@@ -37,11 +39,11 @@ def calibrate_buoyancy(
         return 1.0, {}
     targets = [parent.read_frame(t) for t in frames[1:]]
     begin = SmokeState.from_frame(parent.read_frame(frames[0]), device).particles
-    config, box, source = scene.simulator_parts()
     errors: dict[str, float] = {}
     for scale in scales:
-        simulator = Simulator(replace(config, alpha=config.alpha * scale), box, source, device=device)
+        simulator = build_simulator(scene.with_buoyancy_scaled(scale), device=device)
         state, total = begin.clone(), 0.0
+        simulator.adopt_air(state)
         for target in targets:
             simulator.step(state)
             total += _tracking_error(state, begin.alive, target)

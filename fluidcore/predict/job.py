@@ -28,15 +28,15 @@ from typing import TYPE_CHECKING
 
 from fluidcore.spec.controls import InteractionParams, Intervention, branch_frame, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
-from fluidcore.physics import Simulator
-from fluidcore.physics.air import AirGrid, scene_air
+from fluidcore.physics.build import build_simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
 from fluidcore.predict.priors import HeightProfile, refine_future
 from fluidcore.predict.rollout import Rollout, continued_scene, source_template
-from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind, Scene
+from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run, RunKind
 from fluidcore.smoke import SmokeState
 from fluidcore.spec.reconstruct import VisualSettings
+from fluidcore.spec.scene import Scene
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -173,7 +173,6 @@ def _write(
     n_frames = frame_range[1] - frame_range[0]
     params.check_scene(scene, n_frames)  # before anything is written
     visual_settings = parent.visual_settings()
-    air_cells, air_vorticity = _air_settings(parent)
     run = Run.create(
         out_dir,
         kind=request.kind,
@@ -195,13 +194,13 @@ def _write(
             priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
             wind=params.wind,
             ball=params.ball,
-            air_cells=air_cells,
-            air_vorticity=air_vorticity,
+            air_cells=scene.air.cells,
+            air_vorticity=scene.air.vorticity,
         ),
         parent=parent.path,
     )
     run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
-    rollout = _rollout(scene, start, params, visual_settings, device, profile, air_cells, air_vorticity)
+    rollout = _rollout(scene, start, params, visual_settings, device, profile)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
     for t in range(run.next_frame(), frame_range[1]):
         if context.should_cancel():
@@ -225,40 +224,25 @@ def _rollout(
     visual: VisualSettings,
     device: str,
     profile: HeightProfile | None,
-    air_cells: int = 0,
-    air_vorticity: float = 0.0,
 ) -> Rollout:
     """The simulator of the parent's scene with the interventions, ready to continue `start`.
 
     New frame 0 is the step that begins at the start state's time; the interventions' frame
-    numbers are counted from there. With `air_cells` the air is an `AirGrid` that the wind
-    pushes (instead of the wind's uniformly accelerated air); it continues the air saved with
-    `start` (still air when the parent frame holds none: a run written before the air was saved),
-    resampled onto this grid when the parent's lies on another.
+    numbers are counted from there. When the scene simulates the air, it is an `AirGrid` that
+    the wind pushes (instead of the wind's uniformly accelerated air); it continues the air saved
+    with `start` (still air when the parent frame holds none: a run written before the air was
+    saved), resampled onto this grid when the parent's lies on another.
     """
-    config, box, source = scene.simulator_parts()
-    applied = interventions(params, config, source, scene.up, start.particles.time)
-    air = scene_air(box, config, air_cells, applied.force, air_vorticity) or applied.air
-    if isinstance(air, AirGrid) and start.particles.air is not None:
-        start.particles.air = air.resample(start.particles.air)
+    applied = interventions(params, scene.physics, scene.source, scene.up, start.particles.time)
+    simulator = build_simulator(scene, device=device, force=applied.force, still_air=applied.air)
+    simulator.adopt_air(start.particles)
     return Rollout(
-        Simulator(config, box, source, force=applied.force, air=air, device=device),
-        source_template(start, source.center),
-        velocity_radius=visual.velocity_radius * config.h,
+        simulator,
+        source_template(start, scene.source.center),
+        velocity_radius=visual.velocity_radius * scene.physics.h,
         per_physical=visual.per_physical,
         seed=visual.seed,
         ball=applied.ball,
         profile=profile,
         opacity_concentration=visual.opacity_concentration,
     )
-
-
-def _air_settings(parent: Run) -> tuple[int, float]:
-    """The air grid's cells (0: still air) and vorticity confinement a continuation of `parent`
-    simulates with: a reconstruction's quality says them, a continuation passes them on."""
-    settings = parent.settings
-    if isinstance(settings, ReconstructSettings):
-        return settings.quality.simulation.air_cells, settings.quality.simulation.air_vorticity
-    return settings.air_cells, settings.air_vorticity
-
-

@@ -20,9 +20,9 @@ import numpy as np
 import torch
 
 from fluidcore.jobs import JobContext, JobInputError
-from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.runs import REFINED_RUN, AppearanceProfile, Run
 from fluidcore.smoke import Appearance, SmokeState
+from fluidcore.spec.scene import SourcePlace
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -109,12 +109,11 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     prediction started from, seeing only the input camera(s), and starts from the prediction's
     first frame. Stages: "refine futures" (per window batch), "reconstruct refined" (per frame).
     """
-    from fluidcore.run_frames import render_frames
+    from fluidcore.cameras import render_size
     from fluidcore.generative import models
     from fluidcore.generative.stages import GenerativeSettings, refine_frames
-    from fluidcore.reconstruct.job import fit
-    from fluidcore.reconstruct.loop import prepare, read_inputs
-    from fluidcore.cameras import render_size
+    from fluidcore.reconstruct.pipeline import Footage, reconstruct
+    from fluidcore.run_frames import render_frames
 
     settings = generative or GenerativeSettings()
     skipped = models.skip_reason(models.VIDEO, settings.models_root)
@@ -133,16 +132,13 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     refined, status = refine_frames(rough, settings, context.device, context.batch_progress(f"refinement of {run.path}"))
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
-    inputs = read_inputs(cameras, videos, frame_range=run.frame_range, quality=quality, device=context.device)
-    rec = prepare(  # the refined input views alone are the targets
-        cameras, inputs, fps=run.fps, quality=quality,
-        box=(np.asarray(scene.box_lo), np.asarray(scene.box_hi)), up=scene.up,
-        source=SourceHint(center=scene.source.center, radius=scene.source.radius),
-        physics=origin_settings.physics.mode, pseudo_views=False, device=context.device,
-    )
+    footage = Footage(cameras, videos, run.frame_range, run.fps, (np.asarray(scene.box_lo), np.asarray(scene.box_hi)),
+                      scene.up, SourcePlace.of(scene.source))
     first = run.frames()[0]
-    fit(rec, run.path / REFINED_RUN, context=context,
-        status={"refinement": status}, first_state=run.read_frame(first), stage="reconstruct refined")
+    reconstruct(  # the refined input views alone are the targets
+        footage, quality, run.path / REFINED_RUN, physics=origin_settings.physics.mode, pseudo_views=False,
+        first_state=run.read_frame(first), status={"refinement": status}, stage="reconstruct refined", context=context,
+    )
     return f"{status}; reconstructed on them from frame {first} in {REFINED_RUN}/"
 
 

@@ -28,8 +28,8 @@ from fluidcore.physics.coupling import push_out
 from fluidcore.predict.interventions import Ball
 from fluidcore.predict.priors import HeightProfile
 from fluidcore.reconstruct.physical import PositionProblem, visual_means
-from fluidcore.runs import Scene
 from fluidcore.smoke import Appearance, SmokeState, concentration
+from fluidcore.spec.scene import Scene
 
 TEMPLATE_SIZE = 64  # fitted Gaussians nearest the source whose appearance newborn Gaussians copy
 BIRTH_SPREAD = 0.25  # jitter of a newborn Gaussian around its physical particle, in kernel radii (as in S1)

@@ -2,7 +2,12 @@
 from one video or a few calibrated ones.
 
     job       `run_reconstruct`: the job the CLI, the worker and the benchmark run
-    init      background, smoke masks, source and length scale estimated from the input videos
+    pipeline  one reconstruction from decoded footage: read_inputs, novel views, prepare, fit
+    images    the input videos as images: resizing, background and noise, the one smoke mask
+    rays      the input cameras' ray geometry
+    source_estimate  the source's place estimated from the input videos
+    identify  the search for the scene's physics in the input view
+    scene_physics  what a reconstruction simulates with, by physics mode
     views     fitting targets: input views, pseudo-views (plume symmetry) and generated views
     physical  the position fit of one frame (L_sim + L_incomp + image loss through advection)
     visual    visual Gaussians: birth, advection, appearance fit with temporal regularisation

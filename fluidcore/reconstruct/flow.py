@@ -15,7 +15,7 @@ the working resolution. It is computed once, before frame 0, and asked per parti
                     the confidence there, in world units at the particle's depth and in
                     kernel radii squared (like L_sim).
 
-Flow is computed on the smoke's contrast (`init.smoke_contrast`, |frame - background| in units of
+Flow is computed on the smoke's contrast (`images.smoke_contrast`, |frame - background| in units of
 the video's noise) rather than on the frames, so a textured background (which does not move)
 cannot pull the flow towards zero.
 
@@ -35,7 +35,7 @@ import torch
 import torch.nn.functional as F
 
 from fluidcore.cameras import Camera
-from fluidcore.reconstruct.init import is_smoke, smoke_contrast
+from fluidcore.reconstruct.images import is_smoke, smoke_contrast
 
 CONTRAST_PERCENTILE = 99.5  # the smoke contrast mapped to 8-bit white (robust to a few hot pixels)
 FB_RELATIVE = 0.01  # forward-backward check (Sundaram et al. 2010): |f + b|^2 <= FB_RELATIVE (|f|^2 + |b|^2) + FB_ABSOLUTE
@@ -62,7 +62,7 @@ class FlowField:
 
 
 def contrast_images(contrast: np.ndarray) -> np.ndarray:
-    """uint8 (T, H, W) of the smoke's contrast (T, H, W) (`init.smoke_contrast`), its
+    """uint8 (T, H, W) of the smoke's contrast (T, H, W) (`images.smoke_contrast`), its
     CONTRAST_PERCENTILE over the video mapped to 255."""
     top = max(float(np.percentile(contrast, CONTRAST_PERCENTILE)), 1e-6)
     return np.clip(contrast * (255.0 / top), 0, 255).astype(np.uint8)
@@ -94,7 +94,7 @@ def consistent(forward: np.ndarray, backward: np.ndarray) -> np.ndarray:
 def input_flow(camera: Camera, frames: torch.Tensor, background: torch.Tensor, noise: torch.Tensor) -> FlowField:
     """DIS flow between consecutive `frames` ((T, H, W, C) float in [0, 1], `camera` at their
     resolution, `background` (H, W, C) or (C,), the video's `noise` (C,)), with the confidence of
-    the module docstring; a pixel is smoke where `fluidcore.reconstruct.init.smoke_mask` says so."""
+    the module docstring; a pixel is smoke where `fluidcore.reconstruct.images.smoke_mask` says so."""
     contrast = smoke_contrast(frames, background, noise)
     images, smoke = contrast_images(contrast), is_smoke(contrast)
     flows, confidences = [], []

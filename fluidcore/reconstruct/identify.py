@@ -23,7 +23,7 @@ per seeding (a second or two) and compares what the image fit cannot change late
 is. The search is coarse to fine (five buoyancies in log steps around one read off the video's
 rise speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
 widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
-image estimate of `fluidcore.reconstruct.init.estimate_source`, resting on the same bottom
+image estimate of `fluidcore.reconstruct.source_estimate.estimate_source`, resting on the same bottom
 edge, and its height half a radius either way, since a smoke edge biases both; then two finer
 buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
 choice unless one of its own candidates beats it. The rise is scored over the whole observed
@@ -37,7 +37,7 @@ The inflow speed is the terminal speed of the identified buoyancy (`identify` sa
 not searched on its own). The candidates' rollouts seed what their inlet carries at that speed at
 rest density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3); the reconstruction seeds the smoke volume the
 video shows leaving the inlet, at the observed rise speed where that is faster
-(`inflow_rate_speed` says why the two differ). Both are capped by the quality's particle budget. Drag and
+(`fluidcore.reconstruct.scene_physics.inflow_rate_speed` says why the two differ). Both are capped by the quality's particle budget. Drag and
 rest density stay the prior's (a silhouette says little about them); they are recorded as
 such. Smoke that rises in the video never gets zero buoyancy: candidates are positive by
 construction and `buoyancy_floor` bounds them below by the acceleration needed to hold the
@@ -56,9 +56,11 @@ from scipy import ndimage
 
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
-from fluidcore.physics import PRESETS, Box, PBFConfig, Simulator, Source
-from fluidcore.reconstruct.views import ViewTarget
-from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PhysicsRecord, PriorSource
+from fluidcore.physics import Box, PBFConfig, Source
+from fluidcore.physics.build import build_simulator
+from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PriorSource
+from fluidcore.spec.physics import Vec3
+from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES
 
 MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
@@ -104,7 +106,7 @@ class Observation:
     def from_masks(cls, camera: Camera, masks: np.ndarray, cell: int, center: np.ndarray, up: np.ndarray) -> Observation:
         """Pool (T, H, W) bool masks into cells of `cell` x `cell` pixels; heights are measured
         along the direction in which `up` points in the image at `center`."""
-        from fluidcore.reconstruct.init import image_up
+        from fluidcore.reconstruct.rays import image_up
 
         t, h, w = masks.shape
         gh, gw = h // cell, w // cell
@@ -172,13 +174,39 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
 Candidate = tuple[float, float, float, float]
 
 
+@dataclass(frozen=True)
+class ScenePrior:
+    """A scene before its physics is chosen: box, up and air as the reconstruction sets them, the
+    physics mode (`PHYSICS_MODES`) and its prior preset's physics in this scene's units, and
+    where the source was estimated to be (`place`); what the source seeds, and how fast, is what
+    the physics decides. `seed` seeds the source's particles."""
+
+    box: Box
+    up: Vec3  # unit length
+    air: Air
+    mode: str
+    physics: PBFConfig
+    place: SourcePlace
+    seed: int
+
+    @property
+    def preset(self) -> str:
+        return PHYSICS_MODES[self.mode]
+
+    def scene(self, physics: PBFConfig, place: SourcePlace, rate: int, velocity: np.ndarray) -> Scene:
+        """This scene under `physics`, its source at `place` seeding `rate` particles per step at `velocity`."""
+        source = Source(place.center, place.radius, rate, tuple(float(c) for c in velocity), self.seed)
+        return Scene(self.box.lo, self.box.hi, self.up, physics, source, self.air)
+
+
 class _Search:
     """Rollouts of candidates (cached per candidate) scored against the observation's first
-    frames (cached per candidate and window)."""
+    frames (cached per candidate and window). Each rollout simulates the prior's scene (its air
+    included) under the candidate's physics."""
 
-    def __init__(self, observation: Observation, config: PBFConfig, box: Box, source: Source, up: np.ndarray,
-                 budget: int, device: torch.device | str) -> None:
-        self.observation, self.config, self.box, self.source = observation, config, box, source
+    def __init__(self, observation: Observation, prior: ScenePrior, up: np.ndarray, budget: int,
+                 device: torch.device | str) -> None:
+        self.observation, self.prior = observation, prior
         self.up, self.budget, self.device = up, budget, device
         self.frames = min(len(observation.cells), MAX_FRAMES)
         self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (MAX_AGE + frames, gh, gw) bool
@@ -198,28 +226,29 @@ class _Search:
         key, frames = _key(candidate), self.frames if frames is None else min(frames, self.frames)
         if (key, frames) not in self.scores:
             if key not in self.rollouts:
-                config, source = self.parts(key)
-                self.rollouts[key] = [self._simulate(config, replace(source, seed=source.seed + k)) for k in range(ROLLOUT_SEEDS)]
+                scene = self.scene(key)
+                self.rollouts[key] = [self._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k)))
+                                      for k in range(ROLLOUT_SEEDS)]
             scores = np.mean([self._age_scores(simulated, frames) for simulated in self.rollouts[key]], axis=0)
             age = int(np.argmin(scores))
             self.scores[(key, frames)] = (float(scores[age]), age)
         return self.scores[(key, frames)]
 
-    def parts(self, candidate: Candidate) -> tuple[PBFConfig, Source]:
-        """The simulator's config and source of a candidate (inflow at its terminal speed)."""
+    def scene(self, candidate: Candidate) -> Scene:
+        """The scene a candidate simulates (inflow at its terminal speed)."""
         buoyancy, lift, radius_factor, spreading = candidate
-        config = replace(with_buoyancy(self.config, buoyancy, self.up), entrainment=spreading)
+        config = replace(with_buoyancy(self.prior.physics, buoyancy, self.up), entrainment=spreading)
         speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
-        radius = self.source.radius * radius_factor
-        center = np.asarray(self.source.center) + lift * self.source.radius * self.up
+        place = self.prior.place
+        radius = place.radius * radius_factor
+        center = np.asarray(place.center) + lift * place.radius * self.up
         rate = inlet_rate(radius, speed, config, self.budget)
-        return config, replace(self.source, center=tuple(float(c) for c in center), radius=radius, rate=rate,
-                               velocity=tuple(float(c) for c in speed * self.up))
+        return self.prior.scene(config, SourcePlace(tuple(float(c) for c in center), radius), rate, speed * self.up)
 
-    def _simulate(self, config: PBFConfig, source: Source) -> np.ndarray:
-        """(MAX_AGE + frames, gh, gw) bool: the cells a rollout from an empty box covers after
-        each step (index k = after k + 1 steps)."""
-        simulator = Simulator(config, self.box, source, device=self.device)
+    def _simulate(self, scene: Scene) -> np.ndarray:
+        """(MAX_AGE + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
+        after each step (index k = after k + 1 steps)."""
+        simulator = build_simulator(scene, device=self.device)
         state = simulator.new_state()
         projected = []
         for _ in range(MAX_AGE + self.frames):
@@ -254,13 +283,9 @@ def with_buoyancy(config: PBFConfig, buoyancy: float, up: np.ndarray) -> PBFConf
 
 def identify(
     observation: Observation,
-    config: PBFConfig,
-    box: Box,
-    source: Source,
-    up: Sequence[float],
+    prior: ScenePrior,
     budget: int,
     device: torch.device | str = "cpu",
-    prior_name: str = "",
     spreading_rates: Sequence[float] = SPREADING_RATES,
 ) -> IdentifiedRecord:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
@@ -268,23 +293,24 @@ def identify(
     The inflow speed is the buoyancy's terminal speed rather than a search dimension of its own:
     on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
     buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
-    not pin it down. `config` and `source` are the prior (the preset in this scene's units, the estimated
-    source); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
+    not pin it down. `prior` is the scene to start from (the preset in this scene's units, the estimated
+    source's place); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
     spreading rates tried, the first one before the others (`(0.0,)`: no entrainment).
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
-    up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    speed_obs = rise_speed(observation, np.asarray(source.center), 1.0 / config.dt)
+    config, place = prior.physics, prior.place
+    up_v = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+    speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
     prior_buoyancy = float(np.dot(config.body_acceleration, up_v))
     floor = buoyancy_floor(speed_obs, config.drag)
     base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
-    search = _Search(observation, config, box, source, up_v, budget, device)
+    search = _Search(observation, prior, up_v, budget, device)
     best = _best(search, None, [(base * f, 0.0, 1.0, spreading_rates[0]) for f in BUOYANCY_FACTORS], floor)
     a = best[0]
     best = _best(search, best, [(a, 0.0, 1.0, rate) for rate in spreading_rates], floor)
     spreading = best[3]
-    # A resized source keeps resting on the smoke's bottom edge (init.source_in_view): its centre
+    # A resized source keeps resting on the smoke's bottom edge (source_estimate.source_in_view): its centre
     # moves up by (size - 1) radii; only then is the height searched on its own. Both over the
     # first SOURCE_FRAMES frames only (see there).
     best = _best(search, best, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor, SOURCE_FRAMES)
@@ -294,13 +320,13 @@ def identify(
         a, lift, size, spreading = best
         best = _best(search, best, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
     misfit, age = search.misfit(best)
-    _, fitted = search.parts(best)
-    prior = IdentificationPrior(preset=prior_name, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
-                                held_from_prior=("drag", "rho0"), inflow_speed="buoyancy / drag", budget=budget,
-                                source=PriorSource(center=source.center, radius=source.radius))
+    fitted = search.scene(best).source
+    record = IdentificationPrior(preset=prior.preset, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
+                                 held_from_prior=("drag", "rho0"), inflow_speed="buoyancy / drag", budget=budget,
+                                 source=PriorSource(center=place.center, radius=place.radius))
     return IdentifiedRecord(buoyancy=max(best[0], floor), inflow_speed=float(np.dot(fitted.velocity, up_v)), rate=fitted.rate,
                             age=age, misfit=misfit, rise_speed=speed_obs, floor=floor, evaluations=len(search.rollouts),
-                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=prior)
+                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=record)
 
 
 def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], floor: float,
@@ -312,108 +338,3 @@ def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], f
     candidates = [] if incumbent is None else [incumbent]
     candidates += [c for c in ((max(b, floor, 1e-6), lift, size, rate) for b, lift, size, rate in grid) if search.has_room(c)]
     return min(candidates, key=lambda c: search.misfit(c, frames)[0])
-
-
-# -- what a reconstruction simulates with ---------------------------------------------------------
-KERNEL_RADII_PER_BOX = 37.5  # resolution: the scene box's height spans this many kernel radii
-KERNEL_RADIUS_SIM = 2.0  # h in the presets' simulation units (the release: 0.02 world = 2 units), so
-# length_scale = 2 / h converts a preset's alpha; an identified buoyancy is in world units already
-PRESET_STABILIZATION_STEPS = 20  # the paper's N_stable, used when the physics is not identified
-
-
-def inflow_rate_speed(terminal_speed: float, rise_speed: float) -> float:
-    """The speed at which the reconstruction's inlet is filled (`inlet_rate`): the observed smoke's
-    rise speed where it is faster than the inflow's terminal speed, so the source seeds the smoke
-    volume the video shows leaving it (its area times that speed) although the identified
-    buoyancy sits on its floor, half the drag times that speed.
-
-    Measured (docs/bench_generalise.md, "The inflow rate at the observed rise speed"): ScalarFlow's
-    inlet went from 6 to 12 particles a step and its novel views and future gained on the
-    mean of seeds 0-2; D and F were at the preview's budget at the terminal speed already and
-    did not change. The identification's rollouts keep the terminal speed's rate: with the
-    doubled rate there too, ScalarFlow's plume age fell from 12 to 4 steps and both seeds tried
-    lost their gain (the misfit reads where smoke is, which more particles reach sooner, not
-    how much of it there is).
-    """
-    if not math.isfinite(rise_speed):
-        return terminal_speed
-    return max(terminal_speed, rise_speed)
-
-
-class PhysicsChoiceError(InputError):
-    """An unknown --physics mode; the message names the choices."""
-
-
-@dataclass(frozen=True)
-class ScenePhysics:
-    """The physics a reconstruction (and every prediction from it) simulates with."""
-
-    config: PBFConfig
-    source: Source
-    stabilization_steps: int  # steps the source emits before frame 0
-    record: PhysicsRecord  # for the manifest: mode, prior preset, identified values
-
-
-def check_mode(mode: str) -> str:
-    if mode not in PHYSICS_MODES:
-        raise PhysicsChoiceError(f"physics must be one of {', '.join(PHYSICS_MODES)}, got {mode!r}")
-    return mode
-
-
-def scene_physics(
-    mode: str,
-    view: ViewTarget,
-    center: np.ndarray,
-    radius: float,
-    box: Box,
-    up: np.ndarray,
-    fps: float,
-    budget: int,
-    seed: int,
-    device: torch.device | str = "cpu",
-    *,
-    entrainment: bool,
-) -> ScenePhysics:
-    """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
-    background and noise), with the source estimated at (center, radius).
-
-    The kernel radius is a resolution choice in the scene's own units (its box's height over
-    KERNEL_RADII_PER_BOX); the buoyancy, source and plume age come from `identify` when `mode` is
-    "auto", in world units, so no length scale of another dataset enters them; a preset name
-    keeps that preset's buoyancy (the paper's setting for its datasets). `entrainment`: whether the
-    identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's
-    column. The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
-    carries at rest density (`inlet_rate`, capped by `budget`) at the faster of that speed and
-    the rise speed of the observed smoke (`inflow_rate_speed`).
-    """
-    from fluidcore.reconstruct.init import smoke_mask
-
-    prior_name = PHYSICS_MODES[check_mode(mode)]
-    h = float(np.abs(np.subtract(box.hi, box.lo)) @ np.abs(up)) / KERNEL_RADII_PER_BOX
-    gravity = tuple(float(c) for c in -9.8 * up)
-    prior = replace(PRESETS[prior_name], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
-    source = Source(tuple(float(c) for c in center), max(radius, 0.5 * h), 1, (0.0, 0.0, 0.0), seed)
-    found = None
-    observed_rise = 0.0  # a preset's inlet is filled at its own terminal speed
-    if mode == "auto":
-        camera = view.camera
-        masks = smoke_mask(view.frames, view.background, view.noise)
-        depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
-        cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
-        observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, box, source, up, budget, device, prior_name,
-                         SPREADING_RATES if entrainment else (0.0,))
-        config = replace(with_buoyancy(prior, found.buoyancy, up), entrainment=found.entrainment)
-        source = replace(source, center=tuple(found.source_center), radius=found.source_radius)
-        steps = found.age + 1  # identified frame t = after age + t + 1 steps
-        observed_rise = found.rise_speed
-    else:
-        config, steps = prior, PRESET_STABILIZATION_STEPS
-    buoyancy = float(np.dot(config.body_acceleration, up))
-    speed = config.terminal_speed
-    carried = inflow_rate_speed(speed, observed_rise)
-    source = replace(source, rate=inlet_rate(source.radius, carried, config, budget), velocity=tuple(float(c) for c in speed * up))
-    record = PhysicsRecord(mode=mode, prior_preset=prior_name, kernel_radius=h, identified=found, buoyancy=buoyancy,
-                           inflow_speed=speed, inflow_rate=source.rate, inflow_rate_speed=carried, drag=config.drag,
-                           rho0=config.rho0, entrainment=config.entrainment, stabilization_steps=steps)
-    return ScenePhysics(config, source, steps, record)

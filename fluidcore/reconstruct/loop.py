@@ -42,19 +42,21 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
-from fluidcore.physics import Box, PBFConfig, Simulator, Source, interpolate_velocity
-from fluidcore.physics.air import scene_air
-from fluidcore.reconstruct import init
+from fluidcore.physics import Box, interpolate_velocity
+from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.identify import scene_physics
+from fluidcore.reconstruct.images import estimate_background, resize_image, smoke_mask, to_float
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
+from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
+from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source, source_frames
 from fluidcore.reconstruct.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import PhysicsRecord, ReconstructSettings, Run, RunKind, Scene, SourceEstimateRecord, SymmetryRecord
+from fluidcore.runs import PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import MIN_FIT_SIDE, ReconstructConfig
+from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import DEFAULT_PHYSICS
 
 FrameCallback = Callable[[int, dict[str, float]], None]
@@ -91,12 +93,9 @@ class Reconstruction:
     background_color: np.ndarray
     background_images: dict[str, np.ndarray]
     smoke_color: np.ndarray
-    config: PBFConfig
-    box: Box
-    source: Source
-    up: np.ndarray
+    scene: Scene  # what the reconstruction simulates, and every prediction from it
     quality: ReconstructConfig
-    physics: PhysicsRecord  # how the physics was chosen (fluidcore.reconstruct.identify)
+    physics: PhysicsRecord  # how the physics was chosen (fluidcore.reconstruct.scene_physics)
     stabilization_steps: int
     symmetry: SymmetryRecord | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
     source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
@@ -104,22 +103,13 @@ class Reconstruction:
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
     @property
-    def fit_config(self) -> PBFConfig:
-        """The physics the fit steps with: the scene's without entrainment. The plume's spreading
+    def fit_scene(self) -> Scene:
+        """The scene the fit steps: the scene without entrainment. The plume's spreading
         (`PBFConfig.entrainment`, identified from the input view) is for the free simulation
         that continues the fit; inside the fit it spread the particles along the input ray, which
         one view does not pin back (dev scene F, seed 0: novel views 32.20 -> 31.30 dB with it,
         docs/bench_generalise.md, "Entrainment")."""
-        return replace(self.config, entrainment=0.0)
-
-    def scene(self) -> Scene:
-        return Scene(
-            box_lo=self.box.lo,
-            box_hi=self.box.hi,
-            up=tuple(map(float, self.up)),
-            physics=self.config,
-            source=self.source,
-        )
+        return replace(self.scene, physics=replace(self.scene.physics, entrainment=0.0))
 
     def settings(self) -> ReconstructSettings:
         return ReconstructSettings(
@@ -159,11 +149,11 @@ def read_inputs(
     for name, frames in videos.items():
         camera = cameras[name]
         width, height = render_size(camera.width, camera.height, quality.fit.long_side)
-        data = init.to_float(frames, channels)
-        data = np.stack([init.resize_image(f, width, height) for f in data])
-        background = init.estimate_background(data)
+        data = to_float(frames, channels)
+        data = np.stack([resize_image(f, width, height) for f in data])
+        background = estimate_background(data)
         if background.image is not None:
-            backgrounds[name] = init.resize_image(background.image, camera.width, camera.height)
+            backgrounds[name] = resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
         noise = torch.from_numpy(background.noise).to(device)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device), noise))
@@ -178,7 +168,7 @@ def prepare(
     quality: ReconstructConfig,
     box: tuple[np.ndarray, np.ndarray],
     up: Sequence[float] = (0.0, 1.0, 0.0),
-    source: SourceHint | None = None,
+    source: SourceHint | SourcePlace | None = None,
     physics: str = DEFAULT_PHYSICS,
     extra_views: Sequence[ViewTarget] = (),
     pseudo_views: bool = True,
@@ -187,48 +177,47 @@ def prepare(
     """Background, source and physics for reconstructing `inputs`, and every view it fits.
 
     `source` is where the user knows the source to be (its radius, if not given, is measured at
-    that depth); otherwise it is estimated from the first frames. `physics` is "auto" (identified from the first input view,
+    that depth), or the place of the source of a run this one refines; otherwise it is estimated
+    from the first frames. `physics` is "auto" (identified from the first input view,
     fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
     (the generative novel views of a single input view): those of kind "generated" join the
-    source estimate's triangulation at their loss weight (`init.estimate_source`), so the
+    source estimate's triangulation at their loss weight (`estimate_source`), so the
     identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
     (a refinement fits its refined input views only).
     """
     targets, channels = list(inputs.targets), inputs.channels
     def first_second(view: ViewTarget) -> np.ndarray:  # the smoke the source estimate and the smoke colour read
-        return init.smoke_mask(view.frames[: init.source_frames(fps, len(view.frames))], view.background, view.noise)
+        return smoke_mask(view.frames[: source_frames(fps, len(view.frames))], view.background, view.noise)
 
     masks = {v.camera.name: first_second(v) for v in targets}
     up_v = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
     background_color = np.median([v.background.reshape(-1, channels).median(0).values.cpu().numpy() for v in targets], axis=0)
     smoke_color = _smoke_color(targets, masks, background_color)
 
-    if source is not None:
+    if isinstance(source, SourceHint):
         source.check_in_box(*box)
+    place = source.place if isinstance(source, SourceHint) else source
     estimate_record = None
-    if source is None or source.radius is None:
+    if place is None:
         generated = [  # the novel-view model's views close the depth one input view leaves open
-            init.GeneratedView(v.camera, first_second(v), v.weight)
+            GeneratedView(v.camera, first_second(v), v.weight)
             for v in extra_views if v.kind == "generated"
         ]
-        estimate = init.estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
-        center, radius = estimate.center, estimate.radius
+        estimate = estimate_source(cameras, masks, box, up_v, None if source is None else source.center, generated)
+        place = estimate.place
         estimate_record = SourceEstimateRecord(
             depth_cue=estimate.depth_cue,
             depth_range=None if estimate.depth_range is None else tuple(tuple(map(float, p)) for p in estimate.depth_range),
             pixels={name: tuple(map(float, px)) for name, px in estimate.pixels.items()},
             generated=estimate.generated,
         )
-    else:
-        center, radius = np.asarray(source.center, dtype=np.float64), float(source.radius)
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    chosen = scene_physics(physics, first, np.asarray(center, np.float64), radius,
-                           sim_box, up_v, fps, quality.fit.particles_per_frame, quality.seed, device,
-                           entrainment=quality.simulation.entrainment)
-    config, src = chosen.config, chosen.source
-    center = np.asarray(src.center)
+    prior = scene_prior(physics, sim_box, up_v, fps, place, Air(quality.simulation.air_cells, quality.simulation.air_vorticity), quality.seed)
+    chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
+                           device=device)
+    center = np.asarray(chosen.scene.source.center)
     pseudo, symmetry = [], None
     priors = quality.priors
     if priors.symmetry_views > 0 and len(targets) == 1:  # real views from other directions beat a symmetry guess
@@ -248,16 +237,13 @@ def prepare(
         background_color=background_color.astype(np.float32),
         background_images=inputs.background_images,
         smoke_color=smoke_color,
-        config=config,
-        box=sim_box,
-        source=src,
-        up=up_v,
+        scene=chosen.scene,
         quality=quality,
         physics=chosen.record,
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
         flow=flow,
-        source_hint=None if source is None else source.model_dump(mode="json"),
+        source_hint=None if source is None else source.to_json(),
         source_estimate=estimate_record,
     )
 
@@ -281,11 +267,9 @@ class Reconstructor:
     def __init__(self, rec: Reconstruction, device: str | torch.device = "cpu") -> None:
         self.rec = rec
         self.device = torch.device(device)
-        # with simulation.air_cells the air is part of the state: stepped from the fitted particles of
+        # with the scene's air the air is part of the state: stepped from the fitted particles of
         # each frame, saved with it, and continued by every prediction and branch of the run
-        simulation = rec.quality.simulation
-        air = scene_air(rec.box, rec.fit_config, simulation.air_cells, vorticity=simulation.air_vorticity)
-        self.simulator = Simulator(rec.fit_config, rec.box, rec.source, air=air, device=self.device)
+        self.simulator = build_simulator(rec.fit_scene, device=self.device)
 
     def open_run(self, out_dir) -> Run:
         rec = self.rec
@@ -298,7 +282,7 @@ class Reconstructor:
             fps=rec.fps,
             channels=rec.channels,
             background_color=rec.background_color.tolist(),
-            scene=rec.scene(),
+            scene=rec.scene,
             settings=rec.settings(),
         )
         if rec.background_images and not run.background_images():
@@ -323,7 +307,7 @@ class Reconstructor:
     # -- one frame ----------------------------------------------------------------------
     def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
         """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
-        rec, config = self.rec, self.rec.fit_config
+        rec, config = self.rec, self.simulator.config
         q, fit, visual, lr = rec.quality, rec.quality.fit, rec.quality.visual, rec.quality.optimiser
         index = t - rec.frame_range[0]
         seed = q.seed * 1_000_003 + t
@@ -376,7 +360,7 @@ class Reconstructor:
         state.positions[slots] = p
         state.velocities[slots] = velocities
         losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
-        smoke = SmokeState(state, means, appearance).cropped(rec.box.lo, rec.box.hi)
+        smoke = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
         return smoke, losses
 

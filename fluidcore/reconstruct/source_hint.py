@@ -1,6 +1,6 @@
 """Where the smoke comes from, when the user knows it: the one parameter model of a source hint.
 
-One view leaves the source's depth open (`fluidcore.reconstruct.init.estimate_source` puts it
+One view leaves the source's depth open (`fluidcore.reconstruct.source_estimate.estimate_source` puts it
 where the input ray passes closest to the box's vertical axis), and the whole 3D plume inherits
 that guess: on the dev scene a source 4 cm off that axis costs 8 dB of novel-view PSNR
 (docs/bench_generalise.md). Someone who measured their rig can say where the source is.
@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from pydantic import BaseModel, ConfigDict, Field
 
 from fluidcore.errors import InputError
+from fluidcore.spec.scene import SourcePlace
 
 Vec3 = tuple[float, float, float]
 
@@ -33,6 +34,15 @@ class SourceHint(BaseModel):
 
     center: Vec3
     radius: float | None = Field(default=None, gt=0.0)
+
+    @property
+    def place(self) -> SourcePlace | None:
+        """The whole place when the radius is given; None when it is to be measured."""
+        return None if self.radius is None else SourcePlace(self.center, self.radius)
+
+    def to_json(self) -> dict:
+        """The manifest's record of the hint (`ReconstructSettings.source_hint`)."""
+        return self.model_dump(mode="json")
 
     def check_in_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
         """The centre must lie in the scene box (where the reconstruction simulates)."""

@@ -33,7 +33,7 @@ class ViewTarget:
     camera: Camera  # at the working (finest) resolution of `frames`
     frames: torch.Tensor  # (T, H, W, C) float32 in [0, 1]
     background: torch.Tensor  # (H, W, C) or (C,)
-    noise: torch.Tensor  # (C,) the video's noise per channel (init.Background.noise): the smoke mask's unit
+    noise: torch.Tensor  # (C,) the video's noise per channel (images.Background.noise): the smoke mask's unit
     weight: float = 1.0
     kind: str = "input"  # "input" | "symmetry" | "generated"
 
@@ -98,13 +98,14 @@ def symmetry_support(agreement: float) -> float:
 def mirror_agreement(view: ViewTarget, center: np.ndarray, up: np.ndarray) -> float:
     """How much the view's smoke looks like its own mirror image about the plume's axis: the
     mean over frames with smoke of IoU(mask, mask mirrored about the image line through the
-    source along up); masks are `fluidcore.reconstruct.init.smoke_mask`.
+    source along up); masks are `fluidcore.reconstruct.images.smoke_mask`.
 
     An axisymmetric plume projects to a mirror-symmetric image from any side, so a low score
     says the symmetry prior is wrong for this plume (a high one cannot prove it right: one view
     never sees the depth). It scales the symmetry pseudo-views' weight (fluidcore.reconstruct.loop).
     """
-    from fluidcore.reconstruct.init import image_up, smoke_mask
+    from fluidcore.reconstruct.images import smoke_mask
+    from fluidcore.reconstruct.rays import image_up
 
     camera = view.camera
     (origin,), _ = camera.project_numpy(np.asarray(center, dtype=np.float64)[None])

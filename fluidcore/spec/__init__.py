@@ -5,6 +5,6 @@ The CLI, the API, the worker and the benchmarks build these objects at their edg
 down as they are; the run record stores them as they are. Modules: `reconstruct` (what a
 reconstruction spends and fits: `ReconstructConfig`, the quality presets), `simulation` (what the
 simulator adds beyond the fit: the air, the plume's spreading), `scene` (what a simulator is built
-from), `controls` (the interventions of a what-if), `jobs` (the parameters of each job type,
-composed from the others).
+from), `physics` (the physics constants and scene primitives a scene holds), `controls` (the
+interventions of a what-if), `jobs` (the parameters of each job type, composed from the others).
 """

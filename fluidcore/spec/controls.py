@@ -178,7 +178,7 @@ class _Source(Protocol):  # fluidcore.physics.Source
 
 
 class RunScene(Protocol):
-    """What `InteractionParams.check_scene` reads of a run's scene: `fluidcore.runs.Scene`
+    """What `InteractionParams.check_scene` reads of a run's scene: `fluidcore.spec.scene.Scene`
     (named by what it holds, since fluidcore.runs imports this module)."""
 
     box_lo: Vec3
@@ -198,7 +198,7 @@ class InteractionParams(BaseModel):
 
     def check_scene(self, scene: RunScene, frames: int) -> None:
         """Reject parameters that are valid in general but meaningless in this run's scene
-        (`fluidcore.runs.Scene`, torch-free, so the API can refuse a job before queueing it; the
+        (`fluidcore.spec.scene.Scene`, torch-free, so the API can refuse a job before queueing it; the
         prediction job asks the same before it writes anything).
 
         A wind is absurd when, at its peak inside the box, it alone would take a particle at

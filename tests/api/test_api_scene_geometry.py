@@ -13,10 +13,10 @@ from fastapi.testclient import TestClient
 
 from fluidcore import cameras, scene_info
 from fluidcore.cameras.single import single_camera
-from fluidcore.physics.config import PBFConfig, Source
 from fluidcore.runs import ReconstructSettings, Run, SourceEstimateRecord
-from fluidcore.runs import Scene as RunScene
+from fluidcore.spec.physics import PBFConfig, Source
 from fluidcore.spec.reconstruct import get
+from fluidcore.spec.scene import Scene as RunScene
 from service.database import session_scope
 from service.models import Job, JobState, Scene
 from service.storage import run_prefix

@@ -11,8 +11,7 @@ import pytest
 import torch
 
 from fluidcore import synth
-from fluidcore.physics import Simulator
-from fluidcore.physics.air import scene_air
+from fluidcore.physics.build import build_simulator
 from fluidcore.predict import run_predict, run_resimulate
 from fluidcore.reconstruct import Reconstructor, prepare, read_inputs
 from fluidcore.runs import AIR_FIELDS, FrameState, Run, RunError, SavedAir, state_file
@@ -81,8 +80,9 @@ def test_the_numpy_sampler_reads_the_air_as_the_simulator_does(airy: Path) -> No
     """SavedAir.velocity_at (torch-free, for exports and the API) against AirGrid.velocity_at."""
     run = Run.open(airy)
     saved = run.read_frame(2)
-    config, box, _ = run.scene.simulator_parts()
-    grid = scene_air(box, config, CELLS)
+    assert run.scene.air.cells == CELLS  # the run's scene carries the air its settings record
+    grid = build_simulator(run.scene).air
+    box = run.scene.box
     air = SmokeState.from_frame(saved, "cpu").particles.air
     points = torch.rand(500, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     lo, hi = torch.tensor(box.lo, dtype=torch.float64), torch.tensor(box.hi, dtype=torch.float64)
@@ -112,9 +112,8 @@ def test_resimulation_starts_from_the_first_frames_air_and_steps_it(airy: Path, 
     parent = Run.open(airy)
     resim = Run.open(run_resimulate(airy, tmp_path / "resim"))
     assert faces_equal(resim.read_frame(0).air, parent.read_frame(0).air)
-    config, box, source = resim.scene.simulator_parts()
     state = SmokeState.from_frame(parent.read_frame(0), "cpu").particles
-    Simulator(config, box, source, air=scene_air(box, config, CELLS)).step(state)
+    build_simulator(resim.scene).step(state)
     np.testing.assert_allclose(resim.read_frame(1).air.faces[1], state.air.faces[1].numpy(), atol=1e-6)
 
 

@@ -17,8 +17,8 @@ from fluidcore.spec.controls import (
     branch_frame,
     parse_interaction,
 )
-from fluidcore.physics.config import PBFConfig, Source
-from fluidcore.runs import RunError, Scene
+from fluidcore.spec.physics import PBFConfig, Source
+from fluidcore.spec.scene import Scene, SceneError
 
 FRAMES = 30
 LO, HI = (-1.0, 0.0, -1.0), (1.0, 2.0, 1.0)
@@ -135,7 +135,7 @@ def test_run_scene_from_a_manifest_is_checked_without_torch() -> None:
         InteractionParams(wind=WindParams(direction=(1, 0, 0), strength=950.0)).check_scene(manifest_scene, frames=10)
     with pytest.raises(InteractionError, match="ball.center"):
         InteractionParams(ball=BallParams(center=(0.0, -0.5, 0.0), radius=0.1)).check_scene(manifest_scene, frames=10)
-    with pytest.raises(RunError, match="scene: malformed"):
+    with pytest.raises(SceneError, match="scene: malformed"):
         Scene.from_json({"box": {}})
 
 

@@ -8,28 +8,29 @@ visual Gaussian per physical particle. A run that is pure physics has a known re
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
 from fluidcore.physics import ParticleState, Simulator
-from fluidcore.physics.air import scene_air
-from fluidcore.runs import FrameState, PhysicsRecord, ReconstructSettings, Run, RunKind, Scene
+from fluidcore.physics.build import build_simulator
+from fluidcore.runs import FrameState, PhysicsRecord, ReconstructSettings, Run, RunKind
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import get
+from fluidcore.spec.scene import Air, Scene
 from fluidcore.synth import SynthSpec, particle_gaussians
 
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
 
 
-def scene_of(spec: SynthSpec = SPEC) -> Scene:
-    box = spec.box()
-    return Scene(box.lo, box.hi, (0.0, 1.0, 0.0), spec.config(), spec.source())
+def scene_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Scene:
+    """The plume's scene; with `air_cells` it simulates the air, as a reconstruction does."""
+    return replace(spec.scene(), air=Air(air_cells))
 
 
 def simulator_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Simulator:
-    """The plume's simulator; with `air_cells` it simulates the air, as a reconstruction does."""
-    return Simulator(spec.config(), spec.box(), spec.source(), air=scene_air(spec.box(), spec.config(), air_cells))
+    return build_simulator(scene_of(spec, air_cells))
 
 
 def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:

@@ -7,8 +7,9 @@ import numpy as np
 
 from fluidcore.cameras import Camera
 from fluidcore.physics import PBFConfig, Source
-from fluidcore.runs import FrameState, ReconstructSettings, Run, Scene
+from fluidcore.runs import FrameState, ReconstructSettings, Run
 from fluidcore.spec.reconstruct import get
+from fluidcore.spec.scene import Scene
 
 
 def _camera(name: str = "cam") -> Camera:

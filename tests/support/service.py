@@ -286,9 +286,10 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     import tempfile
 
     from fluidcore.cameras import Camera
-    from fluidcore.physics.config import PBFConfig, Source
-    from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind, Scene
+    from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind
+    from fluidcore.spec.physics import PBFConfig, Source
     from fluidcore.spec.reconstruct import get
+    from fluidcore.spec.scene import Scene
 
     positions = positions or {}
     frames = sorted(positions) or [0]

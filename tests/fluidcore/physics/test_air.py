@@ -312,4 +312,4 @@ def test_a_prediction_keeps_the_air_settings_and_continues_a_coarser_parents_air
     finer = Run.open(run_predict(airy, tmp_path / "p3", frames=3))
     air = finer.read_frame(finer.frames()[-1]).air
     assert finer.settings.air_cells == 24 and air is not None
-    assert air.faces[0].shape == tuple(n + (a == 0) for a, n in enumerate(AirGrid(with_air.scene.simulator_parts()[1], 24).shape))
+    assert air.faces[0].shape == tuple(n + (a == 0) for a, n in enumerate(AirGrid(with_air.scene.box, 24).shape))

@@ -119,7 +119,7 @@ def test_invalid_interactions_are_refused_before_anything_is_written(
 def test_the_absurd_wind_limit_is_the_simulators_speed_limit(parent: Path) -> None:
     """The torch-free manifest check and the simulator agree on what this scene resolves."""
     run = Run.open(parent)
-    config = run.scene.simulator_parts()[0]
+    config = run.scene.physics
     limit = config.speed_limit / config.dt
     for strength, ok in ((0.99 * limit, True), (1.01 * limit, False)):
         params = parse_interaction({"direction": [1, 0, 0], "strength": strength}, None)

@@ -22,7 +22,7 @@ from scipy import ndimage
 from fluidcore.cameras import Camera, look_at
 from fluidcore.reconstruct import Reconstructor, prepare, read_inputs
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.init import NOISE_FLOOR
+from fluidcore.reconstruct.images import NOISE_FLOOR
 from fluidcore.spec.reconstruct import ReconstructConfig, get
 from fluidcore import synth
 

@@ -20,12 +20,14 @@ from typer.testing import CliRunner
 
 from fluidcore import synth
 from fluidcore.reconstruct import prepare, read_inputs
-from fluidcore.reconstruct import identify as identify_module
-from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, PhysicsChoiceError, _Search,
-                                           buoyancy_floor, identify, inflow_rate_speed, inlet_rate, rise_speed)
-from fluidcore.physics import PRESETS, Simulator
+from fluidcore.reconstruct import scene_physics
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, ScenePrior, _Search,
+                                           buoyancy_floor, identify, inlet_rate, rise_speed)
+from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
+from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PriorSource
 from fluidcore.spec.reconstruct import get
+from fluidcore.spec.scene import Air, SourcePlace
 
 INPUT = "view_00"
 
@@ -33,6 +35,11 @@ INPUT = "view_00"
 @pytest.fixture(scope="module")
 def rising() -> synth.SynthScene:
     return synth.generate(synth.SynthSpec(frames=45, width=72, height=96, views=1, buoyancy_scale=1.7))
+
+
+def _prior(spec: synth.SynthSpec, source: Source, physics: PBFConfig | None = None, air: Air = Air()) -> ScenePrior:
+    """The synthetic plume's scene before identification, its source at `source`'s place."""
+    return ScenePrior(spec.box(), (0.0, 1.0, 0.0), air, "auto", physics or spec.config(), SourcePlace.of(source), source.seed)
 
 
 def _prepare(scene: synth.SynthScene, physics: str, **overrides):
@@ -48,10 +55,10 @@ def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: s
     rec = _prepare(rising, "auto")
     true_buoyancy = rising.spec.config().body_acceleration[1]
     true_inflow = rising.spec.source().velocity[1]
-    buoyancy = float(np.dot(rec.config.body_acceleration, rec.up))
+    buoyancy = float(np.dot(rec.scene.physics.body_acceleration, rec.scene.up))
     assert buoyancy == pytest.approx(true_buoyancy, rel=0.2)
-    assert rec.source.velocity[1] == pytest.approx(true_inflow, rel=0.2)
-    prior = PRESETS["scalarflow"].alpha * -9.8 / rec.config.length_scale
+    assert rec.scene.source.velocity[1] == pytest.approx(true_inflow, rel=0.2)
+    prior = PRESETS["scalarflow"].alpha * -9.8 / rec.scene.physics.length_scale
     assert abs(buoyancy - true_buoyancy) < abs(prior - true_buoyancy)  # it moved off the prior, towards the truth
     record = rec.settings().physics
     assert record.mode == "auto" and record.identified.buoyancy == pytest.approx(buoyancy)
@@ -60,7 +67,7 @@ def test_identification_recovers_buoyancy_and_inflow_within_20_percent(rising: s
 
 def test_a_preset_keeps_its_buoyancy(rising: synth.SynthScene) -> None:
     rec = _prepare(rising, "scalarflow")
-    assert rec.config.alpha == PRESETS["scalarflow"].alpha
+    assert rec.scene.physics.alpha == PRESETS["scalarflow"].alpha
     assert rec.settings().physics.identified is None and rec.settings().physics.mode == "scalarflow"
     with pytest.raises(PhysicsChoiceError, match="auto, scalarflow, fluidnexus"):
         _prepare(rising, "phiflow")
@@ -80,7 +87,7 @@ def test_rising_smoke_never_gets_zero_buoyancy(rising: synth.SynthScene) -> None
     speed = rise_speed(observation, np.asarray(source.center), spec.fps)
     assert speed > 0.0
     weightless = PRESETS["scalarflow"].__class__(**{**spec.config().__dict__, "alpha": 0.0})
-    found = identify(observation, weightless, spec.box(), source, (0.0, 1.0, 0.0), spec.particles_per_step)
+    found = identify(observation, _prior(spec, source, weightless), spec.particles_per_step)
     assert found.floor > 0.0 and found.buoyancy >= found.floor
 
 
@@ -97,7 +104,7 @@ def test_a_still_plume_has_no_floor() -> None:
 
 
 def test_cli_and_api_select_the_physics(tmp_path: Path) -> None:
-    from fluidcore.spec.jobs import ReconstructParams
+    from service.job_types import ReconstructParams
     from fluidnexus.cli import app
 
     runner = CliRunner()
@@ -165,27 +172,26 @@ def test_identification_tells_a_spreading_plume_from_a_column(rising: synth.Synt
     found = {}
     for rate in (0.0, 0.12):
         observation, source = _silhouettes(rising, rate)
-        found[rate] = identify(observation, spec.config(), spec.box(), source, (0.0, 1.0, 0.0),
-                               spec.particles_per_step).entrainment
+        found[rate] = identify(observation, _prior(spec, source), spec.particles_per_step).entrainment
     assert found[0.0] == 0.0
     assert found[0.12] > 0.0
 
 
 def test_without_entrainment_the_scene_keeps_the_papers_column(rising: synth.SynthScene) -> None:
     """`simulation.entrainment` off (the default): no spreading rate is tried, and the scene every continuation
-    simulates has none; the fit itself never spreads (`Reconstruction.fit_config`)."""
+    simulates has none; the fit itself never spreads (`Reconstruction.fit_scene`)."""
     column = _prepare(rising, "auto")  # the default
-    assert column.config.entrainment == 0.0 and column.settings().physics.entrainment == 0.0
+    assert column.scene.physics.entrainment == 0.0 and column.settings().physics.entrainment == 0.0
     assert column.settings().physics.identified.entrainment == 0.0
     searched = _prepare(rising, "auto", entrainment=True)
     assert searched.settings().physics.identified.evaluations > column.settings().physics.identified.evaluations
-    assert searched.scene().physics.entrainment == searched.config.entrainment
-    assert searched.fit_config.entrainment == 0.0
+    assert searched.scene.physics.entrainment == searched.settings().physics.entrainment
+    assert searched.fit_scene.physics.entrainment == 0.0
 
 
 def _search(scene: synth.SynthScene, observation: Observation, source) -> _Search:
     spec = scene.spec
-    return _Search(observation, spec.config(), spec.box(), source, np.array([0.0, 1.0, 0.0]), spec.particles_per_step, "cpu")
+    return _Search(observation, _prior(spec, source), np.array([0.0, 1.0, 0.0]), spec.particles_per_step, "cpu")
 
 
 def test_every_observed_frame_counts(rising: synth.SynthScene) -> None:
@@ -206,8 +212,8 @@ def test_misfit_is_averaged_over_source_seedings(rising: synth.SynthScene) -> No
     observation, source = _silhouettes(rising, 0.0)
     search = _search(rising, observation, source)
     candidate = (float(rising.spec.config().body_acceleration[1]), 0.0, 1.0, 0.0)
-    config, seeded = search.parts(candidate)
-    curves = [search._age_scores(search._simulate(config, replace(seeded, seed=seeded.seed + k)), search.frames)
+    scene = search.scene(candidate)
+    curves = [search._age_scores(search._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k))), search.frames)
               for k in range(ROLLOUT_SEEDS)]
     misfit, age = search.misfit(candidate)
     assert ROLLOUT_SEEDS > 1 and age == int(np.argmin(np.mean(curves, axis=0)))
@@ -224,7 +230,7 @@ def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.
     observation, source = _silhouettes(rising, 0.12, frames=90)
     widened = replace(observation, cells=observation.cells.copy())
     widened.cells[SOURCE_FRAMES:] = ndimage.binary_dilation(widened.cells[SOURCE_FRAMES:], iterations=2)
-    found = [identify(o, spec.config(), spec.box(), source, (0.0, 1.0, 0.0), spec.particles_per_step, spreading_rates=(0.0,))
+    found = [identify(o, _prior(spec, source), spec.particles_per_step, spreading_rates=(0.0,))
              for o in (observation, widened)]
     assert found[0].buoyancy != found[1].buoyancy
     assert found[0].source_radius == found[1].source_radius and found[0].source_center == found[1].source_center
@@ -234,7 +240,7 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     """The reconstruction's inlet is filled at the observed rise speed where that beats the
     inflow's terminal speed (`inflow_rate_speed`); the inflow's speed stays the terminal one, and
     a preset's scene has no observed speed to use. The identification is replaced by a known
-    answer (its own rate, at the terminal speed, is `_Search.parts`'s and tested above) so that
+    answer (its own rate, at the terminal speed, is `_Search.scene`'s and tested above) so that
     only this wiring is timed here."""
     assert inflow_rate_speed(0.1, 0.3) == 0.3 and inflow_rate_speed(0.1, 0.0) == 0.1
     assert inflow_rate_speed(0.1, float("nan")) == 0.1
@@ -245,13 +251,13 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     found = IdentifiedRecord(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
                              rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
                              source_center=source.center, source_radius=source.radius, entrainment=0.0, prior=prior)
-    monkeypatch.setattr(identify_module, "identify", lambda *args, **kwargs: found)
+    monkeypatch.setattr(scene_physics, "identify", lambda *args, **kwargs: found)
     budget = 10_000  # no cap: the rates are the inlet's own
     rec = _prepare(rising, "auto", particles_per_frame=budget)
-    speed = rec.config.terminal_speed
-    assert speed == pytest.approx(buoyancy / drag) and rec.source.velocity[1] == pytest.approx(speed)
+    speed = rec.scene.physics.terminal_speed
+    assert speed == pytest.approx(buoyancy / drag) and rec.scene.source.velocity[1] == pytest.approx(speed)
     assert rec.settings().physics.inflow_rate_speed == found.rise_speed
-    assert rec.source.rate == inlet_rate(source.radius, found.rise_speed, rec.config, budget)
-    assert rec.source.rate > 2 * inlet_rate(source.radius, speed, rec.config, budget)  # three times the speed, so three times the count
+    assert rec.scene.source.rate == inlet_rate(source.radius, found.rise_speed, rec.scene.physics, budget)
+    assert rec.scene.source.rate > 2 * inlet_rate(source.radius, speed, rec.scene.physics, budget)  # three times the speed, so three times the count
     preset = _prepare(rising, "scalarflow", particles_per_frame=budget)
-    assert preset.settings().physics.inflow_rate_speed == preset.config.terminal_speed
+    assert preset.settings().physics.inflow_rate_speed == preset.scene.physics.terminal_speed

@@ -104,8 +104,8 @@ def test_particles_move_the_right_way(scene, run):
 def test_estimated_source_is_near_the_true_one(scene):
     rec = _prepare(scene, frames=2)
     truth = scene.spec.source()
-    assert np.linalg.norm(np.subtract(rec.source.center, truth.center)) < 2 * truth.radius
-    assert 0.5 * truth.radius < rec.source.radius < 2 * truth.radius
+    assert np.linalg.norm(np.subtract(rec.scene.source.center, truth.center)) < 2 * truth.radius
+    assert 0.5 * truth.radius < rec.scene.source.radius < 2 * truth.radius
     assert rec.channels == 1
     np.testing.assert_allclose(rec.background_color, [1.0], atol=0.02)
 
@@ -117,15 +117,15 @@ def test_a_known_source_keeps_its_depth_and_its_radius_is_measured_there(scene):
     forward = scene.cameras[INPUT].forward()
     hint = SourceHint(center=tuple(np.asarray(truth.center) - 0.1 * forward))  # 10 cm nearer the camera
     rec, guessed = _prepare(scene, frames=2, source=hint), _prepare(scene, frames=2)
-    up = np.asarray(rec.up)
+    up = np.asarray(rec.scene.up)
 
     def across(point) -> np.ndarray:
         offset = np.subtract(point, hint.center)
         return offset - (offset @ up) * up
 
-    assert np.linalg.norm(across(rec.source.center)) < 1e-6
-    assert np.linalg.norm(across(guessed.source.center)) > 0.05
-    assert 0.3 * truth.radius < rec.source.radius < 3 * truth.radius
+    assert np.linalg.norm(across(rec.scene.source.center)) < 1e-6
+    assert np.linalg.norm(across(guessed.scene.source.center)) > 0.05
+    assert 0.3 * truth.radius < rec.scene.source.radius < 3 * truth.radius
     assert rec.settings().source_hint == {"center": list(hint.center), "radius": None}
     assert guessed.settings().source_hint is None
 
@@ -237,7 +237,7 @@ def test_symmetry_pseudo_views_are_fitted_at_their_own_long_side(scene, monkeypa
         working = {v.camera.name: max(v.camera.width, v.camera.height) for v in rec.views}
         stages = lambda name: {max(loop.MIN_FIT_SIDE, round(working[name] * f)) for f in rec.quality.fit.coarse_to_fine}  # noqa: E731
         n = 4
-        center = torch.tensor(rec.source.center, dtype=torch.float32)
+        center = torch.tensor(rec.scene.source.center, dtype=torch.float32)
         gaussians = Gaussians(center + 0.01 * torch.randn(n, 3), torch.full((n, 3), -4.0), torch.tensor([[1.0, 0, 0, 0]] * n),
                               torch.zeros(n), torch.full((n, 1), 0.5))
         loss = Reconstructor(rec)._image_loss(0, iterations=40, chooser=random.Random(1))

@@ -1,4 +1,4 @@
-"""The one smoke mask (fluidcore.reconstruct.init.smoke_mask) in units of the video's own noise,
+"""The one smoke mask (fluidcore.reconstruct.images.smoke_mask) in units of the video's own noise,
 on videos drawn here: a bright background with darker smoke, coloured smoke on a coloured
 background that a grey image cannot see, a noisy video, and a clean 8-bit one."""
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from fluidcore.reconstruct import init
+from fluidcore.reconstruct import images
 
 T, H, W = 24, 64, 80
 
@@ -33,9 +33,9 @@ def _video(background: tuple[float, ...], smoke: np.ndarray, shift: tuple[float,
     return np.round(np.clip(frames, 0.0, 1.0) * 255.0) / 255.0
 
 
-def _mask(frames: np.ndarray) -> tuple[np.ndarray, init.Background]:
-    background = init.estimate_background(frames)
-    mask = init.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.color), torch.from_numpy(background.noise))
+def _mask(frames: np.ndarray) -> tuple[np.ndarray, images.Background]:
+    background = images.estimate_background(frames)
+    mask = images.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.color), torch.from_numpy(background.noise))
     return mask, background
 
 
@@ -54,7 +54,7 @@ def test_coloured_smoke_that_leaves_the_grey_level_unchanged_is_smoke() -> None:
     units) is below the threshold when averaged over the three channels (0.87 x), above it in
     the channel where it is largest: the mask takes the largest."""
     noise = 2.0 / 255.0
-    step = 1.3 * init.SMOKE_SIGMAS * noise
+    step = 1.3 * images.SMOKE_SIGMAS * noise
     smoke = _disc()
     frames = _video((0.25, 0.55, 0.5), smoke, (step, -step, 0.0), noise=noise, shared=False)
     grey = frames.mean(axis=-1)
@@ -84,12 +84,12 @@ def test_noise_is_not_smoke_and_faint_smoke_above_it_is() -> None:
 def test_a_clean_8bit_video_has_the_floor_noise_and_one_step_is_not_smoke() -> None:
     """Without noise the temporal spread is 0: the noise is NOISE_FLOOR (one 8-bit step),
     so a difference of one step (a rounding) is no smoke, and one of SMOKE_SIGMAS + 1 steps is."""
-    steps = init.SMOKE_SIGMAS + 1.0
+    steps = images.SMOKE_SIGMAS + 1.0
     one_step, visible = _disc(24.0, 30.0, 8.0), _disc(58.0, 30.0, 8.0)
     frames = _video((0.4, 0.4, 0.4), one_step, (1.0 / 255.0,) * 3)
     frames[T // 3 :][:, visible] += steps / 255.0
     mask, background = _mask(frames)
-    assert np.array_equal(background.noise, np.full(3, init.NOISE_FLOOR, np.float32))
+    assert np.array_equal(background.noise, np.full(3, images.NOISE_FLOOR, np.float32))
     assert mask[:, one_step].sum() == 0 and mask[T // 3 :, visible].all()
 
 
@@ -99,8 +99,8 @@ def test_a_textured_background_is_kept_as_an_image_and_its_pattern_is_not_noise(
     v, u = np.mgrid[0:H, 0:W]
     frames = _video((0.5, 0.5, 0.5), _disc(), (0.1, 0.1, 0.1), noise=1.5 / 255.0)
     frames = frames + np.where((u // 4) % 2 == 0, 10.0 / 255.0, 0.0)[None, ..., None].astype(np.float32)
-    background = init.estimate_background(frames)
+    background = images.estimate_background(frames)
     assert background.image is not None
     assert background.noise == pytest.approx(np.full(3, 1.5 / 255.0), rel=0.2)
-    mask = init.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.image), torch.from_numpy(background.noise))
+    mask = images.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.image), torch.from_numpy(background.noise))
     assert mask[:, ~_disc()].mean() < 1e-3 and mask[T // 3 :, _disc()].mean() > 0.99

@@ -1,4 +1,4 @@
-"""The source's size and place in one view (fluidcore.reconstruct.init.source_in_view), on masks
+"""The source's size and place in one view (fluidcore.reconstruct.source_estimate.source_in_view), on masks
 drawn here with a known source: a round one under a rising puff, a flat inlet, a tilted camera."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fluidcore.reconstruct import init
+from fluidcore.reconstruct import images, source_estimate
 
 H, W = 200, 160
 UP = np.array([0.0, -1.0])  # image rows grow downwards, so the world's up points to smaller v
@@ -38,7 +38,7 @@ def test_a_round_source_under_a_wide_rising_puff_is_measured_at_its_widest_row(r
     bottom edge is the disc's diameter, and the puff (1.6x wider) passes by too fast to count."""
     center = (80.0, 160.0)
     masks = _frames(_disc(center, radius), 0.5 * radius, 1.6 * radius)
-    u, v, r = init.source_in_view(masks, UP)
+    u, v, r = source_estimate.source_in_view(masks, UP)
     assert r == pytest.approx(radius, rel=0.1)
     assert abs(u - center[0]) <= 1.0 and abs(v - center[1]) <= 1.0
 
@@ -47,7 +47,7 @@ def test_a_flat_inlet_is_its_half_width_and_the_ball_rests_on_its_bottom() -> No
     v, u = np.mgrid[0:H, 0:W] + 0.5
     inlet = (np.abs(u - 70.0) <= 10.0) & (v >= 170.0) & (v <= 176.0)  # 20 px wide, 6 px tall
     masks = _frames(inlet, 6.0, 18.0)
-    u0, v0, r = init.source_in_view(masks, UP)
+    u0, v0, r = source_estimate.source_in_view(masks, UP)
     assert r == pytest.approx(10.0, rel=0.15)
     assert abs(u0 - 70.0) <= 1.0
     assert v0 == pytest.approx(176.0 - r, abs=1.5)  # a ball of radius r resting on the inlet's bottom edge
@@ -58,22 +58,22 @@ def test_a_tilted_up_direction_measures_across_it() -> None:
     angle = np.deg2rad(30.0)
     up = np.array([np.sin(angle), -np.cos(angle)])
     masks = np.stack([_disc((80.0, 120.0), 15.0)] * 10)
-    u, v, r = init.source_in_view(masks, up)
+    u, v, r = source_estimate.source_in_view(masks, up)
     assert r == pytest.approx(15.0, rel=0.1)
     assert np.hypot(u - 80.0, v - 120.0) <= 1.5
 
 
 def test_one_frame_of_smoke_is_enough_and_no_smoke_is_a_clear_error() -> None:
-    u, v, r = init.source_in_view(_disc((50.0, 60.0), 8.0)[None], UP)
+    u, v, r = source_estimate.source_in_view(_disc((50.0, 60.0), 8.0)[None], UP)
     assert r == pytest.approx(8.0, rel=0.15)
-    with pytest.raises(init.EstimationError, match="give the source explicitly"):
-        init.source_in_view(np.zeros((3, H, W), bool), UP)
+    with pytest.raises(images.EstimationError, match="give the source explicitly"):
+        source_estimate.source_in_view(np.zeros((3, H, W), bool), UP)
 
 
 def test_the_source_frames_are_one_second_of_video() -> None:
-    assert init.source_frames(30.0, 90) == 30
-    assert init.source_frames(30.0, 12) == 12
-    assert init.source_frames(0.5, 90) == 1
+    assert source_estimate.source_frames(30.0, 90) == 30
+    assert source_estimate.source_frames(30.0, 12) == 12
+    assert source_estimate.source_frames(0.5, 90) == 1
 
 
 def _camera(eye: tuple[float, float, float], target: tuple[float, float, float]):
@@ -112,17 +112,17 @@ def test_a_camera_looking_down_keeps_the_source_off_the_floor() -> None:
     keeps the axis guess (the floor only bounds the depth)."""
     camera = _camera((0.0, 0.9, 1.4), (0.0, 0.1, 0.0))  # about 30 degrees down
     near = SOURCE * np.array([1.0, 1.0, -1.0])  # 6 cm in front of the axis
-    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, near, SOURCE_RADIUS)}, BOX)
+    estimate = source_estimate.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, near, SOURCE_RADIUS)}, BOX)
     assert estimate.depth_cue == "floor"
     assert np.linalg.norm(estimate.center - near) < 0.015
     assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
-    behind = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    behind = source_estimate.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
     assert behind.depth_cue == "box axis"
 
 
 def test_a_level_camera_leaves_the_depth_to_a_range_that_holds_the_truth() -> None:
     camera = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0))
-    estimate = init.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
+    estimate = source_estimate.estimate_source({"cam": camera}, {"cam": _sphere_masks(camera, SOURCE, SOURCE_RADIUS)}, BOX)
     assert estimate.depth_cue == "box axis"
     near, far = estimate.depth_range
     segment = far - near
@@ -135,7 +135,7 @@ def test_a_level_camera_leaves_the_depth_to_a_range_that_holds_the_truth() -> No
 def test_two_views_triangulate_and_report_no_range() -> None:
     a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
     masks = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS), "b": _sphere_masks(b, SOURCE, SOURCE_RADIUS)}
-    estimate = init.estimate_source({"a": a, "b": b}, masks, BOX)
+    estimate = source_estimate.estimate_source({"a": a, "b": b}, masks, BOX)
     assert estimate.depth_cue == "triangulated" and estimate.depth_range is None
     assert np.linalg.norm(estimate.center - SOURCE) < 0.01
 
@@ -153,10 +153,10 @@ def test_dark_smoke_on_a_bright_background_gives_the_source_its_size() -> None:
     darkening = 0.5 * (1.0 - np.exp(-8.0 * thickness / thickness.max()))
     frames = np.stack([0.92 * (1.0 - darkening) + 2.0 / 255.0 * rng.normal(size=thickness.shape) for _ in range(8)])
     frames = np.round(np.clip(frames, 0.0, 1.0)[..., None].repeat(3, axis=-1) * 255.0).astype(np.float32) / 255.0
-    background = init.estimate_background(frames)
+    background = images.estimate_background(frames)
     assert background.image is None and background.color == pytest.approx(np.full(3, 0.92), abs=1.5 / 255.0)
-    masks = init.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.color), torch.from_numpy(background.noise))
-    estimate = init.estimate_source({"cam": camera}, {"cam": masks}, BOX)
+    masks = images.smoke_mask(torch.from_numpy(frames), torch.from_numpy(background.color), torch.from_numpy(background.noise))
+    estimate = source_estimate.estimate_source({"cam": camera}, {"cam": masks}, BOX)
     assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
     assert np.linalg.norm(estimate.center - near) < 0.015
 
@@ -167,16 +167,16 @@ def test_a_generated_view_gives_one_view_its_depth_at_its_weight() -> None:
     and a generated view that shows no smoke is left out (back to the box-axis guess)."""
     a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
     real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
-    drawn = init.GeneratedView(b, _sphere_masks(b, SOURCE, SOURCE_RADIUS), 0.25)
-    alone = init.estimate_source({"a": a}, real, BOX)
+    drawn = source_estimate.GeneratedView(b, _sphere_masks(b, SOURCE, SOURCE_RADIUS), 0.25)
+    alone = source_estimate.estimate_source({"a": a}, real, BOX)
     assert alone.depth_cue == "box axis" and abs(alone.center[2] - SOURCE[2]) > 0.04  # the axis guess misses the depth
-    estimate = init.estimate_source({"a": a}, real, BOX, generated=[drawn])
+    estimate = source_estimate.estimate_source({"a": a}, real, BOX, generated=[drawn])
     assert estimate.depth_cue == "generated views" and estimate.generated == {"cam": 0.25}
     assert np.linalg.norm(estimate.center - SOURCE) < 0.01
     assert estimate.depth_range is not None and set(estimate.pixels) == {"a"}
     assert estimate.radius == pytest.approx(SOURCE_RADIUS, rel=0.15)
-    empty = init.GeneratedView(b, np.zeros_like(drawn.masks), 0.25)
-    assert init.estimate_source({"a": a}, real, BOX, generated=[empty]).depth_cue == "box axis"
+    empty = source_estimate.GeneratedView(b, np.zeros_like(drawn.masks), 0.25)
+    assert source_estimate.estimate_source({"a": a}, real, BOX, generated=[empty]).depth_cue == "box axis"
 
 
 def test_the_input_view_outweighs_a_generated_one_across_its_ray() -> None:
@@ -185,16 +185,16 @@ def test_the_input_view_outweighs_a_generated_one_across_its_ray() -> None:
     a, b = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((1.4, 0.05, 0.0), (0.0, 0.05, 0.0))
     real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
     wrong = _sphere_masks(b, SOURCE + np.array([0.0, 0.05, 0.0]), SOURCE_RADIUS)  # 5 cm high in the drawn view
-    lifts = [init.estimate_source({"a": a}, real, BOX, generated=[init.GeneratedView(b, wrong, w)]).center[1] - SOURCE[1]
+    lifts = [source_estimate.estimate_source({"a": a}, real, BOX, generated=[source_estimate.GeneratedView(b, wrong, w)]).center[1] - SOURCE[1]
              for w in (1.0, 0.25)]
     assert 0.0 < lifts[1] < lifts[0] < 0.05
 
 
 def test_the_weighted_median_is_the_median_for_equal_weights() -> None:
     for values in ([3.0], [1.0, 4.0], [5.0, 1.0, 2.0], [4.0, 1.0, 3.0, 2.0]):
-        assert init.weighted_median(values, [1.0] * len(values)) == pytest.approx(float(np.median(values)))
-    assert init.weighted_median([1.0, 2.0, 3.0], [0.25, 1.0, 0.25]) == 2.0
-    assert init.weighted_median([1.0, 2.0, 3.0], [1.0, 0.25, 0.25]) == 1.0
+        assert source_estimate.weighted_median(values, [1.0] * len(values)) == pytest.approx(float(np.median(values)))
+    assert source_estimate.weighted_median([1.0, 2.0, 3.0], [0.25, 1.0, 0.25]) == 2.0
+    assert source_estimate.weighted_median([1.0, 2.0, 3.0], [1.0, 0.25, 0.25]) == 1.0
 
 
 def test_a_generated_view_along_the_input_ray_is_left_out() -> None:
@@ -202,6 +202,6 @@ def test_a_generated_view_along_the_input_ray_is_left_out() -> None:
     how far along the input ray the source is, so the one-view guess stands."""
     a, behind = _camera((0.0, 0.05, 1.4), (0.0, 0.05, 0.0)), _camera((0.0, 0.05, -1.4), (0.0, 0.05, 0.0))
     real = {"a": _sphere_masks(a, SOURCE, SOURCE_RADIUS)}
-    drawn = init.GeneratedView(behind, _sphere_masks(behind, SOURCE, SOURCE_RADIUS), 0.25)
-    estimate = init.estimate_source({"a": a}, real, BOX, generated=[drawn])
+    drawn = source_estimate.GeneratedView(behind, _sphere_masks(behind, SOURCE, SOURCE_RADIUS), 0.25)
+    estimate = source_estimate.estimate_source({"a": a}, real, BOX, generated=[drawn])
     assert estimate.depth_cue == "box axis" and estimate.generated == {}

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from fluidcore.cameras import Camera, look_at
-from fluidcore.reconstruct.init import NOISE_FLOOR
+from fluidcore.reconstruct.images import NOISE_FLOOR
 from fluidcore.reconstruct.views import ViewTarget, mirror_agreement, symmetry_support
 
 UP = np.array([0.0, 1.0, 0.0])

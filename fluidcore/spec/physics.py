@@ -1,4 +1,5 @@
-"""Parameters of the position-based-fluid (PBF) smoke model, the scene primitives, and the paper's presets.
+"""Parameters of the position-based-fluid (PBF) smoke model, the scene primitives, and the paper's presets:
+the physics half of the scene spec (`fluidcore.spec.scene`), torch-free.
 
 Units. Lengths, velocities and forces are in *world units* (the scene's, e.g. the cameras'
 frame), time in seconds. The paper's constants (|g| = 9.8 with alpha = -3 or -6, drag
@@ -30,7 +31,8 @@ class PhysicsInputError(InputError):
     """Bad input to the simulator: the message names the offending field or argument."""
 
 
-def _vec3(value: object, name: str) -> Vec3:
+def vec3(value: object, name: str) -> Vec3:
+    """`value` as three finite floats; `name` is the field a bad value is blamed on."""
     try:
         vec = tuple(float(c) for c in value)  # type: ignore[union-attr]
     except (TypeError, ValueError):
@@ -91,8 +93,8 @@ class PBFConfig:
         for name in ("drag", "relaxation", "s_corr_k", "s_corr_dq", "xsph", "vorticity", "entrainment"):
             _finite(getattr(self, name), name, non_negative=True)
         _finite(self.alpha, "alpha")
-        object.__setattr__(self, "gravity", _vec3(self.gravity, "gravity"))
-        object.__setattr__(self, "env_velocity", _vec3(self.env_velocity, "env_velocity"))
+        object.__setattr__(self, "gravity", vec3(self.gravity, "gravity"))
+        object.__setattr__(self, "env_velocity", vec3(self.env_velocity, "env_velocity"))
         if self.s_corr_dq >= 1.0:
             raise PhysicsInputError(f"s_corr_dq must be < 1 (a fraction of h), got {self.s_corr_dq}")
         if not isinstance(self.iterations, int) or self.iterations < 0:
@@ -152,7 +154,7 @@ class Box:
     hi: Vec3
 
     def __post_init__(self) -> None:
-        lo, hi = _vec3(self.lo, "box.lo"), _vec3(self.hi, "box.hi")
+        lo, hi = vec3(self.lo, "box.lo"), vec3(self.hi, "box.hi")
         if not all(l < u for l, u in zip(lo, hi)):
             raise PhysicsInputError(f"box.lo must be below box.hi on every axis, got {list(lo)} and {list(hi)}")
         object.__setattr__(self, "lo", lo)
@@ -170,8 +172,8 @@ class Source:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _vec3(self.center, "source.center"))
-        object.__setattr__(self, "velocity", _vec3(self.velocity, "source.velocity"))
+        object.__setattr__(self, "center", vec3(self.center, "source.center"))
+        object.__setattr__(self, "velocity", vec3(self.velocity, "source.velocity"))
         _finite(self.radius, "source.radius", positive=True)
         if not isinstance(self.rate, int) or self.rate < 0:
             raise PhysicsInputError(f"source.rate must be an integer >= 0, got {self.rate!r}")
@@ -188,8 +190,8 @@ class Sphere:
     velocity: Vec3 = field(default=(0.0, 0.0, 0.0))
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "center", _vec3(self.center, "sphere.center"))
-        object.__setattr__(self, "velocity", _vec3(self.velocity, "sphere.velocity"))
+        object.__setattr__(self, "center", vec3(self.center, "sphere.center"))
+        object.__setattr__(self, "velocity", vec3(self.velocity, "sphere.velocity"))
         _finite(self.radius, "sphere.radius", positive=True)
 
     def center_at(self, time: float) -> Vec3:

@@ -1,0 +1,156 @@
+"""The scene spec (`fluidcore.spec.scene`) and the one builder of a simulator from it
+(`fluidcore.physics.build.build_simulator`): validation where a scene is made, the manifest's
+scene record read back (an old one as still air), and every simulation of a scene simulating
+its air when it has one, the identification's rollouts and the buoyancy calibration included."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tests.support.predict_scenes import SPEC, plume_run, scene_of
+from tests.support.run_folder import _create, _scene
+
+from fluidcore.spec.controls import WindParams
+from fluidcore.physics import wind_air, wind_force
+from fluidcore.physics.air import AirGrid
+from fluidcore.physics.build import build_simulator
+from fluidcore.physics.simulator import Simulator
+from fluidcore.predict.identification import calibrate_buoyancy
+from fluidcore.reconstruct.identify import Observation, ScenePrior, _Search
+from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run
+from fluidcore.spec.reconstruct import VisualSettings, get
+from fluidcore.spec.scene import Air, Scene, SceneError, SourcePlace
+from fluidcore.spec.simulation import AIR_CELLS
+
+OLD_RUNS = Path(__file__).parent / "fixtures" / "runs_v1"
+
+
+def _steps_seen(monkeypatch: pytest.MonkeyPatch) -> list[object]:
+    """The air of every simulator that steps from now on, however it was built."""
+    seen: list[object] = []
+    step = Simulator.step
+
+    def recording(self: Simulator, state):  # noqa: ANN001, ANN202 - the patched method's own signature
+        seen.append(self.air)
+        return step(self, state)
+
+    monkeypatch.setattr(Simulator, "step", recording)
+    return seen
+
+
+def test_a_scene_is_checked_where_it_is_made() -> None:
+    scene = _scene()
+    with pytest.raises(SceneError, match="scene.box_lo must be below"):
+        replace(scene, box_lo=(0.0, 3.0, 0.0))
+    with pytest.raises(SceneError, match="scene.up"):
+        replace(scene, up=(0.0, float("nan"), 0.0))
+    with pytest.raises(SceneError, match="scene.up must not be 0"):
+        replace(scene, up=(0.0, 0.0, 0.0))
+    with pytest.raises(SceneError, match="scene.source must be a Source"):
+        replace(scene, source=SourcePlace((0.0, 0.1, 0.0), 0.1))
+    for cells in (2, 300, 8.0, True):
+        with pytest.raises(SceneError, match="air.cells"):
+            Air(cells)
+    with pytest.raises(SceneError, match="air.vorticity"):
+        Air(16, -0.1)
+    with pytest.raises(SceneError, match="source.radius"):
+        SourcePlace((0.0, 0.0, 0.0), 0.0)
+    assert Air(AIR_CELLS[0]).simulated and not Air().simulated
+    assert scene.box.lo == scene.box_lo and scene.box.hi == scene.box_hi
+
+
+def test_the_scene_record_round_trips_and_keeps_its_layout() -> None:
+    scene = replace(_scene(), air=Air(16, 0.3))
+    record = scene.to_json()
+    assert sorted(record) == ["box", "physics", "source", "up"]  # the manifest's layout: the air is the settings'
+    assert Scene.from_json(json.loads(json.dumps(record)), Air(16, 0.3)) == scene
+    assert Scene.from_json(record).air == Air()  # no air given: still air
+    with pytest.raises(SceneError, match="scene: malformed"):
+        Scene.from_json({**record, "up": [0.0, 0.0]})
+
+
+def test_a_runs_scene_carries_the_air_its_settings_record(tmp_path: Path) -> None:
+    quality = get("preview").with_overrides(air_cells=16, air_vorticity=0.3)
+    reconstruction = _create(tmp_path / "r", settings=ReconstructSettings(quality=quality))
+    assert reconstruction.scene.air == Air(16, 0.3)
+    visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)
+    continuation = _create(tmp_path / "c", kind="predict", settings=ContinuationSettings(
+        branch_frame=0, visual=visual, parent_source_rate=3, air_cells=24))
+    assert continuation.scene.air == Air(24)
+    for kind in ("reconstruct", "predict", "interact"):  # written before the air was simulated: still air
+        assert Run.open(OLD_RUNS / kind).scene.air == Air()
+
+
+def test_the_builder_gives_a_scene_with_air_its_grid() -> None:
+    scene = replace(_scene(), air=Air(8, 0.2))
+    force = wind_force(WindParams(direction=(1.0, 0.0, 0.0), strength=1.0), blowing=lambda time: True)
+    simulator = build_simulator(scene, force=force)
+    grid = simulator.air
+    assert isinstance(grid, AirGrid) and grid.cells == 8 and grid.vorticity == 0.2 and grid.force is force
+    assert simulator.config == scene.physics and simulator.source == scene.source and simulator.box == scene.box
+    assert simulator.force is force
+    still = build_simulator(_scene())
+    assert still.air is None and still.force is None
+    wind = wind_air(WindParams(direction=(1.0, 0.0, 0.0), strength=1.0), lambda time: time, 0.0, (0.0, 1.0, 0.0))
+    assert build_simulator(_scene(), still_air=wind).air is wind  # a prescribed air where the scene simulates none
+    assert isinstance(build_simulator(scene, still_air=wind).air, AirGrid)  # the scene's own air comes first
+
+
+def test_the_identifications_rollouts_simulate_the_scenes_air(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The search's rollouts simulate the physics the reconstruction runs: with the scene's air
+    grid when it has one, with none when it is still."""
+    spec = SPEC
+    source = spec.source()
+    camera = next(iter(spec.cameras().values()))
+    cells = np.zeros((2, camera.height // 2, camera.width // 2), dtype=bool)
+    cells[:, 10:14, 5:7] = True
+    observation = Observation(camera, cells, 2, np.zeros(cells.shape[1:]))
+    candidate = (float(spec.config().body_acceleration[1]), 0.0, 1.0, 0.0)
+    for air in (Air(8), Air()):
+        seen = _steps_seen(monkeypatch)
+        prior = ScenePrior(spec.box(), (0.0, 1.0, 0.0), air, "auto", spec.config(), SourcePlace.of(source), source.seed)
+        _Search(observation, prior, np.array([0.0, 1.0, 0.0]), spec.particles_per_step, "cpu").misfit(candidate)
+        assert seen and all(isinstance(a, AirGrid) == air.simulated for a in seen)
+        if air.simulated:
+            assert {a.cells for a in seen} == {air.cells}
+
+
+def test_the_buoyancy_calibration_simulates_the_runs_air(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    parent = Run.open(plume_run(tmp_path / "air", frames=4, warmup=20, quality={"air_cells": 8}))
+    assert parent.scene.air == Air(8)
+    seen = _steps_seen(monkeypatch)
+    scale, errors = calibrate_buoyancy(parent, parent.scene, parent.frames()[-1], "cpu", scales=(0.5, 1.0))
+    assert len(errors) == 2 and scale in (0.5, 1.0)
+    assert seen and all(isinstance(a, AirGrid) and a.cells == 8 for a in seen)
+
+
+def test_a_built_simulator_steps_as_one_made_by_hand() -> None:
+    """The builder adds nothing to a still-air scene: the same particles, bit for bit."""
+    scene = scene_of()
+    built, by_hand = build_simulator(scene), Simulator(scene.physics, scene.box, scene.source)
+    states = [built.new_state(), by_hand.new_state()]
+    for _ in range(5):
+        built.step(states[0])
+        by_hand.step(states[1])
+    assert states[0].n_alive > 0
+    assert torch.equal(states[0].positions, states[1].positions) and torch.equal(states[0].alive, states[1].alive)
+
+
+def test_the_spec_layer_imports_nothing_of_fluidcore_above_it() -> None:
+    """`fluidcore.spec` sits at the bottom: of fluidcore it imports `errors`, `names` and itself only."""
+    import ast
+
+    import fluidcore.spec
+
+    allowed = ("fluidcore.errors", "fluidcore.names", "fluidcore.spec")
+    for path in Path(fluidcore.spec.__file__).parent.glob("*.py"):
+        tree = ast.parse(path.read_text())
+        imported = [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+        imported += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        above = [m for m in imported if m.startswith("fluidcore") and not m.startswith(allowed)]
+        assert above == [], (path.name, above)
