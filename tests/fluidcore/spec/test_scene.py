@@ -27,7 +27,7 @@ from fluidcore.spec.reconstruct import VisualSettings, get
 from fluidcore.spec.scene import Air, Scene, SceneError, SourcePlace
 from fluidcore.spec.simulation import AIR_CELLS
 
-OLD_RUNS = Path(__file__).parent / "fixtures" / "runs_v1"
+OLD_RUNS = Path(__file__).parents[1] / "fixtures" / "runs_v1"
 
 
 def _steps_seen(monkeypatch: pytest.MonkeyPatch) -> list[object]:
