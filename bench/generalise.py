@@ -98,7 +98,7 @@ def command(
     import torch
 
     from fluidcore.jobs import parse_frames
-    from fluidcore.reconstruct.source_hint import parse_source
+    from fluidcore.spec.source_hint import parse_source
 
     with user_errors():
         hint = None if source is None else parse_source(source)

@@ -14,7 +14,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from fluidcore.names import safe_join
-from fluidcore.reconstruct.source_hint import SourceHintError
+from fluidcore.spec.source_hint import SourceHintError
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from fluidcore.spec.jobs import ReconstructParams
 from service.job_types import JobType

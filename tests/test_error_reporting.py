@@ -44,9 +44,9 @@ def test_every_fluidcore_error_a_user_can_fix_derives_from_input_error() -> None
     from fluidcore import exports, jobs, metrics, runs, synth, video
     from fluidcore.cameras import camera
     from fluidcore.generative import finetune, models, novel_view, refine
-    from fluidcore.reconstruct import identify, images, loop, scene_physics, source_hint
+    from fluidcore.reconstruct import identify, images, loop, scene_physics
     from fluidcore.render import gaussians
-    from fluidcore.spec import controls, physics, reconstruct, scene, simulation
+    from fluidcore.spec import controls, physics, reconstruct, scene, simulation, source_hint
 
     kinds = [
         exports.ExportError, source_hint.SourceHintError, images.EstimationError, reconstruct.PresetError, simulation.SimulationConfigError,

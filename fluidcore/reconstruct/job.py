@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from fluidcore.jobs import JobContext, JobInputError
-from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.source_hint import SourceHint
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, ReconstructConfig, get
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, SimulationConfig
 

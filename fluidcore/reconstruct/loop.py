@@ -49,7 +49,7 @@ from fluidcore.reconstruct.images import estimate_background, resize_image, smok
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
 from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source, source_frames
-from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render

@@ -22,7 +22,7 @@ import torch
 from fluidcore.cameras import Camera
 from fluidcore.jobs import BatchProgress, Cancelled, JobContext
 from fluidcore.reconstruct.loop import InputViews, Reconstruction, Reconstructor, prepare, read_inputs
-from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, generated_targets
 from fluidcore.runs import FrameState, Run
 from fluidcore.scene_info import WORLD_UP

@@ -15,7 +15,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from fluidcore.errors import InputError, describe_validation
 from fluidcore.names import check_name
-from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.source_hint import SourceHint
 from fluidcore.spec.controls import FromFrame, Intervention
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES, SimulationConfig

@@ -95,7 +95,7 @@ def reconstruct(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
-    from fluidcore.reconstruct.source_hint import parse_source
+    from fluidcore.spec.source_hint import parse_source
     from fluidcore.spec.jobs import job_params
 
     with user_errors():

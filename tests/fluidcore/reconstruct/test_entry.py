@@ -10,7 +10,7 @@ import pytest
 from fluidcore import synth
 from fluidcore.reconstruct import prepare, read_inputs
 from fluidcore.reconstruct.pipeline import Footage, prepared, reconstruct
-from fluidcore.reconstruct.source_hint import SourceHint
+from fluidcore.spec.source_hint import SourceHint
 from fluidcore.runs import Run
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import SourcePlace

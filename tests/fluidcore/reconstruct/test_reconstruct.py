@@ -23,7 +23,7 @@ import torch
 from fluidcore import metrics, run_frames, synth
 from fluidcore.physics import interpolate_velocity
 from fluidcore.reconstruct import Reconstructor, ReconstructionError, prepare, read_inputs
-from fluidcore.reconstruct.source_hint import SourceHint, SourceHintError, parse_source
+from fluidcore.spec.source_hint import SourceHint, SourceHintError, parse_source
 from fluidcore.runs import Run
 from fluidcore.spec.reconstruct import get
 

@@ -188,13 +188,14 @@ def test_the_branch_frame_is_a_finished_frame_or_the_last() -> None:
 
 
 def test_the_api_and_the_job_refuse_a_branch_frame_by_the_one_rule() -> None:
-    """Neither the API's route nor the prediction job states the rule again: both call `branch_frame`."""
+    """Neither the API's check of a new job (`service.jobs`) nor the prediction job states the rule
+    again: both call `branch_frame`."""
     import inspect
 
-    import api.routers.jobs
     import fluidcore.predict.job
+    import service.jobs
 
-    for module in (api.routers.jobs, fluidcore.predict.job):
+    for module in (service.jobs, fluidcore.predict.job):
         source = inspect.getsource(module)
         assert "branch_frame(" in source and "not in frames" not in source and "not in record.frames" not in source, module
 
