@@ -82,6 +82,7 @@ from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
 from fluidcore.spec.scene import Air, Scene, SceneError
+from fluidcore.spec.source_hint import SourceHint
 
 FORMAT = "fluidnexus-run"
 FORMAT_VERSION = 3
@@ -212,7 +213,7 @@ class ReconstructSettings(BaseModel):
     quality: ReconstructConfig
     physics: PhysicsRecord = PhysicsRecord(mode="scalarflow")  # before --physics: the preset
     symmetry: SymmetryRecord | None = None  # None: no symmetry prior (several input views, or none asked for)
-    source_hint: dict[str, Any] | None = None
+    source_hint: SourceHint | None = None  # the source the reconstruction was given, as given
     source_estimate: SourceEstimateRecord | None = None  # None: the user gave the whole source, or an older run
     views: tuple[ViewRecord, ...] = ()
 

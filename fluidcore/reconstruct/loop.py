@@ -98,7 +98,7 @@ class Reconstruction:
     physics: PhysicsRecord  # how the physics was chosen (fluidcore.reconstruct.scene_physics)
     stabilization_steps: int
     symmetry: SymmetryRecord | None = None  # mirror agreement of the input smoke and the symmetry prior's weight
-    source_hint: dict | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
+    source_hint: SourceHint | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
 
@@ -243,7 +243,7 @@ def prepare(
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
         flow=flow,
-        source_hint=None if source is None else source.to_json(),
+        source_hint=None if source is None else SourceHint(center=source.center, radius=source.radius),
         source_estimate=estimate_record,
     )
 

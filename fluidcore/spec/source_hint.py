@@ -40,10 +40,6 @@ class SourceHint(BaseModel):
         """The whole place when the radius is given; None when it is to be measured."""
         return None if self.radius is None else SourcePlace(self.center, self.radius)
 
-    def to_json(self) -> dict:
-        """The manifest's record of the hint (`ReconstructSettings.source_hint`)."""
-        return self.model_dump(mode="json")
-
     def check_in_box(self, lo: Sequence[float], hi: Sequence[float]) -> None:
         """The centre must lie in the scene box (where the reconstruction simulates)."""
         if not all(a <= c <= b for a, c, b in zip(lo, self.center, hi, strict=True)):

@@ -50,6 +50,6 @@ def test_reconstruct_fits_the_footage_into_a_run(plume: synth.SynthScene, tmp_pa
     assert "novel_views" not in run.manifest
     assert [v.kind for v in run.settings.views] == ["input"]
     assert run.scene.source.center == place.center and run.scene.source.radius == place.radius
-    assert run.settings.source_hint == place.to_json() and run.settings.source_estimate is None
+    assert run.settings.source_hint == SourceHint(center=place.center, radius=place.radius) and run.settings.source_estimate is None
     hinted = prepared(_footage(plume, SourceHint(center=place.center)), QUICK, physics="scalarflow")
     assert hinted.scene.source.center == place.center and hinted.source_estimate.depth_cue == "given"
