@@ -210,7 +210,7 @@ class ParticlesOut(BaseModel):
     positions: list[float] = Field(description="x0, y0, z0, x1, ...: world units, evenly subsampled")
     scene: RunScene
     air: AirSample | None = Field(default=None, description="the air saved with the frame, sampled on a coarse lattice "
-                                  "(a run with quality air_cells > 0); null: the run's air is still")
+                                  "(a run whose scene simulates the air, air.cells > 0); null: the run's air is still")
 
 
 FieldLimits = dict[str, Any]  # fluidcore.spec.limits: the JSON Schema keywords that bound one field

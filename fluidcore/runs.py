@@ -25,9 +25,11 @@ Layout (format version 3)::
     fps, frame_range         frames per second; [start, stop) requested
     channels                 1 (grey smoke) or 3
     background_color         list of C floats: what empty space looks like from any camera
-    scene                    {"box": {"lo", "hi"}, "up", "physics": PBFConfig fields, "source": Source fields}
-                             (`fluidcore.spec.scene.Scene`: read back as the typed PBFConfig and
-                             Source, with the air of the settings: `RunRecord.scene`)
+    scene                    {"box": {"lo", "hi"}, "up", "physics": PBFConfig fields, "source": Source fields,
+                             "air": {"cells", "vorticity"}} (`fluidcore.spec.scene.Scene`, read back
+                             typed by `RunRecord.scene`): the one record of the air the run simulates
+                             (versions 1 and 2 kept it in the settings: a reconstruction's quality
+                             `air_cells`, `air_vorticity`, a continuation's settings alike)
     settings                 the settings that produced the run, one model per kind:
                              `ReconstructSettings` or `ContinuationSettings` (every field written;
                              version 1 left out what a feature added later, read as its default;
@@ -47,7 +49,7 @@ A state file (`numpy.savez`, uncompressed, float32 unless noted) holds:
                                            (e.g. a random generator's state)
     air_version () int, air_origin (3,) float64, air_spacing () float64,
     air_x (nx+1, ny, nz), air_y (nx, ny+1, nz), air_z (nx, ny, nz+1)
-                                           only in runs that simulate the air (quality `air_cells`
+                                           only in runs that simulate the air (scene air `cells`
                                            > 0): the air's face velocities on its MAC grid (units/s),
                                            the grid's lowest corner and cell size (`SavedAir`,
                                            air_version 1); a file without them holds still air
@@ -81,7 +83,7 @@ from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
-from fluidcore.spec.scene import Air, Scene, SceneError
+from fluidcore.spec.scene import Scene, SceneError
 from fluidcore.spec.source_hint import SourceHint
 
 FORMAT = "fluidnexus-run"
@@ -244,8 +246,6 @@ class ContinuationSettings(BaseModel):
     priors: tuple[str, ...] = ()
     wind: WindParams | None = None
     ball: BallParams | None = None
-    air_cells: int = 0  # the air grid the rollout simulates (fluidcore.physics.air.AirGrid); 0 = still air
-    air_vorticity: float = 0.0  # its vorticity confinement (AirGrid's epsilon; 0 = off)
 
 
 Settings = ReconstructSettings | ContinuationSettings
@@ -479,9 +479,24 @@ def _nested_settings(settings: dict[str, Any]) -> dict[str, Any]:
     return settings
 
 
+def _scene_with_air(scene: Any, settings: dict[str, Any], kind: RunKind) -> Any:
+    """A scene record of format 1 or 2 with the air its run simulated, which those versions kept
+    in the settings: a reconstruction in its flat quality (kept there too: the quality still asks
+    for the air), a continuation in its own fields (taken out: they are the scene's now). A record
+    that is not a mapping is left for `RunRecord.scene` to refuse."""
+    if kind is RunKind.RECONSTRUCT:
+        quality = settings.get("quality")
+        held = quality if isinstance(quality, Mapping) else {}
+        air = {"cells": held.get("air_cells", 0), "vorticity": held.get("air_vorticity", 0.0)}
+    else:
+        air = {"cells": settings.pop("air_cells", 0), "vorticity": settings.pop("air_vorticity", 0.0)}
+    return {**scene, "air": air} if isinstance(scene, Mapping) else scene
+
+
 def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
     """A manifest of any readable version as the current version: checked, settings completed
-    with the defaults of their kind's model (version 1 left out what a feature added later)."""
+    with the defaults of their kind's model (version 1 left out what a feature added later), the
+    air of versions 1 and 2 moved from the settings into the scene record."""
     if manifest.get("format") != FORMAT:
         raise RunError(f"run: {where} is not a {FORMAT} manifest")
     if manifest.get("format_version") not in READABLE_VERSIONS:
@@ -492,8 +507,11 @@ def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
         raise RunError(f"run: {where} has kind {manifest.get('kind')!r}, not one of {[k.value for k in RunKind]}") from None
     model = settings_model(kind)
     settings = dict(manifest.get("settings") or {})
-    if manifest["format_version"] < 3 and kind is RunKind.RECONSTRUCT:
-        settings = _nested_settings(settings)
+    migrated: dict[str, Any] = {}
+    if manifest["format_version"] < 3:
+        migrated["scene"] = _scene_with_air(manifest.get("scene"), settings, kind)
+        if kind is RunKind.RECONSTRUCT:
+            settings = _nested_settings(settings)
     if manifest["format_version"] == 1:  # free-form then: what no model field names is dropped
         settings = {k: v for k, v in settings.items() if k in model.model_fields}
     if kind is not RunKind.RECONSTRUCT and "branch_frame" not in settings and manifest.get("frames"):
@@ -502,7 +520,7 @@ def _migrate(manifest: dict[str, Any], where: str) -> dict[str, Any]:
         typed = model.model_validate(settings)
     except ValidationError as exc:
         raise RunError(f"run: {where}: settings do not fit a {kind} run ({exc.errors()[0]['loc']}: {exc.errors()[0]['msg']})") from None
-    return {**manifest, "format_version": FORMAT_VERSION, "kind": kind.value, "settings": typed.model_dump(mode="json")}
+    return {**manifest, "format_version": FORMAT_VERSION, "kind": kind.value, **migrated, "settings": typed.model_dump(mode="json")}
 
 
 class RunRecord:
@@ -543,20 +561,12 @@ class RunRecord:
 
     @property
     def scene(self) -> Scene:
-        """The scene record with the air the run simulates (recorded in its settings); a malformed
-        one is this run's error."""
+        """The scene the run simulates, its air included, as recorded; a malformed record is this
+        run's error."""
         try:
-            return Scene.from_json(self.manifest["scene"], self._air())
+            return Scene.from_json(self.manifest["scene"])
         except SceneError as exc:
             raise RunError(str(exc)) from None
-
-    def _air(self) -> Air:
-        """The air of the run's simulator: a reconstruction's quality says it, a continuation's
-        settings pass it on; a run written before the air was simulated has still air."""
-        settings = self.settings
-        if isinstance(settings, ReconstructSettings):
-            return Air(settings.quality.simulation.air_cells, settings.quality.simulation.air_vorticity)
-        return Air(settings.air_cells, settings.air_vorticity)
 
     @property
     def input_views(self) -> list[str]:

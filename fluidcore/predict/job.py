@@ -194,8 +194,6 @@ def _write(
             priors=() if profile is None else ("appearance height profile (fluidcore.predict.priors.HeightProfile)",),
             wind=params.wind,
             ball=params.ball,
-            air_cells=scene.air.cells,
-            air_vorticity=scene.air.vorticity,
         ),
         parent=parent.path,
     )

@@ -5,9 +5,9 @@ this scene's units), the source that seeds the smoke and the air around it. Reco
 identification, calibration and every continuation build their simulator from one of these, so
 they all simulate the same physics (the air included when it is on).
 
-In a run's manifest the "scene" record holds box, up, physics and source (`to_json`); the air is
-recorded with the run's settings (a reconstruction's quality, a continuation's settings), and
-`fluidcore.runs.RunRecord.scene` puts it into the scene it reads. A record without it is still air.
+In a run's manifest the "scene" record holds box, up, physics, source and air (`to_json`): it is
+the one record of the air the run simulates, which a continuation reads back as it is
+(`fluidcore.runs.RunRecord.scene`). A record without the air is still air.
 """
 
 from __future__ import annotations
@@ -112,17 +112,18 @@ class Scene:
         return Box(self.box_lo, self.box_hi)
 
     def to_json(self) -> dict[str, Any]:
-        """The manifest's "scene" record (the air is the settings', see the module docstring)."""
+        """The manifest's "scene" record (module docstring)."""
         return json.loads(json.dumps({
             "box": {"lo": list(self.box_lo), "hi": list(self.box_hi)},
             "up": list(self.up),
             "physics": asdict(self.physics),
             "source": asdict(self.source),
+            "air": asdict(self.air),
         }))
 
     @classmethod
-    def from_json(cls, data: Mapping[str, Any], air: Air | None = None) -> Scene:
-        """The scene of a manifest's "scene" record, with `air` (default: still air)."""
+    def from_json(cls, data: Mapping[str, Any]) -> Scene:
+        """The scene of a manifest's "scene" record; a record without "air" is still air."""
         def tuples(d: Mapping[str, Any]) -> dict[str, Any]:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
@@ -133,7 +134,7 @@ class Scene:
                 up=tuple(map(float, data["up"])),
                 physics=PBFConfig(**tuples(data["physics"])),
                 source=Source(**tuples(data["source"])),
-                air=Air() if air is None else air,
+                air=Air(**data.get("air", {})),
             )
         except (KeyError, TypeError, ValueError, InputError) as exc:
             raise SceneError(f"scene: malformed ({exc})") from None

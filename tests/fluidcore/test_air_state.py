@@ -80,7 +80,7 @@ def test_the_numpy_sampler_reads_the_air_as_the_simulator_does(airy: Path) -> No
     """SavedAir.velocity_at (torch-free, for exports and the API) against AirGrid.velocity_at."""
     run = Run.open(airy)
     saved = run.read_frame(2)
-    assert run.scene.air.cells == CELLS  # the run's scene carries the air its settings record
+    assert run.scene.air.cells == CELLS  # the run's scene records the air it simulates
     grid = build_simulator(run.scene).air
     box = run.scene.box
     air = SmokeState.from_frame(saved, "cpu").particles.air
@@ -138,6 +138,7 @@ def test_reconstruction_carries_the_air_and_a_resumed_run_continues_it(scene, tm
     airs = [straight.read_frame(t).air for t in straight.frames()]
     assert all(a is not None for a in airs) and speed(airs[-1]) > 0.0
     assert max(airs[-1].cells) == CELLS  # cells on the box's long side
+    assert straight.manifest["scene"]["air"] == {"cells": CELLS, "vorticity": 0.0}  # the air it simulates, recorded
     calls = iter([False, False, True])
     partial = _reconstructor(scene).run(tmp_path / "resumed", should_stop=lambda: next(calls))
     assert partial.frames() == [0, 1]

@@ -23,6 +23,7 @@ from fluidcore.runs import (
     state_file,
 )
 from fluidcore.spec.reconstruct import ReconstructConfig, get
+from fluidcore.spec.scene import Air
 from fluidcore.spec.simulation import SimulationConfig
 from tests.support.run_folder import _camera, _create, _scene, _state
 
@@ -177,6 +178,30 @@ def test_version_2_runs_read_with_their_quality_nested_and_their_records_typed()
     assert Run.open(V2_RUNS / "predict").visual_settings() == rec.visual_settings()
     stored = (V2_RUNS / "reconstruct" / "manifest.json").read_bytes()  # as the API fetches it from storage
     assert RunRecord.from_bytes(stored, "reconstruct").manifest == rec.manifest
+
+
+def test_the_air_of_versions_1_and_2_moves_into_the_scene_record():
+    """Versions 1 and 2 kept the air a run simulates in its settings (a reconstruction's flat
+    quality, a continuation's `air_cells`, `air_vorticity`); read, it is the scene record's, as
+    version 3 writes it, and a reconstruction's quality still says what was asked for."""
+    recair = Run.open(V2_RUNS / "recair")
+    assert json.loads((V2_RUNS / "recair" / "manifest.json").read_text())["settings"]["quality"]["air_cells"] == 16
+    assert recair.manifest["scene"]["air"] == {"cells": 16, "vorticity": 0.1} and recair.scene.air == Air(16, 0.1)
+    assert (recair.settings.quality.simulation.air_cells, recair.settings.quality.simulation.air_vorticity) == (16, 0.1)
+    for old in (OLD_RUNS / "reconstruct", OLD_RUNS / "interact", V2_RUNS / "reconstruct", V2_RUNS / "predict"):
+        assert Run.open(old).manifest["scene"]["air"] == {"cells": 0, "vorticity": 0.0}  # still air, recorded
+    predict = json.loads((V2_RUNS / "predict" / "manifest.json").read_text())
+    assert predict["settings"]["air_cells"] == 0 and "air" not in predict["scene"]
+    for version in (1, 2):
+        airy = {**predict, "format_version": version,
+                "settings": {**predict["settings"], "air_cells": 24, "air_vorticity": 0.2}}
+        record = RunRecord.from_bytes(json.dumps(airy).encode(), "airy")
+        assert record.scene.air == Air(24, 0.2) and record.manifest["scene"]["air"] == {"cells": 24, "vorticity": 0.2}
+        assert not {"air_cells", "air_vorticity"} & record.manifest["settings"].keys()
+        assert record.scene.physics == Run.open(V2_RUNS / "predict").scene.physics  # the rest of the record as it was
+    coarse = {**predict, "settings": {**predict["settings"], "air_cells": 4}}
+    with pytest.raises(RunError, match="air.cells must be 0"):
+        RunRecord.from_bytes(json.dumps(coarse).encode(), "coarse").scene
 
 
 def test_a_current_record_reads_back_as_it_was_written(tmp_path):

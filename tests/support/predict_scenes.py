@@ -24,13 +24,13 @@ from fluidcore.synth import SynthSpec, particle_gaussians
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
 
 
-def scene_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Scene:
-    """The plume's scene; with `air_cells` it simulates the air, as a reconstruction does."""
-    return replace(spec.scene(), air=Air(air_cells))
+def scene_of(spec: SynthSpec = SPEC, air: Air = Air()) -> Scene:
+    """The plume's scene; with simulated `air` it simulates the air, as a reconstruction does."""
+    return replace(spec.scene(), air=air)
 
 
 def simulator_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Simulator:
-    return build_simulator(scene_of(spec, air_cells))
+    return build_simulator(scene_of(spec, Air(air_cells)))
 
 
 def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
@@ -62,7 +62,7 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         fps=spec.fps,
         channels=1,
         background_color=[1.0],
-        scene=scene_of(spec),
+        scene=scene_of(spec, Air(config.simulation.air_cells, config.simulation.air_vorticity)),  # the air its quality asks for
         settings=ReconstructSettings(quality=config, physics=PhysicsRecord(mode=physics)),
     )
     for t in range(frames):

@@ -289,11 +289,12 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
     from fluidcore.runs import FrameState, ReconstructSettings, Run, RunKind
     from fluidcore.spec.physics import PBFConfig, Source
     from fluidcore.spec.reconstruct import get
-    from fluidcore.spec.scene import Scene
+    from fluidcore.spec.scene import Air, Scene
 
     positions = positions or {}
     frames = sorted(positions) or [0]
-    scene = Scene((-0.5, 0.0, -0.5), (0.5, 1.0, 0.5), (0.0, 1.0, 0.0), PBFConfig(dt=1 / 30, h=0.05), Source((0.0, 0.1, 0.0), 0.05, 1))
+    scene = Scene((-0.5, 0.0, -0.5), (0.5, 1.0, 0.5), (0.0, 1.0, 0.0), PBFConfig(dt=1 / 30, h=0.05), Source((0.0, 0.1, 0.0), 0.05, 1),
+                  Air() if air is None else Air(max(air.cells)))  # the air the frames save, recorded in the scene
     camera = Camera("cam0", 30.0, 30.0, 16.0, 12.0, 32, 24, np.eye(4))
     gaussians = {"means": np.zeros((0, 3)), "log_scales": np.zeros((0, 3)), "quats": np.zeros((0, 4)),
                  "opacity_logits": np.zeros(0), "colors": np.zeros((0, 1))}

@@ -16,6 +16,7 @@ from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Si
 from fluidcore.physics.air import AirGrid, AirState, cell_velocity, curl
 from fluidcore.predict.job import run_predict
 from fluidcore.runs import Run
+from fluidcore.spec.scene import Air
 from tests.support.predict_scenes import plume_run
 
 CFG = PRESETS["scalarflow"]
@@ -270,15 +271,15 @@ def test_the_air_runs_on_cuda_as_on_cpu() -> None:
 
 
 def test_a_prediction_simulates_the_air_its_reconstruction_asks_for_and_passes_it_on(tmp_path: Path) -> None:
-    """simulation.air_cells (0 by default) switches the air grid on in prediction, recorded so that a
-    continuation keeps it; the default parent predicts with still air as before."""
+    """simulation.air_cells (0 by default) switches the air grid on in prediction, recorded in the
+    scene so that a continuation keeps it; the default parent predicts with still air as before."""
     still = plume_run(tmp_path / "still", frames=2, warmup=20)
     airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16})
     plain = Run.open(run_predict(still, tmp_path / "p0", frames=4))
     with_air = Run.open(run_predict(airy, tmp_path / "p1", frames=4))
     chained = Run.open(run_predict(with_air.path, tmp_path / "p2", frames=2))
-    assert plain.settings.air_cells == 0
-    assert with_air.settings.air_cells == 16 and chained.settings.air_cells == 16
+    assert plain.scene.air == Air()
+    assert with_air.scene.air == Air(16) and chained.scene.air == Air(16)
     last = plain.frames()[-1]
     a, b = plain.read_frame(last), with_air.read_frame(last)
     assert a.positions.shape == b.positions.shape and not np.array_equal(a.positions[a.alive], b.positions[b.alive])
@@ -297,19 +298,18 @@ def test_air_resampled_onto_a_finer_grid_keeps_its_flow() -> None:
 
 
 def test_a_prediction_keeps_the_air_settings_and_continues_a_coarser_parents_air(tmp_path: Path) -> None:
-    """simulation.air_vorticity reaches the prediction and its continuations; a parent whose quality
-    asks for another grid than its frames' air was saved on (an older run continued at a finer
+    """simulation.air_vorticity reaches the prediction and its continuations; a parent whose scene
+    records another grid than its frames' air was saved on (an older run continued at a finer
     grid) is continued from its air resampled, not refused."""
     airy = plume_run(tmp_path / "air", frames=2, warmup=20, quality={"air_cells": 16, "air_vorticity": 0.3})
     with_air = Run.open(run_predict(airy, tmp_path / "p1", frames=3))
     chained = Run.open(run_predict(with_air.path, tmp_path / "p2", frames=2))
-    assert (with_air.settings.air_cells, with_air.settings.air_vorticity) == (16, 0.3)
-    assert (chained.settings.air_cells, chained.settings.air_vorticity) == (16, 0.3)
+    assert with_air.scene.air == Air(16, 0.3) and chained.scene.air == Air(16, 0.3)
     manifest = Path(airy) / "manifest.json"
     data = json.loads(manifest.read_text())
-    data["settings"]["quality"]["simulation"]["air_cells"] = 24
+    data["scene"]["air"]["cells"] = 24
     manifest.write_text(json.dumps(data))
     finer = Run.open(run_predict(airy, tmp_path / "p3", frames=3))
     air = finer.read_frame(finer.frames()[-1]).air
-    assert finer.settings.air_cells == 24 and air is not None
+    assert finer.scene.air == Air(24, 0.3) and air is not None
     assert air.faces[0].shape == tuple(n + (a == 0) for a, n in enumerate(AirGrid(with_air.scene.box, 24).shape))

@@ -67,21 +67,29 @@ def test_a_scene_is_checked_where_it_is_made() -> None:
 def test_the_scene_record_round_trips_and_keeps_its_layout() -> None:
     scene = replace(_scene(), air=Air(16, 0.3))
     record = scene.to_json()
-    assert sorted(record) == ["box", "physics", "source", "up"]  # the manifest's layout: the air is the settings'
-    assert Scene.from_json(json.loads(json.dumps(record)), Air(16, 0.3)) == scene
-    assert Scene.from_json(record).air == Air()  # no air given: still air
+    assert sorted(record) == ["air", "box", "physics", "source", "up"]  # the manifest's layout
+    assert record["air"] == {"cells": 16, "vorticity": 0.3}
+    assert Scene.from_json(json.loads(json.dumps(record))) == scene
+    assert Scene.from_json({k: v for k, v in record.items() if k != "air"}).air == Air()  # no air recorded: still air
     with pytest.raises(SceneError, match="scene: malformed"):
         Scene.from_json({**record, "up": [0.0, 0.0]})
+    with pytest.raises(SceneError, match="air.cells must be 0"):
+        Scene.from_json({**record, "air": {"cells": 4, "vorticity": 0.0}})
 
 
-def test_a_runs_scene_carries_the_air_its_settings_record(tmp_path: Path) -> None:
+def test_a_runs_scene_is_the_air_it_records(tmp_path: Path) -> None:
+    """The manifest's scene record is the one home of the run's air: read back as written, whatever
+    the settings say (a reconstruction's quality asked for it; a continuation has no field of it)."""
     quality = get("preview").with_overrides(air_cells=16, air_vorticity=0.3)
-    reconstruction = _create(tmp_path / "r", settings=ReconstructSettings(quality=quality))
-    assert reconstruction.scene.air == Air(16, 0.3)
+    reconstruction = _create(tmp_path / "r", scene=replace(_scene(), air=Air(16, 0.3)),
+                             settings=ReconstructSettings(quality=quality))
+    assert reconstruction.manifest["scene"]["air"] == {"cells": 16, "vorticity": 0.3}
+    assert Run.open(reconstruction.path).scene.air == Air(16, 0.3)
     visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)
-    continuation = _create(tmp_path / "c", kind="predict", settings=ContinuationSettings(
-        branch_frame=0, visual=visual, parent_source_rate=3, air_cells=24))
-    assert continuation.scene.air == Air(24)
+    continuation = _create(tmp_path / "c", kind="predict", scene=replace(_scene(), air=Air(24)), settings=ContinuationSettings(
+        branch_frame=0, visual=visual, parent_source_rate=3))
+    assert Run.open(continuation.path).scene.air == Air(24)
+    assert "air_cells" not in continuation.manifest["settings"]
     for kind in ("reconstruct", "predict", "interact"):  # written before the air was simulated: still air
         assert Run.open(OLD_RUNS / kind).scene.air == Air()
 
