@@ -6,6 +6,7 @@ videos, limits) are the API's (`api.uploads`); this is what happens to a scene o
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +14,7 @@ from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
+from fluidcore.errors import InputError
 from fluidcore.names import safe_join
 from fluidcore.spec.source_hint import SourceHintError
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
@@ -127,3 +129,20 @@ def delete(session: Session, storage: Storage, scene_id: str, owner: str) -> Non
     session.delete(scene)
     session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
     storage.delete_prefix(f"{scene_prefix(scene.id)}/")
+
+
+@dataclass(frozen=True)
+class SceneFiles:
+    """Where a scene's uploaded files are in storage: what a reconstruction fetches."""
+
+    cameras_key: str
+    video_keys: dict[str, str]  # camera name -> its video's key
+
+
+def files(session: Session, scene_id: str) -> SceneFiles:
+    """The storage keys of the scene's cameras file and videos. InputError if it was deleted
+    after its job was queued: the job fails with that message."""
+    scene = session.get(Scene, scene_id)
+    if scene is None:
+        raise InputError(f"scene {scene_id} no longer exists")
+    return SceneFiles(scene.cameras_key, {camera: video["key"] for camera, video in scene.videos.items()})

@@ -13,23 +13,21 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
-from datetime import timedelta
 from pathlib import Path, PurePosixPath
 
 from celery.exceptions import SoftTimeLimitExceeded
-from sqlalchemy import delete, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from fluidcore.errors import InputError, internal_error
 from fluidcore.jobs import Cancelled
 from fluidcore.names import safe_join
-from service import job_states, webhooks
+from service import jobs, leases, scenes, webhooks
 from service.chaining import release_children
 from service.database import session_scope
-from service.job_states import RESUME_STAGE, Actor
+from service.job_states import Actor
 from service.job_types import JobType
-from service.jobs import ancestors
-from service.models import Artifact, Job, JobState, Scene, utcnow
+from service.leases import Claim, LeaseLost
+from service.models import Artifact, Job, JobState
 from service.queue import JobQueue
 from service.settings import Settings, signing_key
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
@@ -46,19 +44,6 @@ incidents = logging.getLogger("fluidnexus.incidents")
 RUN_SHARE = 0.95  # progress reported by the runner fills 0..0.95; publishing the rest
 DB_WRITE_INTERVAL_S = 1.0
 MAX_LOG_BYTES = 1024 * 1024
-
-
-class LeaseLost(Exception):
-    """Another runner claimed the job (our heartbeats stopped reaching the database for longer
-    than the lease): stop at once and write nothing more; the job is the new runner's."""
-
-
-class JobBusy(Exception):
-    """Another worker holds a live lease on the job; try again after `retry_in` seconds."""
-
-    def __init__(self, retry_in: float) -> None:
-        super().__init__(f"job is running elsewhere; retry in {retry_in:.0f} s")
-        self.retry_in = retry_in
 
 
 @dataclass(frozen=True)
@@ -86,16 +71,6 @@ class JobFolder:
     @property
     def videos(self) -> Path:
         return self.root / "videos"
-
-
-@dataclass(frozen=True)
-class Claim:
-    job_id: str
-    job_type: str  # checked against JobType when the job runs: an unknown one fails the job
-    params: dict
-    scene_id: str | None
-    ancestors: tuple[str, ...]  # parent job first, then its parent, ...: the runs this one continues
-    token: int  # the job's lease_token this claim set
 
 
 class JobExecutor:
@@ -145,7 +120,7 @@ class JobExecutor:
 
     def _holds(self, claim: Claim) -> bool:
         with session_scope(self.sessions) as session:
-            return session.scalar(select(Job.lease_token).where(Job.id == claim.job_id)) == claim.token
+            return leases.holds(session, claim.job_id, claim.token)
 
     def _folder(self, job_id: str) -> JobFolder:
         return JobFolder(self.work_dir / "jobs" / job_id)
@@ -179,29 +154,8 @@ class JobExecutor:
     def claim(self, job_id: str) -> Claim | None:
         """Mark the job running on this worker, unless it is finished or another worker's lease is live."""
         with session_scope(self.sessions) as session:
-            job = session.scalars(select(Job).where(Job.id == job_id).with_for_update()).first()
-            if job is None:
-                log.warning("job %s does not exist; dropping its task", job_id)
-                return None
-            if JobState(job.state).finished:
-                return None
-            now = utcnow()
-            lease = timedelta(seconds=self.settings.job_lease_seconds)
-            if job.state == JobState.RUNNING and job.heartbeat_at is not None and now - job.heartbeat_at < lease:
-                raise JobBusy((job.heartbeat_at + lease - now).total_seconds())  # its runner cancels it, if asked
-            if job.cancel_requested:
-                job_states.cancel(job, Actor.WORKER)
-                return None
-            # Found running with an expired lease, or sent again by the reaper (service.queue): the
-            # last attempt died (e.g. hard time limit, OOM kill).
-            lost = job.state == JobState.RUNNING or job.stage == RESUME_STAGE
-            if lost and job.attempts >= self.settings.max_job_attempts:
-                error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
-                job_states.fail(job, error, Actor.WORKER)
-                return None
-            token = job_states.start(job, self.worker_name)
-            log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, self.worker_name)
-            return Claim(job.id, job.type, dict(job.params), job.scene_id, ancestors(session, job), token)
+            return leases.claim(session, job_id, self.worker_name, self.settings.job_lease_seconds,
+                                self.settings.max_job_attempts)
 
     def _execute(self, claim: Claim, reporter: ProgressReporter, job_log: JobLog) -> list[Path]:
         folder = self._folder(claim.job_id)
@@ -215,8 +169,7 @@ class JobExecutor:
             reporter.report(RUN_SHARE * min(max(float(fraction), 0.0), 1.0), stage)
             if reporter.cancelled:  # honoured at every report, so in stages without frames too
                 raise Cancelled(f"cancelled during {stage}")
-            with session_scope(self.sessions) as session:  # a superseded runner must not push checkpoints
-                reporter.owned(session)
+            reporter.check_held()  # a superseded runner must not push checkpoints
             mirror.push()
             job_log.flush()
 
@@ -253,10 +206,8 @@ class JobExecutor:
 
     def _fetch_scene(self, scene_id: str, folder: Path) -> dict[str, object]:
         with session_scope(self.sessions) as session:
-            scene = session.get(Scene, scene_id)
-            if scene is None:
-                raise InputError(f"scene {scene_id} no longer exists")
-            cameras_key, video_keys = scene.cameras_key, {c: v["key"] for c, v in scene.videos.items()}
+            stored = scenes.files(session, scene_id)
+        cameras_key, video_keys = stored.cameras_key, stored.video_keys
         local = {key: safe_join(folder, PurePosixPath(key).name) for key in [cameras_key, *video_keys.values()]}
         for key, path in local.items():
             self.storage.get_file(key, path)
@@ -290,8 +241,7 @@ class JobExecutor:
         if renders:
             with session_scope(self.sessions) as session:
                 reporter.owned(session)
-                session.execute(delete(Artifact).where(Artifact.job_id == owner, Artifact.name.in_([r.name for r in rows])))
-                session.add_all(rows)
+                leases.publish_videos(session, owner, rows)
             return
         prefix = run_prefix(claim.job_id)
         for info in self.storage.list(f"{prefix}/"):
@@ -302,38 +252,29 @@ class JobExecutor:
                 Artifact(job_id=claim.job_id, name=f"run/{name}", kind=kind, key=info.key, size=info.size,
                          content_type=content_type)
             )
-        with session_scope(self.sessions) as session:
-            reporter.owned(session)  # still ours: a superseded runner must not publish
-            session.execute(delete(Artifact).where(Artifact.job_id == claim.job_id))
-            session.add_all(rows)
+        with session_scope(self.sessions) as session:  # still ours: a superseded runner must not publish
+            leases.publish_artifacts(session, reporter.owned(session), rows)
 
     # -- end states ----------------------------------------------------------------------------
 
     def finish(
         self, job_id: str, state: JobState, reporter: ProgressReporter | None = None, error: str | None = None
     ) -> str:
-        """Put the job in an end state (`service.job_states`). Without a reporter: the task gives
+        """Put the job in an end state (`service.leases.end`). Without a reporter: the task gives
         up after its transient retries, and a job that ended meanwhile is left as it ended."""
         with session_scope(self.sessions) as session:
-            job = reporter.owned(session) if reporter is not None else session.get(Job, job_id)
-            assert job is not None
-            if reporter is None and JobState(job.state).finished:
-                log.info("job %s already %s; not failed again", job_id, job.state)
-                return str(job.state)
-            if reporter is not None:
-                job.stage_seconds = reporter.final_stage_seconds()
-            if state == JobState.SUCCEEDED:
-                job_states.succeed(job)
-            elif state == JobState.CANCELLED:
-                job_states.cancel(job, Actor.WORKER)
+            if reporter is None:
+                job = jobs.get(session, job_id)
+                if JobState(job.state).finished:
+                    log.info("job %s already %s; not failed again", job_id, job.state)
+                    return str(job.state)
+                notice = leases.end(job, state, error, None)
             else:
-                job_states.fail(job, error or "", Actor.WORKER)
-            webhook = (job.webhook_url, job.owner, webhooks.payload(job)) if job.webhook_url else None
+                notice = leases.end(reporter.owned(session), state, error, reporter.final_stage_seconds())
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
-        if webhook is not None:
-            url, owner, body = webhook
-            secret = webhooks.owner_secret(signing_key(self.settings), owner)
-            webhooks.deliver_in_background(url, secret, f"msg_{job_id}_{state.value}", body,
+        if notice is not None:
+            secret = webhooks.owner_secret(signing_key(self.settings), notice.owner)
+            webhooks.deliver_in_background(notice.url, secret, f"msg_{job_id}_{state.value}", notice.body,
                                            allow_private=self.settings.webhook_allow_private)
         if self.queue is not None:
             with self.sessions() as session:
@@ -344,10 +285,7 @@ class JobExecutor:
         """A transient fault: give the job back (no live lease) so the retry can claim it at once."""
         try:
             with session_scope(self.sessions) as session:
-                job = reporter.owned(session)
-                if job.state == JobState.RUNNING:
-                    job_states.give_back(job)
-                    job.stage_seconds = reporter.final_stage_seconds()
+                leases.hand_back(reporter.owned(session), reporter.final_stage_seconds())
         except Exception:  # the database itself may be what failed; the lease then expires on its own
             log.exception("could not put job %s back in the queue", job_id)
 
@@ -413,9 +351,7 @@ class ProgressReporter:
     Writes are throttled (a runner may report many times a second) except on a stage change.
     """
 
-    def __init__(
-        self, sessions: sessionmaker[Session], job_id: str, token: int | None = None, stage: str = "preparing"
-    ) -> None:
+    def __init__(self, sessions: sessionmaker[Session], job_id: str, token: int, stage: str = "preparing") -> None:
         self.sessions, self.job_id, self.token = sessions, job_id, token
         self._lost = False
         self._stop = threading.Event()
@@ -425,8 +361,7 @@ class ProgressReporter:
         self._last_write = 0.0
         self.cancelled = False  # cancel_requested as of the last write
         with session_scope(sessions) as session:
-            job = session.get(Job, job_id)
-            self._seconds: dict[str, float] = dict(job.stage_seconds or {}) if job else {}
+            self._seconds: dict[str, float] = leases.stage_seconds(session, job_id)
 
     def report(self, fraction: float, stage: str) -> None:
         now = time.monotonic()
@@ -439,20 +374,24 @@ class ProgressReporter:
             return
         self._last_write = now
         with session_scope(self.sessions) as session:
-            job = self.owned(session)
-            # Never below what was stored: a resumed run prepares again from 0 before it reaches
-            # its checkpoints, and a client's progress bar must not jump back.
-            job.progress, job.stage, job.heartbeat_at = max(job.progress or 0.0, fraction), stage, utcnow()
-            job.stage_seconds = dict(self._seconds)  # the current stage's time so far included
-            self.cancelled = job.cancel_requested
+            job = self.owned(session)  # the seconds written include the current stage's so far
+            self.cancelled = leases.record_progress(job, fraction, stage, self._seconds)
 
     def owned(self, session: Session) -> Job:
-        """The job row, if this runner still holds its lease token; else LeaseLost."""
-        job = session.get(Job, self.job_id)
-        if self._lost or job is None or (self.token is not None and job.lease_token != self.token):
-            self._lost = True
+        """The job row, if this runner still holds its lease token; else LeaseLost (at once,
+        without asking the database, once it was found lost)."""
+        if self._lost:
             raise LeaseLost(f"job {self.job_id} was claimed by another runner")
-        return job
+        try:
+            return leases.held(session, self.job_id, self.token)
+        except LeaseLost:
+            self._lost = True
+            raise
+
+    def check_held(self) -> None:
+        """LeaseLost unless this runner still holds the job's lease."""
+        with session_scope(self.sessions) as session:
+            self.owned(session)
 
     def start_heartbeat(self, period_s: float) -> None:
         """Refresh `heartbeat_at` every `period_s` from a thread, so a stage that reports no
@@ -469,7 +408,7 @@ class ProgressReporter:
         while not self._stop.wait(period_s):
             try:
                 with session_scope(self.sessions) as session:
-                    self.owned(session).heartbeat_at = utcnow()
+                    leases.beat(self.owned(session))
             except LeaseLost:
                 return  # the runner finds out at its next report
             except Exception:  # database unreachable: keep trying; the lease decides who runs
@@ -477,7 +416,7 @@ class ProgressReporter:
 
     def cancel_requested(self) -> bool:
         with session_scope(self.sessions) as session:
-            return bool(session.scalar(select(Job.cancel_requested).where(Job.id == self.job_id)))
+            return leases.cancel_requested(session, self.job_id)
 
     def final_stage_seconds(self) -> dict[str, float]:
         """Seconds per stage, the current one closed (the job is ending or handing back)."""

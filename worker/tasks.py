@@ -21,12 +21,13 @@ from fluidcore.errors import internal_error
 from service.celery_app import make_celery, task_name
 from service.database import make_engine, make_sessionmaker
 from service.job_types import JobType
+from service.leases import JobBusy
 from service.models import JobState
 from service.queue import CeleryQueue
 from service.settings import get_settings
 from service.storage import make_storage
 from service.worker_beats import WorkerBeacon, worker_name
-from worker.execution import TRANSIENT_ERRORS, JobBusy, JobExecutor
+from worker.execution import TRANSIENT_ERRORS, JobExecutor
 from worker.runners import load_runners
 
 log = logging.getLogger(__name__)

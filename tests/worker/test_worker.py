@@ -15,9 +15,10 @@ from sqlalchemy.exc import IntegrityError
 
 from fluidcore.errors import InputError
 from service.database import session_scope
+from service.leases import JobBusy
 from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, log_key, run_prefix
-from worker.execution import RUN_SHARE, JobBusy
+from worker.execution import RUN_SHARE
 from worker.runners import RunInputs
 from tests.support.service import FAKE_RUNNERS, SimulatedCrash, empty_tables, fake_job, sqlite_url
 from tests.support.worker import World

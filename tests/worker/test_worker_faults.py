@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 
 from service.database import session_scope
+from service.leases import JobBusy
 from service.models import Job, JobState, utcnow
 from service.storage import LocalStorage, StorageError, job_prefix
-from worker.execution import JobBusy
 from worker.runners import RunInputs
 from service.queue import reap_stale
 from tests.support.service import FAKE_RUNNERS, fake_job, free_port, sqlite_url
