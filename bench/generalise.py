@@ -59,7 +59,7 @@ if __package__ in (None, ""):  # `python bench/generalise.py`
 
 from bench.gt_scenes import GroundTruth, Variant, open_scene  # noqa: E402
 from bench.predict import per_frame  # noqa: E402
-from bench.scene_args import quality_overrides  # noqa: E402
+from bench.scene_args import SET_HELP, quality_overrides  # noqa: E402
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
@@ -84,7 +84,7 @@ def command(
     observed: str | None = typer.Option(None, "--observed", help="A:B, the observed frames, end exclusive (default: the scene's protocol.json)."),
     future: int | None = typer.Option(None, "--future", min=1, help="Frames to predict after B (default: up to 60, as many as the truth has)."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_HELP}."),
-    set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. long_side=240."),
+    set_: list[str] = typer.Option([], "--set", help=SET_HELP),
     score_every: int = typer.Option(1, "--score-every", min=1, help="Score every K-th frame of each window."),
     score_long_side: int | None = typer.Option(None, "--score-long-side", min=16, help="Score at this long side (default: full size)."),
     tasks: str = typer.Option(",".join(TASKS), "--tasks", help="Comma-separated subset of " + ",".join(TASKS) + "."),

@@ -36,7 +36,7 @@ import typer
 if __package__ in (None, ""):  # `python bench/predict.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
+from bench.scene_args import SET_HELP, load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
@@ -54,7 +54,7 @@ def command(
     future: str = typer.Option(..., "--future", help="B:C, the frames to predict and score."),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=f"Reconstruction quality: {QUALITY_HELP}."),
-    set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
+    set_: list[str] = typer.Option([], "--set", help=SET_HELP),
     reconstruction: Path | None = typer.Option(None, "--reconstruction", help="Reuse this finished reconstruction run."),
     out: Path | None = typer.Option(None, "--out", help="Keep the runs here (default: a temporary folder)."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),

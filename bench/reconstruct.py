@@ -25,7 +25,7 @@ import typer
 if __package__ in (None, ""):  # `python bench/reconstruct.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.scene_args import load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
+from bench.scene_args import SET_HELP, load_scene, quality_overrides, view_paths  # noqa: E402 - shared option parsing
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
 from fluidnexus.reporting import UserError, echo_json, user_errors  # noqa: E402
 
@@ -40,7 +40,7 @@ def command(
     frames: str = typer.Option("0:10", "--frames", help="START:END (end exclusive)."),
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_HELP),
     gt: list[str] = typer.Option([], "--gt", help="VIEW=path (relative to --scene): ground truth of a camera."),
-    set_: list[str] = typer.Option([], "--set", help="Quality override FIELD=JSON, e.g. position_iterations=10."),
+    set_: list[str] = typer.Option([], "--set", help=SET_HELP),
     out: Path | None = typer.Option(None, "--out", help="Keep the run folder here (default: a temporary folder)."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch threads (default: all cores)."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),

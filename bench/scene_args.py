@@ -38,6 +38,10 @@ def view_paths(items: list[str], option: str, base: Path) -> dict[str, Path | No
     return out
 
 
+SET_HELP = ("Quality override FIELD=JSON, repeatable: FIELD a dotted path (fit.long_side) or a field's own name "
+            "(long_side, seed, air_cells), checked against the config")
+
+
 def quality_overrides(items: list[str]) -> dict[str, object]:
     """Parse repeated `--set FIELD=JSON` options into keyword overrides for a quality preset
     (`ReconstructConfig.with_overrides` checks them: FIELD is a dotted path, `fit.long_side`, or a
@@ -47,5 +51,8 @@ def quality_overrides(items: list[str]) -> dict[str, object]:
         key, sep, text = item.partition("=")
         if not sep:
             raise UserError(f"--set must look like FIELD=VALUE, got {item!r}")
-        values[key] = json.loads(text)
+        try:
+            values[key] = json.loads(text)
+        except ValueError:
+            raise UserError(f"--set {key}: {text!r} is not a JSON value") from None
     return values

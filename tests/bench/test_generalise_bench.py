@@ -329,3 +329,5 @@ def test_bench_gives_the_reconstruction_a_source_when_asked_and_refuses_what_it_
         assert refused.exit_code == 2 and "source" in refused.output, (bad, refused.output)
     refused = runner.invoke(app, [*base, "--set", "air_cells=4"])  # a quality override is checked as the API's params are
     assert refused.exit_code == 2 and "air_cells must be 0 (still air) or 8..128" in refused.output, refused.output
+    refused = runner.invoke(app, [*base, "--set", "seed=[1"])  # not JSON: a usage error, not a traceback
+    assert refused.exit_code == 2 and "--set seed" in refused.output and "not a JSON value" in refused.output, refused.output
