@@ -41,7 +41,8 @@ _LAZY = {
 __getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
-    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState", "PhysicsInputError", "Simulator", "Source",
+    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState",
+    "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
     "sim_step", "wind_air", "wind_force",
 ]
