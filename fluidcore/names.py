@@ -20,14 +20,19 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Iterable
 from pathlib import Path
 
 from fluidcore.errors import InputError
 
 NAME_MAX_CHARS = 64
 RELATIVE_MAX_PARTS = 8  # "sparse/0/cameras.bin" has 3; deeper is no capture layout we know
+# Device names Windows reserves in every folder, with any extension and in any case ("con.mp4" opens
+# the console): a run folder or a storage bucket copied to a Windows or SMB volume could not hold them.
+RESERVED_NAMES = frozenset({"con", "prn", "aux", "nul", *(f"com{i}" for i in range(1, 10)), *(f"lpt{i}" for i in range(1, 10))})
 NAME_RULE = (
-    f"1 to {NAME_MAX_CHARS} characters from A-Z a-z 0-9 '.' '_' '-', starting with a letter or digit, without '..'"
+    f"1 to {NAME_MAX_CHARS} characters from A-Z a-z 0-9 '.' '_' '-', starting with a letter or digit, without '..', "
+    "not a device name (CON, PRN, AUX, NUL, COM1-9, LPT1-9)"
 )
 # First a letter or digit: not '.' (hidden files, '.', '..') and not '-' (read as an option by tools).
 _NAME = re.compile(rf"[A-Za-z0-9][A-Za-z0-9._-]{{0,{NAME_MAX_CHARS - 1}}}")
@@ -43,7 +48,14 @@ class UnsafePath(InputError):
 
 def is_safe_name(value: object) -> bool:
     """True when `value` is a str that follows NAME_RULE (see the module docstring)."""
-    return isinstance(value, str) and _NAME.fullmatch(value) is not None and ".." not in value
+    return (isinstance(value, str) and _NAME.fullmatch(value) is not None and ".." not in value
+            and value.split(".", 1)[0].lower() not in RESERVED_NAMES)
+
+
+def case_twin(names: Iterable[str], name: str) -> str | None:
+    """The one of `names` that differs from `name` in case alone, if any: case-insensitive file
+    systems (macOS's and Windows' defaults) store `Cam0.mp4` and `cam0.mp4` as one file."""
+    return next((other for other in names if other != name and other.casefold() == name.casefold()), None)
 
 
 def check_name(value: object, field: str) -> str:

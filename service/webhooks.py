@@ -65,11 +65,25 @@ class RefusedTarget(ValueError):
     """A webhook URL whose host is, or resolves to, an internal address; the message says which."""
 
 
+# Public by the registries but a cloud host's own service, reached from inside its VMs: Azure's
+# wire server and instance metadata (168.63.129.16; the others' metadata addresses are link-local
+# or private already).
+HOST_SERVICES = (ipaddress.ip_address("168.63.129.16"),)
+
+
 def refused_address(address: str) -> str | None:
-    """Why `address` (an IP literal) is not a public unicast address, or None when it is one."""
+    """Why `address` (an IP literal) is not a public unicast address, or None when it is one.
+
+    An IPv6 address that carries an IPv4 one (v4-mapped `::ffff:a.b.c.d`, 6to4 `2002:AABB:CCDD::`)
+    is judged by that IPv4 address: a 6to4 relay delivers it there. Site-local `fec0::/10`,
+    deprecated but still routed by some stacks, is refused with the private ranges."""
     ip = ipaddress.ip_address(address.split("%", 1)[0])  # an IPv6 zone index is not part of the address
-    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
-        ip = ip.ipv4_mapped
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.is_site_local:
+            return f"{ip} is a site-local address"
+        ip = ip.ipv4_mapped or ip.sixtofour or ip
+    if ip in HOST_SERVICES:
+        return f"{ip} is a cloud host's own service"
     for kind in ("loopback", "link_local", "multicast", "private", "reserved", "unspecified"):
         if getattr(ip, f"is_{kind}"):
             return f"{ip} is a {kind.replace('_', '-')} address"

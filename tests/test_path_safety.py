@@ -48,8 +48,13 @@ HOSTILE = [
     "a..b",
     "cam0\n",
     "x" * 65,
+    "CON",  # Windows device names, in any case and with any extension
+    "nul",
+    "Aux.mp4",
+    "com1",
+    "LPT9.txt",
 ]
-GOOD = ["cam0", "view_02", "a.b-c_d", "0", "X" * 64, "x_"]
+GOOD = ["cam0", "view_02", "a.b-c_d", "0", "X" * 64, "x_", "console", "com10", "nullable", "con_1"]
 
 
 # -- the rule and the join ---------------------------------------------------------------------------

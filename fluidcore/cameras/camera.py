@@ -70,6 +70,19 @@ def check_camera_name(name: object, field_name: str) -> str:
         raise CameraError(str(error)) from None
 
 
+def check_new_camera(taken: Sequence[str] | dict[str, object], name: str, context: str) -> None:
+    """CameraError unless `name` differs from every camera name in `taken`, in more than case: each
+    becomes a file, and case-insensitive file systems store `Cam0.mp4` and `cam0.mp4` as one."""
+    from fluidcore.names import case_twin
+
+    if name in taken:
+        raise CameraError(f"{context}: duplicated camera name {name!r}")
+    twin = case_twin(taken, name)
+    if twin is not None:
+        raise CameraError(f"{context}: camera names {twin!r} and {name!r} differ only in case "
+                          "(one file on case-insensitive file systems); rename one")
+
+
 def _as_float(value: object, field_name: str) -> float:
     if isinstance(value, bool):
         raise CameraError(f"{field_name} must be a number, got {value!r}")

@@ -28,7 +28,7 @@ from types import ModuleType
 
 import numpy as np
 
-from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name, check_new_camera
 from fluidcore.names import UnsafeName, UnsafePath, check_relative, safe_join
 
 # Where each supported model's extra parameters go in OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6).
@@ -169,8 +169,7 @@ def cameras_from_reconstruction(reconstruction, source: str) -> dict[str, Camera
         name = PurePosixPath(image.name).stem
         context = f"{source}: image {image.name!r}"
         check_camera_name(name, f"{context}: camera name")
-        if name in cameras:
-            raise CameraError(f"{context}: duplicated camera name {name!r}")
+        check_new_camera(cameras, name, context)
         colmap_camera = reconstruction.cameras[image.camera_id]
         fx, fy, cx, cy, distortion = _intrinsics(colmap_camera, context)
         world_to_camera = np.eye(4)

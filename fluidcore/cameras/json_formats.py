@@ -30,7 +30,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fluidcore.cameras.camera import Camera, CameraError, check_camera_name, check_rigid
+from fluidcore.cameras.camera import Camera, CameraError, check_camera_name, check_new_camera, check_rigid
 from fluidcore.files import atomic_output
 
 OPENGL_TO_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # flips camera y and z axes
@@ -65,10 +65,9 @@ def load_json_cameras(path: Path, data: dict[str, Any]) -> dict[str, Camera]:
     cameras: dict[str, Camera] = {}
     for where, entry in entries:
         camera = _entry_camera(path, data, where, entry)
-        if camera.name in cameras:
-            if camera == cameras[camera.name]:  # PINF lists the same video in train and test
-                continue
-            raise CameraError(f"{path.name}: {where}: duplicated camera name {camera.name!r}")
+        if camera == cameras.get(camera.name):  # PINF lists the same video in train and test
+            continue
+        check_new_camera(cameras, camera.name, f"{path.name}: {where}")
         cameras[camera.name] = camera
     return cameras
 

@@ -211,6 +211,7 @@ class InteractionParams(BaseModel):
         if self.wind is not None:
             _check_start(self.wind.start_frame, frames, "wind")
             base_height = self.wind.reference_height(sum(u * c for u, c in zip(up, center)))
+            _check_base_height(self.wind.base_height, lo, hi, up)
             peak = self.wind.peak_acceleration(lo, hi, base_height, up)
             if peak * dt > speed_limit:
                 raise InteractionError(
@@ -222,6 +223,27 @@ class InteractionParams(BaseModel):
         if self.ball is not None:
             _check_start(self.ball.start_frame, frames, "ball")
             self.ball.check_in_box(lo, hi)
+
+
+# How far (in box heights) a wind's base height may lie outside the scene box's heights. A base
+# placed in the scene's coordinates describes this scene's air; one far outside it (-1e308) passed
+# the scene check, whose gain is capped, and then overflowed the physics' float32 heights to NaN.
+BASE_HEIGHT_REACH = 10.0
+
+
+def _check_base_height(base_height: float | None, lo: Vec3, hi: Vec3, up: Vec3) -> None:
+    """InteractionError unless `base_height` (when given) lies within BASE_HEIGHT_REACH box heights
+    of the scene box's heights along `up`."""
+    if base_height is None:
+        return
+    heights = [sum(u * c for u, c in zip(up, corner)) for corner in _corners(lo, hi)]
+    bottom, top = min(heights), max(heights)
+    reach = BASE_HEIGHT_REACH * (top - bottom)
+    if not bottom - reach <= base_height <= top + reach:
+        raise InteractionError(
+            f"wind.base_height {base_height:g} lies more than {BASE_HEIGHT_REACH:g} box heights from the scene box "
+            f"(heights {bottom:.3g}..{top:.3g} along up); give a height in this scene's coordinates"
+        )
 
 
 class Intervention(InteractionParams):

@@ -103,7 +103,8 @@ def test_a_webhook_must_be_an_http_url(service: Service, url: str) -> None:
 INTERNAL = ["http://127.0.0.1:18101/x", "http://localhost/x", "http://[::1]/x", "http://10.1.2.3/x",
             "http://192.168.0.7/x", "http://169.254.169.254/latest/meta-data/", "http://[fd00:ec2::254]/x",
             "http://100.100.100.200/x", "http://224.0.0.1/x", "http://0.0.0.0/x", "http://[::ffff:127.0.0.1]/x",
-            "http://2130706433/x", "http://0x7f.1/x"]
+            "http://2130706433/x", "http://0x7f.1/x", "http://[2002:7f00:1::]/x", "http://[2002:a9fe:a9fe::]/x",
+            "http://[fec0::1]/x", "http://168.63.129.16/x"]
 
 
 @pytest.mark.parametrize("url", INTERNAL)

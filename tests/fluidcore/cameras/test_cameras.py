@@ -283,6 +283,7 @@ def _mutate(data: dict, path: str, value) -> dict:
         ("w", None, "missing field w"),
         ("cx", float("nan"), "cx must be finite"),
         ("frames.1.camera", "cam0", r"frames\[1\].*duplicated camera name 'cam0'"),
+        ("frames.1.camera", "CAM0", r"frames\[1\].*camera names 'cam0' and 'CAM0' differ only in case"),
         ("k4", 0.01, "k4 = 0.01: a fisheye coefficient"),
         ("camera_model", "OPENCV_FISHEYE", "camera_model 'OPENCV_FISHEYE' is not supported"),
         ("frames", [], "no cameras"),

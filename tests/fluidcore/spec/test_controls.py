@@ -176,6 +176,21 @@ def test_a_wind_base_height_replaces_the_source_height_in_the_scene_check() -> N
         InteractionParams(wind=high).check_scene(scene(), FRAMES)
 
 
+@pytest.mark.parametrize("base_height", [-1e308, 1e308, -1e6, 50.0])
+def test_a_wind_base_height_far_outside_the_scene_is_refused(base_height: float) -> None:
+    """A base height more than BASE_HEIGHT_REACH box heights from the box names no height of this
+    scene; -1e308 used to pass the check and end the job on NaN."""
+    from fluidcore.spec.controls import BASE_HEIGHT_REACH
+
+    box = scene()
+    extent = box.box_hi[1] - box.box_lo[1]
+    wind = {"direction": (1, 0, 0), "strength": 0.1, "growth": 0.0, "profile": "uniform"}
+    with pytest.raises(InteractionError, match="wind.base_height"):
+        InteractionParams(wind=WindParams(**wind, base_height=base_height)).check_scene(box, FRAMES)
+    inside = box.box_hi[1] + 0.5 * BASE_HEIGHT_REACH * extent  # above the box, within reach: a user's ramp
+    InteractionParams(wind=WindParams(**wind, base_height=inside)).check_scene(box, FRAMES)
+
+
 def test_the_branch_frame_is_a_finished_frame_or_the_last() -> None:
     """`branch_frame`, the one from_frame rule the API and the job ask: None is the last finished
     frame, a finished frame is itself, any other is refused naming the field and the run."""
