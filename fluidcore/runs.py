@@ -83,7 +83,7 @@ from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
-from fluidcore.spec.scene import Scene, SceneError
+from fluidcore.spec.scene import Scene, SceneError, SourcePlace
 from fluidcore.spec.source_hint import SourceHint
 
 FORMAT = "fluidnexus-run"
@@ -136,14 +136,6 @@ class SourceEstimateRecord(BaseModel):
     generated: dict[str, float] = {}  # generated view -> its ray's weight in the triangulation (the input view's is 1)
 
 
-class PriorSource(BaseModel):
-    """Where the identification started the source from (world units)."""
-
-    model_config = _RECORD
-    center: tuple[float, float, float]
-    radius: float
-
-
 class IdentificationPrior(BaseModel):
     """What the identification started from (the physics preset in the scene's units) and what
     it kept of it."""
@@ -156,7 +148,7 @@ class IdentificationPrior(BaseModel):
     held_from_prior: tuple[str, ...]
     inflow_speed: str  # how the inflow's speed follows from the rest ("buoyancy / drag")
     budget: int  # the particles per step the inlet may seed at most
-    source: PriorSource
+    source: SourcePlace  # where the identification started the source from (world units)
 
 
 class IdentifiedRecord(BaseModel):
@@ -179,7 +171,7 @@ class IdentifiedRecord(BaseModel):
 
 
 class PhysicsRecord(BaseModel):
-    """How a reconstruction's physics was chosen (`fluidcore.reconstruct.identify.scene_physics`):
+    """How a reconstruction's physics was chosen (`fluidcore.reconstruct.scene_physics.scene_physics`):
     the mode, the prior preset and, for "auto", what was identified; then what the scene simulates
     with. Only the mode is known of a run written before --physics (it ran the preset); a field a
     later version added is None in a run written before it."""

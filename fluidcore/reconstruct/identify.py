@@ -58,7 +58,7 @@ from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Source
 from fluidcore.physics.build import build_simulator
-from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PriorSource
+from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.physics import Vec3
 from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES
@@ -323,7 +323,7 @@ def identify(
     fitted = search.scene(best).source
     record = IdentificationPrior(preset=prior.preset, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
                                  held_from_prior=("drag", "rho0"), inflow_speed="buoyancy / drag", budget=budget,
-                                 source=PriorSource(center=place.center, radius=place.radius))
+                                 source=place)
     return IdentifiedRecord(buoyancy=max(best[0], floor), inflow_speed=float(np.dot(fitted.velocity, up_v)), rate=fitted.rate,
                             age=age, misfit=misfit, rise_speed=speed_obs, floor=floor, evaluations=len(search.rollouts),
                             source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=record)

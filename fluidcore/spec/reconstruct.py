@@ -195,10 +195,8 @@ class ReconstructConfig(BaseModel):
         name (`weights={"flow": 1}`)."""
         data = self.model_dump()
         for key, value in overrides.items():
-            *parents, leaf = _override_path(key)
-            part = data
-            for name in parents:
-                part = part[name]
+            path = _override_path(key)
+            part, leaf = _holder(data, path), path[-1]
             part[leaf] = {**part[leaf], **value} if isinstance(part[leaf], dict) and isinstance(value, Mapping) else value
         try:
             return ReconstructConfig.model_validate(data)
@@ -247,11 +245,15 @@ def quality_fields(recorded: Mapping[str, Any]) -> dict[str, Any]:
         if name not in _FLAT and name not in ReconstructConfig.model_fields:
             continue
         path = _FLAT.get(name, (name,))
-        part = nested
-        for name in path[:-1]:
-            part = part.setdefault(name, {})
-        part[path[-1]] = value
+        _holder(nested, path)[path[-1]] = value
     return nested
+
+
+def _holder(tree: dict[str, Any], path: tuple[str, ...]) -> dict[str, Any]:
+    """The dict of the nested `tree` that holds `path`'s last name (its parts made where missing)."""
+    for name in path[:-1]:
+        tree = tree.setdefault(name, {})
+    return tree
 
 
 @dataclass(frozen=True)

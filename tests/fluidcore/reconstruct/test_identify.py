@@ -25,7 +25,7 @@ from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observ
                                            buoyancy_floor, identify, inlet_rate, rise_speed)
 from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
 from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
-from fluidcore.runs import IdentificationPrior, IdentifiedRecord, PriorSource
+from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import Air, SourcePlace
 
@@ -247,7 +247,7 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     source = rising.spec.source()
     buoyancy, drag = 0.3, PRESETS["scalarflow"].drag
     prior = IdentificationPrior(preset="scalarflow", buoyancy=buoyancy, drag=drag, rho0=1.0, held_from_prior=(),
-                                inflow_speed="buoyancy / drag", budget=1, source=PriorSource(center=source.center, radius=source.radius))
+                                inflow_speed="buoyancy / drag", budget=1, source=SourcePlace.of(source))
     found = IdentifiedRecord(buoyancy=buoyancy, inflow_speed=buoyancy / drag, rate=1, age=5, misfit=0.3,
                              rise_speed=3.0 * buoyancy / drag, floor=0.5 * buoyancy, evaluations=1,
                              source_center=source.center, source_radius=source.radius, entrainment=0.0, prior=prior)
