@@ -56,6 +56,20 @@ class SceneVideo(BaseModel):
     n_frames: int
     codec: str
     size: int
+    url: str = Field(description="the uploaded video as sent: GET it with the API key (honours HTTP Range)")
+
+
+class SceneVideoLink(BaseModel):
+    """Where to play one camera's uploaded video (GET /v1/scenes/{id}/videos)."""
+
+    camera: str
+    url: str = Field(description="GET it with the API key (honours HTTP Range)")
+    presigned_url: str = Field(description="time-limited URL that needs no API key (for <video src>)")
+
+
+class SceneVideoLinks(BaseModel):
+    scene_id: str
+    items: list[SceneVideoLink]
 
 
 Vec3 = tuple[float, float, float]

@@ -7,7 +7,7 @@ from datetime import UTC, datetime
 from urllib.parse import quote
 
 from api.schemas import ArtifactOut, JobLinks, JobOut, JobTimings
-from api.signing import signed_url, signing_key
+from api.downloads import download_links
 from service.models import Artifact, Job
 from service.settings import Settings
 from service.storage import Storage
@@ -49,10 +49,7 @@ def artifact_path(job_id: str, name: str) -> str:
 
 def artifact_out(row: Artifact, storage: Storage, settings: Settings) -> ArtifactOut:
     """An artifact as the API lists it, with its download URL and a time-limited one for <video>."""
-    path = artifact_path(row.job_id, row.name)
-    presigned = storage.presign(row.key, settings.presign_seconds) or signed_url(
-        signing_key(settings), path, settings.presign_seconds
-    )
+    path, presigned = download_links(storage, settings, row.key, artifact_path(row.job_id, row.name))
     return ArtifactOut(
         name=row.name, kind=row.kind, camera=row.camera, size=row.size, content_type=row.content_type,
         url=path, presigned_url=presigned,

@@ -34,6 +34,32 @@ def owned(session: Session, scene_id: str, owner: str) -> Scene:
     return scene
 
 
+def get(session: Session, scene_id: str) -> Scene:
+    """The scene, whoever owns it (a signed link to one of its videos names it); NotFound otherwise."""
+    scene = session.get(Scene, scene_id)
+    if scene is None:
+        raise NotFound(f"scene {scene_id} not found")
+    return scene
+
+
+@dataclass(frozen=True)
+class UploadedVideo:
+    """One camera's uploaded video as stored: where, and under which file name it came."""
+
+    key: str
+    filename: str
+
+
+def uploaded_video(scene: Scene, camera: str) -> UploadedVideo:
+    """The video uploaded for `camera` (a name already checked by `fluidcore.names.check_name`:
+    it only selects among the scene's own videos, it never becomes a key); NotFound naming the
+    scene's cameras otherwise."""
+    video = scene.videos.get(camera)
+    if video is None:
+        raise NotFound(f"scene {scene.id} has no video of camera {camera!r}; its cameras: {', '.join(sorted(scene.videos))}")
+    return UploadedVideo(video["key"], video["filename"])
+
+
 def page(session: Session, owner: str, limit: int, offset: int) -> tuple[list[Scene], int]:
     """One page of the owner's scenes, newest first, and how many they have in all."""
     total = session.scalar(select(func.count()).select_from(Scene).where(Scene.owner == owner)) or 0

@@ -1,23 +1,27 @@
-"""`/v1/scenes`: upload a capture (cameras file + videos) and read it back."""
+"""`/v1/scenes`: upload a capture (cameras file + videos) and read it back, its videos too."""
 
 from __future__ import annotations
 
 import hashlib
 import json
+import mimetypes
 import tempfile
 from pathlib import Path
 from typing import Annotated
+from urllib.parse import quote
 
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
+from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from api.deps import OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
+from api.deps import OptionalOwnerDep, OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
+from api.downloads import STREAMED, download_links, signed_in, stream
 from api.errors import error_responses, strict_json
 from api.idempotency import replay
-from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo
+from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo, SceneVideoLink, SceneVideoLinks
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
-from fluidcore.names import safe_join
+from fluidcore.names import check_name, safe_join
 from fluidcore.spec.jobs import ReconstructParams
 from service import scenes
 from service.errors import DuplicateRequest
@@ -168,6 +172,51 @@ def get_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: Stor
     return scene_out(scene, scene_geometry(session, storage, scene))
 
 
+@router.get("/{scene_id}/videos", response_model=SceneVideoLinks, responses=error_responses(404))
+def list_videos(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep) -> SceneVideoLinks:
+    """Each camera's uploaded video with a time-limited link a <video> element plays (the
+    footage the results page shows beside the reconstruction's render of the same camera)."""
+    scene = scenes.owned(session, scene_id, owner)
+    items = []
+    for camera in sorted(scene.videos):
+        url, presigned = download_links(storage, settings, scene.videos[camera]["key"], scene_video_path(scene.id, camera))
+        items.append(SceneVideoLink(camera=camera, url=url, presigned_url=presigned))
+    return SceneVideoLinks(scene_id=scene.id, items=items)
+
+
+@router.get(
+    "/{scene_id}/videos/{camera}",
+    response_class=StreamingResponse,
+    responses={**STREAMED, **error_responses(403, 404, 416)},
+    openapi_extra={"security": [{"HTTPBearer": []}, {}]},  # the key, or none with a signed link
+)
+def download_video(
+    scene_id: str,
+    camera: str,
+    owner: OptionalOwnerDep,
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+    expires: int | None = None,
+    signature: str | None = None,
+    range: str | None = Header(default=None),
+) -> StreamingResponse:
+    """The video uploaded for `camera`, as it was sent: the footage a reconstruction is judged
+    against. Honours `Range: bytes=a-b` (206) so a browser's player seeks. Authorised by the
+    owner's Bearer key (another owner's scene is a 404), or by the signed `presigned_url` of
+    `GET /v1/scenes/{id}/videos` (what a <video> element can use)."""
+    owner = signed_in(owner, settings, scene_video_path(scene_id, camera), expires, signature)
+    camera = check_name(camera, "camera")
+    scene = scenes.owned(session, scene_id, owner) if owner is not None else scenes.get(session, scene_id)
+    video = scenes.uploaded_video(scene, camera)
+    content_type = mimetypes.guess_type(video.filename)[0] or "application/octet-stream"
+    return stream(storage, video.key, range, content_type, video.filename, f"the video of camera {camera!r}")
+
+
+def scene_video_path(scene_id: str, camera: str) -> str:
+    return f"/v1/scenes/{quote(scene_id)}/videos/{quote(camera)}"
+
+
 def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeometry:
     """The scene's geometry (`service.scenes.geometry`: from its latest succeeded reconstruction,
     else from the uploaded cameras file)."""
@@ -212,7 +261,10 @@ def scene_out(scene: Scene, geometry: SceneGeometry | None = None, job: Job | No
         name=scene.name,
         created_at=scene.created_at,
         cameras=scene.cameras,
-        videos={camera: SceneVideo(**{k: v for k, v in info.items() if k != "key"}) for camera, info in scene.videos.items()},
+        videos={
+            camera: SceneVideo(**{k: v for k, v in info.items() if k != "key"}, url=scene_video_path(scene.id, camera))
+            for camera, info in scene.videos.items()
+        },
         n_frames=scene.n_frames,
         fps=scene.fps,
         geometry=geometry,
