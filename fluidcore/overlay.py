@@ -72,19 +72,27 @@ def _draw_wind(image: np.ndarray, camera: Camera, wind: WindParams, anchor: Sequ
         cv2.circle(image, a, max(3, image.shape[1] // 60), WIND_COLOR, 2, cv2.LINE_AA)
     else:
         cv2.arrowedLine(image, a, b, WIND_COLOR, max(2, image.shape[1] // 120), cv2.LINE_AA, tipLength=0.25)
-    _label(image, f"wind ({wind.profile})", (a[0] + 4, a[1] + 4))
+    _label(image, wind_label(wind), (a[0] + 4, a[1] + 4), share=WIND_LABEL_SHARE)
+
+
+def wind_label(wind: WindParams) -> str:
+    """The arrow's tag: its profile only where the push changes with height (with a growth of 0,
+    "wind (exponential)" named a profile the picture does not show, in letters over the smoke)."""
+    return "wind" if wind.same_at_every_height else f"wind ({wind.profile})"
 
 
 LABEL_HEIGHT = 0.03  # text cap height as a fraction of the image's long side: 35 px on ScalarFlow's 1160 px views
 LABEL_MIN_SCALE = 0.35  # OpenCV font scale below which its strokes merge (about 8 px letters)
 LABEL_PAD = 2  # pixels of dark box around the text
+WIND_LABEL_SHARE = 0.4  # of the frame's width, unless that is below readable: the wind's label tags the arrow, it does not cover the smoke
 LABEL_FIT_TRIES = 4  # shrinks of a label measured wider than its room (OpenCV rounds glyphs to pixels: 0.35 gives 89 px where 1.0 gives 267)
 
 
-def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | None = None) -> None:
+def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | None = None, share: float = 1.0) -> None:
     """White text on a dark box (readable on smoke and on background alike), sized with the image
     and kept inside it: its top-left corner goes at `origin` or as near as fits, and it is shrunk
-    to fit `width` pixels (default: the image's width) so a small video shows it whole."""
+    to fit `width` pixels (default: the image's width) so a small video shows it whole, and to
+    `share` of that where it stays readable (LABEL_MIN_SCALE)."""
     import cv2
 
     height_px, width_px = image.shape[:2]
@@ -93,7 +101,7 @@ def _label(image: np.ndarray, text: str, origin: tuple[int, int], width: int | N
     (unit_w, unit_h), _ = cv2.getTextSize(text, font, 1.0, 1)
     wanted = LABEL_HEIGHT * max(height_px, width_px) / unit_h
     room = min(width, width_px) - 3 * LABEL_PAD - 2  # text starts 2 pads in; its box ends a pad and a pixel short of the edge
-    scale = min(max(LABEL_MIN_SCALE, wanted), room / unit_w)  # inside the image first, readable second
+    scale = min(max(LABEL_MIN_SCALE, min(wanted, share * room / unit_w)), room / unit_w)  # inside the image first, readable second
     for _ in range(LABEL_FIT_TRIES):  # glyph sizes are rounded to pixels, so width is not linear in scale
         thickness = max(1, round(scale))
         (text_w, text_h), baseline = cv2.getTextSize(text, font, scale, thickness)

@@ -102,6 +102,12 @@ class WindParams(BaseModel):
         renders before drawing the wind arrow)."""
         return frame >= self.start_frame and (self.end_frame is None or frame < self.end_frame)
 
+    @property
+    def same_at_every_height(self) -> bool:
+        """Whether `gain` is 1 everywhere: growth 0 makes every profile uniform, so a picture of
+        the wind need not name its profile."""
+        return self.growth == 0.0
+
     def reference_height(self, source_height: float) -> float:
         """The height (world units along up) where the acceleration is `strength`: `base_height`
         when the wind names one, else the height of the run's source centre."""

@@ -7,7 +7,7 @@ import pytest
 
 from fluidcore.cameras import Camera, look_at
 from fluidcore.spec.controls import parse_interaction
-from fluidcore.overlay import BALL_COLOR, draw_interventions, side_by_side
+from fluidcore.overlay import BALL_COLOR, WIND_LABEL_SHARE, draw_interventions, side_by_side, wind_label
 
 CAMERA = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 200, 200, 80, 60, 160, 120, np.eye(4)), "c")
 DT = 1 / 30
@@ -69,7 +69,7 @@ def _dark_box(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def test_wind_label_stays_inside_the_frame_and_grows_with_it(size: tuple[int, int]) -> None:
     height, width = size
     camera = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 1.2 * width, 1.2 * width, width / 2, height / 2, width, height, np.eye(4)), "c")
-    wind = parse_interaction({"direction": [1, 0, 0], "strength": 1.0}, None)  # the longest label: "wind (exponential)"
+    wind = parse_interaction({"direction": [1, 0, 0], "strength": 1.0, "growth": 1.0}, None)  # the longest label: "wind (exponential)"
     frame = np.full((1, height, width, 3), 128, np.uint8)
     out = draw_interventions(frame, camera, [1], wind, first_new_frame=1, dt=DT, anchor=[0.1, 0.8, 0], arrow_length=0.3)[0]
     rows, cols = _dark_box(out)
@@ -92,3 +92,23 @@ def test_side_by_side_titles_are_whole_and_scale_with_the_frames(size: tuple[int
         assert np.all(part > 200, axis=-1).any()  # some text is drawn in it
     rows, _ = _dark_box(both)
     assert rows.max() - rows.min() >= 0.025 * max(size) or max(size) < 100  # a title a viewer can read at that size
+
+
+@pytest.mark.parametrize("size", [(96, 96), (480, 268), (1160, 648)])  # 480 x 268: ScalarFlow's input view at preview quality
+def test_the_wind_label_tags_the_arrow_without_covering_the_smoke(size: tuple[int, int]) -> None:
+    """Issue 35: a large "wind (exponential)" covered the video when growth was 0 (the same push
+    at every height, whatever the profile). Now it reads "wind" there, and any wind label takes at
+    most WIND_LABEL_SHARE of the frame's width (a longer one too, where that leaves it readable)."""
+    height, width = size
+    camera = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 1.2 * width, 1.2 * width, width / 2, height / 2, width, height, np.eye(4)), "c")
+    widths = {}
+    for growth in (0.0, 1.0):
+        wind = parse_interaction({"direction": [1, 0, 0], "strength": 1.0, "growth": growth}, None)
+        frame = np.full((1, height, width, 3), 128, np.uint8)
+        out = draw_interventions(frame, camera, [1], wind, first_new_frame=1, dt=DT, anchor=[0.1, 0.8, 0], arrow_length=0.3)[0]
+        _, cols = _dark_box(out)
+        widths[growth] = cols.max() - cols.min() + 1
+    assert widths[0.0] <= WIND_LABEL_SHARE * width + 1, (widths, width)
+    assert widths[0.0] < widths[1.0]  # "wind" against "wind (exponential)"
+    assert [wind_label(parse_interaction({"direction": [1, 0, 0], "strength": 1.0, "growth": g, "profile": p}, None).wind)
+            for g, p in ((0.0, "exponential"), (0.0, "linear"), (0.0, "uniform"), (0.5, "linear"))] == ["wind"] * 3 + ["wind (linear)"]
