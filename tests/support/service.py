@@ -277,12 +277,13 @@ FAKE_RUNNERS = {**{job_type: fake_job for job_type in ("reconstruct", "predict",
 
 
 def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None,  # noqa: ANN001 - Storage
-              air=None) -> None:  # noqa: ANN001 - SavedAir
+              air=None, losses: dict[int, dict[str, float]] | None = None) -> None:  # noqa: ANN001 - SavedAir
     """What a worker leaves in storage: a run folder written by fluidcore.runs (scene box 1 unit
     wide, source at height 0.1), with `positions[t]` (P, 3) as frame t's particles, the last one
     dead; consecutive frames, or none; `source_estimate` (a `SourceEstimateRecord`) as its
     settings record how the source was found, or None (a source given whole); `air` (a
-    `fluidcore.runs.SavedAir`) saved with every frame."""
+    `fluidcore.runs.SavedAir`) saved with every frame; `losses[t]` frame t's loss terms in the
+    manifest's frame log (none by default)."""
     import tempfile
 
     from fluidcore.cameras import Camera
@@ -305,7 +306,7 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
         for t, points in sorted(positions.items()):
             alive = np.ones(len(points), bool)
             alive[-1] = False
-            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians, air=air), {}, 0.0)
+            run.write_frame(t, FrameState(points, np.zeros_like(points), alive, t / 30, gaussians, air=air), (losses or {}).get(t, {}), 0.0)
         for path in sorted(run.path.rglob("*")):
             if path.is_file():
                 storage.put_bytes(f"jobs/{job_id}/run/{path.relative_to(run.path).as_posix()}", path.read_bytes())

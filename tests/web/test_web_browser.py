@@ -14,20 +14,17 @@ FLUIDNEXUS_SCREENSHOTS=1, else to the test's temporary folder.
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
+from tests.support.browser import CHROMIUM, ROOT, in_process
 from tests.support.service import CLI, Server
 
 pytestmark = pytest.mark.browser
 
-CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
-ROOT = Path(__file__).resolve().parents[2]
 JOB_TIMEOUT_MS = 240_000
 SERVER_MS = 30_000  # an upload is probed by the server; on a loaded 2-core machine that takes seconds
 NEW_FRAMES = 2
@@ -45,25 +42,6 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     server = Server(tmp_path_factory.mktemp("web") / "data")
     yield server
     server.stop()
-
-
-@pytest.fixture(scope="module")
-def browser() -> Iterator[object]:
-    with sync_api.sync_playwright() as playwright:
-        browser = playwright.chromium.launch(
-            executable_path=CHROMIUM,
-            # WebGL through the software rasteriser: there is no GPU in CI
-            args=["--enable-unsafe-swiftshader", "--use-angle=swiftshader", "--autoplay-policy=no-user-gesture-required"],
-        )
-        yield browser
-        browser.close()
-
-
-@pytest.fixture
-def screens(tmp_path: Path) -> Path:
-    folder = ROOT / "docs" / "screens" if os.environ.get("FLUIDNEXUS_SCREENSHOTS") == "1" else tmp_path
-    folder.mkdir(parents=True, exist_ok=True)
-    return folder
 
 
 @pytest.fixture(scope="module")
@@ -255,7 +233,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     players_in_sync(page)
     sync_api.expect(page.locator("#plots figure")).to_have_count(4)
     # forecast PSNR (tens of dB) is drawn with the input view's PSNR, not on the loss axis
-    sync_api.expect(page.locator("#plots figure[aria-label='Loss per frame']")).not_to_contain_text("forecast")
+    sync_api.expect(page.locator("#plots figure[aria-label='Loss per frame, relative to the first']")).not_to_contain_text("forecast")
     sync_api.expect(page.locator("#plots figure[aria-label='PSNR of the input view']")).to_contain_text("forecast")
     sync_api.expect(page.locator("#downloads a", has_text="manifest.json")).to_have_count(1)
     sync_api.expect(page.locator("#downloads a", has_text="orbit.mp4")).to_have_count(1)
@@ -357,36 +335,6 @@ def camera_files(folder: Path) -> list[Path]:
     files = [folder / "transforms.json", folder / "info.json"]
     scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "transforms.json"
     return files + [scalarflow] if scalarflow.is_file() else files
-
-
-@pytest.fixture
-def static_web() -> Iterator[str]:
-    """web/ served as plain files (no API, no worker): enough for the page's modules on their own."""
-    import functools
-    import threading
-    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
-
-    handler = functools.partial(SimpleHTTPRequestHandler, directory=str(ROOT / "web"))
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    yield f"http://127.0.0.1:{httpd.server_address[1]}/"
-    httpd.shutdown()
-    httpd.server_close()
-
-
-def in_process(api):  # type: ignore[no-untyped-def]
-    """A route handler answering the page's /v1 requests with the in-process API `api`."""
-    from urllib.parse import urlsplit
-
-    def to_api(route) -> None:  # type: ignore[no-untyped-def]
-        request, url = route.request, urlsplit(route.request.url)
-        answer = api.client.request(request.method, url.path + (f"?{url.query}" if url.query else ""),
-                                    headers={k: v for k, v in request.headers.items() if k.lower() in ("authorization", "content-type")},
-                                    content=request.post_data_buffer)
-        route.fulfill(status=answer.status_code, body=answer.content, headers={"content-type": answer.headers.get("content-type", "text/plain")})
-
-    return to_api
 
 
 def test_the_forms_judge_values_by_the_apis_limits_as_the_models_do(static_web: str, browser, sqlite_service) -> None:  # type: ignore[no-untyped-def]

@@ -3,6 +3,7 @@
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
+import { decimal } from "./format.js";
 
 const POLL_MS = 2000;
 const FINISHED = new Set(["succeeded", "failed", "cancelled"]);
@@ -24,7 +25,7 @@ function origin(job) {
   return `after ${parent ? describeJob(parent) : shortId(job.parent_job_id)}`;
 }
 
-const num = (x) => Number(x.toFixed(3)).toString();
+const num = (x) => decimal(x);
 const vector = (v) => `(${v.map(num).join(", ")})`;
 
 /** A job's parameters in a few words, so rows of the same type tell apart. */

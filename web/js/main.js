@@ -74,6 +74,14 @@ async function signIn(event) {
   go("#jobs");
 }
 
+/** What a what-if plays next to, as the notice says it: a factual prediction queued with it, one
+ * already there, or (branched inside the run) the run itself in its side-by-side video. */
+function whatifCompanion({ queued, existing, branched }) {
+  if (branched !== null) return `, branched at frame ${branched}: its side-by-side video shows the run without the intervention (no factual prediction needed)`;
+  if (queued) return `, with the factual prediction ${shortId(queued.id)} it plays next to`;
+  return `; it plays next to the factual prediction ${shortId(existing.id)}, already there`;
+}
+
 async function act(what, promise) {
   try {
     const job = await promise;
@@ -106,8 +114,8 @@ function init() {
   });
   initResults();
   loadLimits().then((limits) => bound($("predict-frames"), limits.predict.frames), () => {}); // the upload view says why not
-  initWhatif((job) => {
-    notice(`What-if ${shortId(job.id)} queued, with the factual prediction it plays next to. Open its Results when it has succeeded.`);
+  initWhatif((job, factual) => {
+    notice(`What-if ${shortId(job.id)} queued${whatifCompanion(factual)}. Open its Results when it has succeeded.`);
     go("#jobs");
   }, (job) => {
     notice(`Reconstruction ${shortId(job.id)} queued with your source hint.`);

@@ -1,6 +1,8 @@
 // Results view: MP4 players side by side and in sync (input view, any camera, the orbit; for a
-// what-if, next to the factual prediction from the same frame), per-frame plots from the run
-// manifest, and downloads of everything the job published (videos, exports, states, manifest).
+// what-if, next to the factual prediction from the same frame; for a reconstruction, the uploaded
+// footage of its input view beside the render of it, side by side, overlaid or as their
+// difference), per-frame plots from the run manifest, and downloads of everything the job
+// published (videos, exports, states, manifest).
 // A reconstruction publishes its input views, a prediction or what-if no video; any other video
 // (a camera, the orbit, a what-if's side-by-side) is rendered when a player or a download asks for
 // it (POST /v1/jobs/{id}/videos/{name}):
@@ -8,6 +10,7 @@
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
+import { decimal } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
 const SYNC_TOLERANCE_S = 0.08;
@@ -53,8 +56,8 @@ function videoChoices(videos, prefix, jobId) {
     .sort((a, b) => (a.camera === null) - (b.camera === null));
 }
 
-/** The players to show: [{title, choices, initial}]. */
-function playerPlan(job, manifest, own, factual) {
+/** The players to show: [{title, choices, initial}], and `{title, footage}` for the footage. */
+function playerPlan(job, manifest, own, factual, footage) {
   const input = (manifest.input_views || [])[0];
   const mine = videoChoices(own, job.type === "interact" ? "what-if: " : "", job.id);
   const pick = (choices, camera) => Math.max(0, choices.findIndex((c) => c.camera === camera));
@@ -72,13 +75,16 @@ function playerPlan(job, manifest, own, factual) {
   const sideBySide = mine.findIndex((c) => c.kind === "side_by_side"); // a what-if without its factual twin
   return [
     { title: "Input view", choices: mine, initial: pick(mine, input) },
+    ...(footage ? [{ title: `Footage, camera ${footage.camera}`, footage }] : []),
     { title: sideBySide >= 0 ? "Factual | what-if" : "Another camera", choices: mine,
       initial: sideBySide >= 0 ? sideBySide : other >= 0 ? other : pick(mine, input) },
     { title: "Orbit", choices: mine, initial: orbit(mine) },
   ];
 }
 
-function player({ title, choices, initial }, index, onRendered) {
+function player(plan, index, onRendered) {
+  if (plan.footage) return footagePlayer(plan);
+  const { title, choices, initial } = plan;
   const figure = document.createElement("figure");
   const video = document.createElement("video");
   video.muted = true;
@@ -118,6 +124,7 @@ function player({ title, choices, initial }, index, onRendered) {
     }
     const leader = document.querySelector("#players video");
     const time = leader && leader !== video ? leader.currentTime : 0;
+    video.dataset.camera = choice.camera || "";
     video.src = choice.url;
     video.currentTime = time;
   };
@@ -134,6 +141,93 @@ function player({ title, choices, initial }, index, onRendered) {
 
 const videos = () => [...document.querySelectorAll("#players video")];
 
+/** Where `video` should be when the leader is at `time`: the footage runs `offset` seconds
+ * ahead (the run starts at a later frame of the clip); a shorter video loops. */
+function followTime(video, time) {
+  const target = time + Number(video.dataset.offset || 0);
+  return video.duration ? target % video.duration : target;
+}
+
+/** The uploaded video of the reconstruction's input view (GET /v1/scenes/{id}/videos), or null:
+ * {camera, url, offset}, `offset` the seconds of footage before the run's first frame. */
+async function footageOf(job, manifest) {
+  const camera = (manifest.input_views || [])[0];
+  if (job.type !== "reconstruct" || !job.scene_id || !camera) return null;
+  const link = (await api(`/v1/scenes/${job.scene_id}/videos`)).items.find((v) => v.camera === camera);
+  if (!link) return null;
+  const first = manifest.frame_range ? manifest.frame_range[0] : 0;
+  return { camera, url: link.presigned_url, offset: manifest.fps ? first / manifest.fps : 0 };
+}
+
+const COMPARE = [["side", "side by side"], ["overlay", "overlay (render at half opacity)"],
+  ["difference", "difference (black: they agree)"]];
+
+/** The footage player: the uploaded clip, in step with the input-view render (the first player)
+ * from the run's first frame on, and a canvas over it that shows the two overlaid or their
+ * difference. */
+function footagePlayer({ title, footage }) {
+  const figure = document.createElement("figure");
+  figure.className = "footage";
+  const video = document.createElement("video");
+  Object.assign(video, { muted: true, playsInline: true, preload: "auto", loop: true });
+  video.dataset.offset = String(footage.offset);
+  video.dataset.footageOf = footage.camera;
+  video.setAttribute("aria-label", title);
+  const canvas = document.createElement("canvas");
+  canvas.hidden = true;
+  canvas.setAttribute("role", "img");
+  const frame = Object.assign(document.createElement("div"), { className: "footage-frame" });
+  frame.append(video, canvas);
+  const select = Object.assign(document.createElement("select"), { id: "footage-compare" });
+  COMPARE.forEach(([value, text]) => select.append(new Option(text, value)));
+  const label = Object.assign(document.createElement("label"), { htmlFor: select.id, textContent: `${title}: compare with the input view` });
+  const status = Object.assign(document.createElement("p"), { className: "player-status" });
+  status.setAttribute("role", "status");
+  select.addEventListener("change", () => {
+    canvas.hidden = select.value === "side";
+    canvas.setAttribute("aria-label", `${COMPARE.find(([v]) => v === select.value)[1]}, camera ${footage.camera}`);
+    drawComparison();
+  });
+  video.addEventListener("loadedmetadata", () => figure.classList.toggle("portrait", video.videoHeight > video.videoWidth));
+  video.addEventListener("error", () => { status.textContent = "This browser cannot play the uploaded video (its format or codec)."; });
+  video.src = footage.url;
+  const caption = document.createElement("figcaption");
+  caption.append(label, select);
+  figure.append(frame, status, caption);
+  return figure;
+}
+
+/** The footage's canvas: the footage, and over it the input-view render (the first player) half
+ * transparent or as their per-pixel difference; both scaled to the footage's size. */
+function drawComparison() {
+  const canvas = document.querySelector("#players figure.footage canvas");
+  if (!canvas || canvas.hidden) return;
+  const footage = canvas.parentElement.querySelector("video");
+  const [render] = videos();
+  const status = canvas.closest("figure").querySelector(".player-status");
+  const choose = `Choose camera ${footage.dataset.footageOf} in the Input view player to compare.`;
+  if (!render || render.dataset.camera !== footage.dataset.footageOf) {
+    status.textContent = choose;
+    return;
+  }
+  if (status.textContent === choose) status.textContent = "";
+  if (!footage.videoWidth || !render.videoWidth) return;
+  if (canvas.width !== footage.videoWidth || canvas.height !== footage.videoHeight) {
+    canvas.width = footage.videoWidth;
+    canvas.height = footage.videoHeight;
+  }
+  const context = canvas.getContext("2d");
+  const mode = document.getElementById("footage-compare").value;
+  context.globalCompositeOperation = "source-over";
+  context.globalAlpha = 1;
+  context.drawImage(footage, 0, 0, canvas.width, canvas.height);
+  if (mode === "overlay") context.globalAlpha = 0.5;
+  else context.globalCompositeOperation = "difference";
+  context.drawImage(render, 0, 0, canvas.width, canvas.height);
+  context.globalCompositeOperation = "source-over";
+  context.globalAlpha = 1;
+}
+
 /** One clock for all players: the first video leads; the others are nudged when they drift. */
 function startSync() {
   stopSync();
@@ -142,13 +236,14 @@ function startSync() {
     const [leader, ...followers] = videos();
     if (leader) {
       for (const video of followers) {
-        const target = video.duration ? leader.currentTime % video.duration : leader.currentTime; // shorter ones loop
+        const target = followTime(video, leader.currentTime);
         if (Math.abs(video.currentTime - target) > SYNC_TOLERANCE_S && video.readyState >= 1) video.currentTime = target;
         if (leader.paused !== video.paused) leader.paused ? video.pause() : video.play().catch(() => {});
       }
       if (leader.duration) seek.value = String(leader.currentTime / leader.duration);
       time.textContent = `${leader.currentTime.toFixed(2)} s`;
       $("play-all").textContent = leader.paused ? "Play" : "Pause";
+      drawComparison();
     }
     syncLoop = requestAnimationFrame(tick);
   };
@@ -161,23 +256,49 @@ export function stopSync() {
   videos().forEach((video) => video.pause());
 }
 
-function plot(title, frames, series, unit) {
+/** A uPlot chart of `series` ([name, values]) over the frames, with a caption under it. Its
+ * legend always reads: with the pointer away from the chart it shows the last frame's values
+ * (uPlot's own legend shows "--" until hovered). `options`: {caption, log, format}. */
+function plot(title, frames, series, unit, { caption = "", log = false, format = fmt3 } = {}) {
   const figure = document.createElement("figure");
   figure.setAttribute("aria-label", title);
   $("plots").append(figure);
+  const last = frames.length - 1;
+  const lastOf = (values) => { for (let i = last; i >= 0; i--) if (values[i] != null) return values[i]; return null; };
+  const legend = (values) => (u, value, _series, idx) => {
+    const shown = idx == null ? lastOf(values) : value;
+    return shown == null ? "–" : format(shown);
+  };
   const opts = {
     title, width: 380, height: 220,
-    scales: { x: { time: false } },
+    scales: { x: { time: false }, y: log ? { distr: 3 } : {} },
     axes: [{ label: "frame", incrs: FRAME_STEPS }, { label: unit, size: 60 }],
-    series: [{ label: "frame" }, ...series.map(([name], i) => ({ label: name, stroke: PALETTE[i % PALETTE.length], width: 2 }))],
+    series: [{ label: "frame", value: (u, value, _series, idx) => (idx == null ? `${frames[last]} (last)` : String(value)) },
+      ...series.map(([name, values], i) => ({ label: name, stroke: PALETTE[i % PALETTE.length], width: 2, value: legend(values) }))],
   };
   plots.push(new uPlot(opts, [frames, ...series.map(([, values]) => values)], figure));
+  if (caption) figure.append(Object.assign(document.createElement("figcaption"), { className: "help", textContent: caption }));
 }
 
+const fmt3 = (v) => (Math.abs(v) >= 100 ? decimal(v, 0) : Number(v.toPrecision(3)).toString());
 const FRAME_STEPS = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]; // whole frames on the x axis
 const PALETTE = ["#1d5fa8", "#c0392b", "#17692a", "#8e44ad", "#d35400", "#2c3e50"];
-const PSNRS = ["input_psnr", "forecast_psnr"]; // dB, tens: on the loss axis they would flatten the losses to zero
-const NOT_LOSSES = new Set([...PSNRS, "particles", "gaussians"]);
+const PSNRS = { input_psnr: "after the fit", forecast_psnr: "forecast, before the fit" }; // dB, tens: apart from the losses
+const NOT_LOSSES = new Set([...Object.keys(PSNRS), "particles", "gaussians"]);
+
+/** Each loss term divided by its first non-zero value (terms differ by orders of magnitude, and
+ * what matters is whether each falls): [[name, ratios]] of the terms that have one; a ratio that
+ * is not positive is a gap, a log axis cannot show it. `zero`: the terms 0 on every frame. */
+function relativeLosses(names, column) {
+  const drawn = [], zero = [];
+  for (const name of names) {
+    const values = column(name);
+    const first = values.find((v) => v != null && v > 0);
+    if (first === undefined) zero.push(name);
+    else drawn.push([name, values.map((v) => (v != null && v > 0 ? v / first : null))]);
+  }
+  return { drawn, zero };
+}
 
 /** Loss terms, PSNR of the input view, seconds per frame, from the manifest's frame log. */
 function drawPlots(manifest) {
@@ -192,10 +313,20 @@ function drawPlots(manifest) {
   const t = frames.map((f) => f.t);
   const keys = [...new Set(frames.flatMap((f) => Object.keys(f.losses || {})))];
   const column = (key) => frames.map((f) => (f.losses && key in f.losses ? f.losses[key] : null));
-  const losses = keys.filter((k) => !NOT_LOSSES.has(k));
-  if (losses.length) plot("Loss per frame", t, losses.map((k) => [k, column(k)]), "loss");
-  const psnrs = PSNRS.filter((k) => keys.includes(k));
-  if (psnrs.length) plot("PSNR of the input view", t, psnrs.map((k) => [k.replace("_psnr", ""), column(k)]), "dB");
+  const { drawn, zero } = relativeLosses(keys.filter((k) => !NOT_LOSSES.has(k)), column);
+  if (drawn.length || zero.length) {
+    plot("Loss per frame, relative to the first", t, drawn, "÷ first frame", { log: true, caption:
+      "Each term divided by its first non-zero value, on a log axis: below 1 it fell. Each frame's fit ends on a "
+      + "randomly chosen view, so neighbouring frames scatter; follow the trend."
+      + (zero.length ? ` ${zero.join(", ")}: 0 on every frame (its weight is 0, or nothing violated it), not drawn.` : "") });
+  }
+  const psnrs = Object.keys(PSNRS).filter((k) => keys.includes(k));
+  if (psnrs.length) {
+    plot("PSNR of the input view", t, psnrs.map((k) => [PSNRS[k], column(k)]), "dB", { caption: keys.includes("forecast_psnr")
+      ? "After the fit: the frame's render against the footage. Forecast: before fitting a frame, the previous "
+        + "frame's smoke moved on by the simulator alone, scored against the footage it has not seen yet."
+      : "The frame's render against the footage." });
+  }
   plot("Time per frame", t, [["seconds", frames.map((f) => f.seconds)]], "s");
   if (keys.includes("particles")) plot("Particles", t, [["particles", column("particles")], ["gaussians", column("gaussians")]], "count");
 }
@@ -258,6 +389,7 @@ export async function showResults(jobId) {
     const manifest = manifestItem ? await api(manifestItem.url) : { frames: [] };
     const twin = await factualFor(job);
     const factual = twin ? { jobId: twin.id, videos: (await api(`/v1/jobs/${twin.id}/videos`)).items } : null;
+    const footage = await footageOf(job, manifest);
     $("results-title").textContent = `Results of ${describeJob(job)}`;
     const range = manifest.frame_range ? `frames ${manifest.frame_range[0]}–${manifest.frame_range[1] - 1}` : "";
     $("results-summary").textContent = `${job.state}; ${range}; input views ${(manifest.input_views || []).join(", ")}`
@@ -266,7 +398,7 @@ export async function showResults(jobId) {
           : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
             : "; no succeeded factual prediction with the same frames yet.");
     const rendered = () => refreshDownloads(jobId).catch(() => {});
-    $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual).map((plan, i) => player(plan, i, rendered)));
+    $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual, footage).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
     downloads(jobId, own.items, videos.items);
     startSync();
@@ -284,6 +416,6 @@ export function initResults() {
   });
   $("seek-all").addEventListener("input", (event) => {
     const [leader] = videos();
-    if (leader && leader.duration) videos().forEach((v) => { v.currentTime = Number(event.target.value) * leader.duration; });
+    if (leader && leader.duration) videos().forEach((v) => { v.currentTime = followTime(v, Number(event.target.value) * leader.duration); });
   });
 }

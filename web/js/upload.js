@@ -4,6 +4,7 @@
 import { $, showList } from "./dom.js";
 import { uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
+import { decimal } from "./format.js";
 import { mp4Frames } from "./mp4.js";
 import { allowedText, bound, limitProblem, loadLimits } from "./limits.js";
 import { insideBox, parseSource } from "./source.js";
@@ -152,7 +153,7 @@ function videoCard(video) {
   return li;
 }
 
-const fmt = (v) => `(${v.map((x) => x.toFixed(2)).join(", ")})`;
+const fmt = (v) => `(${v.map((x) => decimal(x, 2)).join(", ")})`;
 
 async function submit(event, onDone) {
   event.preventDefault();

@@ -10,6 +10,7 @@
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
+import { decimal } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 import { bound, limitProblem, loadLimits } from "./limits.js";
 import { fractionAlong, hintText, insideBox, parseSource, pointAlong } from "./source.js";
@@ -40,6 +41,7 @@ let retry = null;
 let onSubmitted = () => {};
 let onReconstruct = () => {};
 let depth = null; // {jobId, sceneId, params, range: [near, far], center, radius, cue}: one view's source
+let hintTouched = false; // until the slider or the hint is used, an empty hint is no problem to show
 let limits = null; // the interact parameters' limits (GET /v1/limits)
 let windRefusal = null; // the API's refusal of the form's wind, from the last arrows asked for
 let windAsked = 0; // numbers the requests for arrows: an answer to an older one is dropped
@@ -102,7 +104,7 @@ function whatifProblems(params, limits, box, frames) {
   return problems;
 }
 
-const fmt = (v) => Number(v.toFixed(3)).toString();
+const fmt = (v) => decimal(v);
 
 function createView() {
   const canvas = $("scene3d");
@@ -343,6 +345,7 @@ async function loadSourceDepth(job) {
   $("source-hint").value = "";
   $("source-error").textContent = "";
   $("source-form").hidden = false;
+  hintTouched = false;
   checkHint();
   drawSource();
 }
@@ -350,17 +353,20 @@ async function loadSourceDepth(job) {
 const point = (v) => `(${v.map(fmt).join(", ")})`;
 const showSourceError = (error) => { $("source-error").textContent = error.message; };
 
-/** The hint in the field, or null; its problems listed (and the button off) meanwhile. */
+/** The hint in the field, or null; its problems listed (and the button off) meanwhile. An empty
+ * hint keeps the button off but is listed only once the slider or the field was used: a form
+ * just opened is not an error. */
 function checkHint() {
   const parsed = parseSource($("source-hint").value);
   const problems = parsed.error ? [parsed.error] : [];
   if (parsed.value && run && !insideBox(parsed.value.center, run.box)) {
     problems.push(`Smoke source ${point(parsed.value.center)} is outside the scene box ${point(run.box.lo)} to ${point(run.box.hi)}.`);
   }
-  if (!parsed.error && !parsed.value) problems.push("Slide along the ray or type a source hint first.");
+  const empty = !parsed.error && !parsed.value;
+  if (empty && hintTouched) problems.push("Slide along the ray or type a source hint first.");
   showList("source-problems", problems);
-  $("source-submit").disabled = problems.length > 0;
-  return problems.length ? null : parsed.value;
+  $("source-submit").disabled = empty || problems.length > 0;
+  return empty || problems.length ? null : parsed.value;
 }
 
 /** The input ray's stretch (green, pointing away from the camera), the source used (yellow), the hint (green). */
@@ -402,7 +408,9 @@ async function reconstructWithHint(event) {
 
 export function leaveWhatif() { clearTimeout(retry); }
 
-/** Send the what-if, and the factual prediction it plays next to (unless one is already there). */
+/** Send the what-if, and the factual prediction it plays next to (unless one is already there, or
+ * it branches inside the run: its side-by-side shows the run without the intervention); tell
+ * `onSubmitted` which: (interact, {queued, existing, branched}). */
 async function submit(event) {
   event.preventDefault();
   $("whatif-error").textContent = "";
@@ -414,13 +422,12 @@ async function submit(event) {
   try {
     const interact = await api("/v1/jobs", { method: "POST", body: { type: "interact", parent_job_id: run.jobId, params } });
     await refreshJobs();
-    // a branch inside the run is shown next to the run itself (its side-by-side video)
-    const factual = params.from_frame !== undefined || [...jobs.values()].some((j) => j.type === "predict"
+    const branched = params.from_frame !== undefined;
+    const existing = branched ? null : [...jobs.values()].find((j) => j.type === "predict"
       && j.parent_job_id === run.jobId && j.params.frames === params.frames && j.state !== "failed" && j.state !== "cancelled");
-    if (!factual) {
-      await api("/v1/jobs", { method: "POST", body: { type: "predict", parent_job_id: run.jobId, params: { frames: params.frames } } });
-    }
-    onSubmitted(interact);
+    const queued = branched || existing ? null : await api("/v1/jobs", { method: "POST",
+      body: { type: "predict", parent_job_id: run.jobId, params: { frames: params.frames } } });
+    onSubmitted(interact, { queued, existing, branched: branched ? params.from_frame : null });
   } catch (error) {
     $("whatif-error").textContent = `Refused: ${error.message}`;
   }
@@ -430,11 +437,12 @@ export function initWhatif(submitted, reconstructed) {
   onSubmitted = submitted;
   onReconstruct = reconstructed;
   $("source-along").addEventListener("input", () => {
+    hintTouched = true;
     if (depth) $("source-hint").value = hintText(pointAlong(depth.range, Number($("source-along").value)));
     checkHint();
     drawSource();
   });
-  $("source-hint").addEventListener("input", () => { checkHint(); drawSource(); });
+  $("source-hint").addEventListener("input", () => { hintTouched = true; checkHint(); drawSource(); });
   $("source-form").addEventListener("submit", reconstructWithHint);
   $("whatif-form").addEventListener("input", () => { validate(); drawOverlay(); });
   $("whatif-form").addEventListener("submit", submit);
