@@ -18,10 +18,11 @@ from fluidcore.spec.controls import InteractionError, branch_frame
 from fluidcore.spec.jobs import InteractParams, ReconstructParams
 from service import scenes
 from service.chaining import release_children
+from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from service.job_states import QUEUED_STAGE, Actor, cancel, waiting_stage
 from service.job_types import JobType
-from service.models import SENDING, Artifact, Job, JobState
+from service.models import SENDING, Artifact, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
 from service.storage import ObjectNotFound, Storage, job_prefix, log_key
@@ -140,7 +141,11 @@ def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -
     whoever sees the parent end (service.chaining; the parent may have ended since the caller's
     check, so it is tried here too), any other is sent now (service.queue.send, whose rule covers
     a broker that is down). Stored `SENDING`, so no release or reaper pass sends it meanwhile.
-    DuplicateRequest: a concurrent request with the same Idempotency-Key stored its job first."""
+
+    The insert is where a concurrent delete shows: its scene or parent, checked by the caller,
+    deleted since (the database refuses the row's reference) is a Conflict saying so, and nothing
+    is stored. DuplicateRequest: a concurrent request with the same Idempotency-Key stored its
+    job first."""
     job.stage = waiting_stage(waits_for) if waits_for else QUEUED_STAGE
     job.task_id = None if waits_for else SENDING
     session.add(job)
@@ -148,6 +153,9 @@ def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -
         session.commit()
     except IntegrityError:
         session.rollback()
+        deleted = _deleted_reference(session, job)
+        if deleted is not None:
+            raise Conflict(f"{deleted} was deleted while this job was being created; nothing was queued") from None
         if job.idempotency_key is None:
             raise
         raise DuplicateRequest(f"job with Idempotency-Key {job.idempotency_key!r}") from None
@@ -156,6 +164,15 @@ def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -
         session.refresh(job)
     else:
         send(session, job, queue)
+
+
+def _deleted_reference(session: Session, job: Job) -> str | None:
+    """The parent job or scene a refused new job names that no longer exists, if one does not."""
+    if job.parent_job_id is not None and session.get(Job, job.parent_job_id) is None:
+        return f"parent job {job.parent_job_id}"
+    if job.scene_id is not None and session.get(Scene, job.scene_id) is None:
+        return f"scene {job.scene_id}"
+    return None
 
 
 def request_cancel(session: Session, job_id: str, owner: str) -> Job:
@@ -189,7 +206,8 @@ def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
         session.delete(child)
     session.flush()  # the renders before the job they name
     session.delete(job)
-    session.commit()  # rows first: a failed file removal leaves garbage, never a dangling row
+    # rows first: a failed file removal leaves garbage, never a dangling row
+    commit_or_conflict(session, f"job {job_id} was named by a new job while it was being deleted; nothing was deleted")
     storage.delete_prefix(f"{job_prefix(job.id)}/")
 
 
