@@ -17,7 +17,7 @@ from fluidcore.runs import RunError
 from fluidcore.spec.controls import InteractionError, branch_frame
 from fluidcore.spec.jobs import InteractParams, ReconstructParams
 from service import scenes
-from service.chaining import release_children
+from service.chaining import job_ended, release_children
 from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from service.job_states import QUEUED_STAGE, Actor, cancel, waiting_stage
@@ -25,6 +25,7 @@ from service.job_types import JobType
 from service.models import SENDING, Artifact, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
+from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, job_prefix, log_key
 
 
@@ -136,7 +137,7 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
         raise RefusedParams(f"params: {exc}") from None
 
 
-def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -> None:
+def create(session: Session, queue: JobQueue, settings: Settings, job: Job, waits_for: str | None) -> None:
     """Store a new job and hand it on: one waiting for its parent `waits_for` is released by
     whoever sees the parent end (service.chaining; the parent may have ended since the caller's
     check, so it is tried here too), any other is sent now (service.queue.send, whose rule covers
@@ -160,7 +161,7 @@ def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -
             raise
         raise DuplicateRequest(f"job with Idempotency-Key {job.idempotency_key!r}") from None
     if waits_for:
-        release_children(session, waits_for, queue, Actor.API)
+        release_children(session, waits_for, queue, Actor.API, settings)
         session.refresh(job)
     else:
         send(session, job, queue)
@@ -175,16 +176,20 @@ def _deleted_reference(session: Session, job: Job) -> str | None:
     return None
 
 
-def request_cancel(session: Session, job_id: str, owner: str) -> Job:
-    """A queued job is cancelled at once; a running one is asked to stop (its runner does at its
-    next report). Conflict for a job that already ended."""
+def request_cancel(session: Session, queue: JobQueue, settings: Settings, job_id: str, owner: str) -> Job:
+    """A queued job is cancelled at once, and what follows its end follows (`job_ended`: its
+    webhook, the jobs waiting on it cancelled); a running one is asked to stop (its runner does at
+    its next report, and the worker's end does the rest). Conflict for a job that already ended."""
     job = owned(session, job_id, owner, for_update=True)
     if JobState(job.state).finished:
         raise Conflict(f"job {job_id} already {job.state}")
     job.cancel_requested = True
-    if job.state == JobState.QUEUED:
+    cancelled_now = job.state == JobState.QUEUED
+    if cancelled_now:
         cancel(job, Actor.API)
     session.commit()
+    if cancelled_now:
+        job_ended(session, job.id, queue, Actor.API, settings)
     return job
 
 

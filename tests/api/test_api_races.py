@@ -76,7 +76,7 @@ def test_a_delete_and_a_create_naming_it_at_once_one_wins_and_the_other_is_a_409
     def create() -> None:
         with service.sessions() as session:
             try:
-                jobs.create(session, service.queue, new, waits_for=None)
+                jobs.create(session, service.queue, service.app.state.settings, new, waits_for=None)
                 outcome.append("created")
             except Conflict as exc:
                 outcome.append(str(exc))
