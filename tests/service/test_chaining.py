@@ -18,7 +18,8 @@ from fluidcore.errors import InputError
 from service.chaining import release_stranded
 from service.models import JobState, utcnow
 from service.queue import reap_stale
-from tests.support.service import FAKE_RUNNERS, scene_files, upload_parts, webhook_receiver
+from tests.support.service import FAKE_RUNNERS, empty_tables, scene_files, upload_parts, webhook_receiver
+from tests.support.service import postgres_url  # noqa: F401  fixture
 from tests.support.api import Service, executor, make_service
 
 
@@ -66,13 +67,16 @@ def test_continuations_start_when_their_parent_succeeds(service: Service, tmp_pa
     assert len(service.queue.sent) == 3
 
 
+@pytest.mark.parametrize("database", ["sqlite", "postgres"])
 def test_cancelling_a_queued_parent_cancels_its_waiting_chain_and_sends_every_webhook(
-    tmp_path: Path
+    tmp_path: Path, request: pytest.FixtureRequest, database: str
 ) -> None:
     """Issue 36 item 4: the children of a queued parent cancelled through the API stayed "waiting
-    for job ..." for ever, and no webhook was sent for any of the three ends."""
+    for job ..." for ever, and no webhook was sent for any of the three ends. On both databases:
+    the cancel and each child's release lock the row they end on PostgreSQL."""
+    url = empty_tables(request.getfixturevalue("postgres_url")) if database == "postgres" else None
     with webhook_receiver() as receiver:
-        for service in make_service(tmp_path, webhook_allow_private=True):
+        for service in make_service(tmp_path, url, webhook_allow_private=True):
             alice, parent, child, grandchild = chain(service, tmp_path, webhook=receiver.url)
             cancelled = service.client.post(f"/v1/jobs/{parent}/cancel", headers=alice)
             assert cancelled.status_code == 202 and cancelled.json()["state"] == "cancelled"
