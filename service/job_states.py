@@ -21,7 +21,8 @@ it is never written).
 
 A queued job is in one of four sub-states, told by `Job.task_id`, none a state a client acts on:
 waiting for its parent (NULL, stage `waiting_stage(parent)`), being handed to the broker
-(`SENDING`), not taken by the broker (`UNSENT`, stage `UNSENT_STAGE`: service.queue.send, the one
+(`SENDING`, since `resent_at` or its creation; a lease later the reaper sends it: the process
+handing it on died), not taken by the broker (`UNSENT`, stage `UNSENT_STAGE`: service.queue.send, the one
 rule for a broker that is down) and sent (the broker's task id). Running jobs are fenced by
 `lease_token`, which only `start` raises (worker.execution).
 """

@@ -21,7 +21,7 @@ from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from fluidcore.spec.jobs import ReconstructParams
 from service.job_types import JobType
-from service.models import Job, JobState, Scene
+from service.models import SENDING, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
 from service.storage import Storage, scene_prefix
@@ -71,7 +71,8 @@ def store(
         session.add(scene)
         if params is not None:
             session.flush()  # the scene row first: the job refers to it
-            job = Job(owner=scene.owner, type=JobType.RECONSTRUCT, scene_id=scene.id, params=params.model_dump(mode="json"))
+            job = Job(owner=scene.owner, type=JobType.RECONSTRUCT, scene_id=scene.id, params=params.model_dump(mode="json"),
+                      task_id=SENDING)  # being handed on (NULL would be a job waiting for a parent)
             session.add(job)
         session.commit()
     except BaseException as exc:
