@@ -20,6 +20,7 @@ from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, limits, particles, scenes, videos, webhooks, wind
 from api.uploads import Validators
+from service.chaining import release_stranded
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
 from service.settings import Settings, get_settings
@@ -82,14 +83,18 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
 async def _reap_forever(app: FastAPI) -> None:
     """Every quarter lease, send again the running jobs whose heartbeat stopped and the queued jobs
     whose message was lost (service.queue.reap_stale), so a job whose worker died is picked up
-    within about 1.25 leases, whatever the broker does."""
-    lease = app.state.settings.job_lease_seconds
+    within about 1.25 leases, whatever the broker does; and release the continuations of jobs
+    that ended without releasing them (service.chaining.release_stranded)."""
+    state = app.state
+    lease = state.settings.job_lease_seconds
     while True:
         await asyncio.sleep(lease / 4)
         try:
-            reaped = await anyio.to_thread.run_sync(reap_stale, app.state.sessionmaker, app.state.queue, lease)
+            reaped = await anyio.to_thread.run_sync(reap_stale, state.sessionmaker, state.queue, lease)
+            reaped += await anyio.to_thread.run_sync(release_stranded, state.sessionmaker, state.queue, state.settings)
         except Exception:  # database or broker down: the next round tries again
             log.warning("reaper: could not check for stale jobs", exc_info=True)
             continue
         if reaped:
-            log.warning("reaper: sent again %d job(s) whose worker stopped or whose message was lost: %s", len(reaped), ", ".join(reaped))
+            log.warning("reaper: sent again or released %d job(s) whose worker stopped, whose message was lost "
+                        "or whose parent ended unnoticed: %s", len(reaped), ", ".join(reaped))

@@ -8,7 +8,10 @@ from pathlib import Path
 from typing import Any
 
 from sqlalchemy import Engine, create_engine, event, text
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
+
+from service.errors import Conflict
 
 ROOT = Path(__file__).resolve().parents[1]
 SQLITE_BUSY_MS = 30_000
@@ -60,6 +63,17 @@ def session_scope(factory: sessionmaker[Session]) -> Iterator[Session]:
         raise
     finally:
         session.close()
+
+
+def commit_or_conflict(session: Session, conflict: str) -> None:
+    """Commit a delete whose checks passed; a reference the database refuses at the commit (another
+    request stored a row naming what this one deletes after those checks) is a Conflict saying
+    `conflict`, with nothing written, instead of a bug."""
+    try:
+        session.commit()
+    except IntegrityError:
+        session.rollback()
+        raise Conflict(conflict) from None
 
 
 def migrate(url: str) -> None:

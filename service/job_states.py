@@ -11,16 +11,18 @@ it is never written).
     running -> queued      reaper   its heartbeat is older than the lease (`send_again`), or serve
                                     starts again after its embedded worker died with it (`orphaned`)
     queued  -> cancelled   API      cancelled before it ran (`cancel`); worker: a claim finds it asked
-    queued  -> failed      API, worker   its parent did not succeed (service.chaining, run by whoever
-                                    sees the parent end); worker: lost on every attempt, or transient
-                                    retries spent while it waited for its retry
+                   API, worker, reaper   its parent did not succeed: cancelled with the reason
+                                    (service.chaining, run by whoever sees the parent end)
+    queued  -> failed      worker   lost on every attempt, or transient retries spent while it
+                                    waited for its retry
     queued  -> succeeded, failed, cancelled   worker   the lease holder ends a job the reaper sent
                                     again before another claim took it: its token is still the
                                     job's, so its result stands (the second message is dropped)
 
 A queued job is in one of four sub-states, told by `Job.task_id`, none a state a client acts on:
 waiting for its parent (NULL, stage `waiting_stage(parent)`), being handed to the broker
-(`SENDING`), not taken by the broker (`UNSENT`, stage `UNSENT_STAGE`: service.queue.send, the one
+(`SENDING`, since `resent_at` or its creation; a lease later the reaper sends it: the process
+handing it on died), not taken by the broker (`UNSENT`, stage `UNSENT_STAGE`: service.queue.send, the one
 rule for a broker that is down) and sent (the broker's task id). Running jobs are fenced by
 `lease_token`, which only `start` raises (worker.execution).
 """
@@ -68,8 +70,8 @@ TRANSITIONS: dict[tuple[JobState, JobState], frozenset[Actor]] = {
     (RUNNING, FAILED): frozenset({_WORKER}),
     (RUNNING, CANCELLED): frozenset({_WORKER}),
     (RUNNING, QUEUED): frozenset({_WORKER, _REAPER}),
-    (QUEUED, CANCELLED): frozenset({_API, _WORKER}),
-    (QUEUED, FAILED): frozenset({_API, _WORKER}),
+    (QUEUED, CANCELLED): frozenset({_API, _WORKER, _REAPER}),
+    (QUEUED, FAILED): frozenset({_WORKER}),
     (QUEUED, SUCCEEDED): frozenset({_WORKER}),
 }
 
@@ -112,9 +114,11 @@ def fail(job: Job, error: str, actor: Actor, stage: str | None = None) -> None:
     job.stage = stage or job.stage
 
 
-def cancel(job: Job, actor: Actor) -> None:
+def cancel(job: Job, actor: Actor, reason: str | None = None) -> None:
+    """Cancelled; `reason` (the job's `error`) says why when its owner did not ask for it (a
+    continuation whose parent did not succeed: service.chaining)."""
     _move(job, CANCELLED, actor)
-    job.stage, job.error, job.finished_at = CANCELLED_STAGE, None, utcnow()
+    job.stage, job.error, job.finished_at = CANCELLED_STAGE, reason, utcnow()
 
 
 def give_back(job: Job) -> None:

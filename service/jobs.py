@@ -17,13 +17,15 @@ from fluidcore.runs import RunError
 from fluidcore.spec.controls import InteractionError, branch_frame
 from fluidcore.spec.jobs import InteractParams, ReconstructParams
 from service import scenes
-from service.chaining import release_children
+from service.chaining import job_ended, release_children
+from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from service.job_states import QUEUED_STAGE, Actor, cancel, waiting_stage
 from service.job_types import JobType
-from service.models import SENDING, Artifact, Job, JobState
+from service.models import SENDING, Artifact, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
+from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, job_prefix, log_key
 
 
@@ -135,12 +137,16 @@ def _check_in_run_scene(storage: Storage, parent_id: str, params: InteractParams
         raise RefusedParams(f"params: {exc}") from None
 
 
-def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -> None:
+def create(session: Session, queue: JobQueue, settings: Settings, job: Job, waits_for: str | None) -> None:
     """Store a new job and hand it on: one waiting for its parent `waits_for` is released by
     whoever sees the parent end (service.chaining; the parent may have ended since the caller's
     check, so it is tried here too), any other is sent now (service.queue.send, whose rule covers
     a broker that is down). Stored `SENDING`, so no release or reaper pass sends it meanwhile.
-    DuplicateRequest: a concurrent request with the same Idempotency-Key stored its job first."""
+
+    The insert is where a concurrent delete shows: its scene or parent, checked by the caller,
+    deleted since (the database refuses the row's reference) is a Conflict saying so, and nothing
+    is stored. DuplicateRequest: a concurrent request with the same Idempotency-Key stored its
+    job first."""
     job.stage = waiting_stage(waits_for) if waits_for else QUEUED_STAGE
     job.task_id = None if waits_for else SENDING
     session.add(job)
@@ -148,26 +154,42 @@ def create(session: Session, queue: JobQueue, job: Job, waits_for: str | None) -
         session.commit()
     except IntegrityError:
         session.rollback()
+        deleted = _deleted_reference(session, job)
+        if deleted is not None:
+            raise Conflict(f"{deleted} was deleted while this job was being created; nothing was queued") from None
         if job.idempotency_key is None:
             raise
         raise DuplicateRequest(f"job with Idempotency-Key {job.idempotency_key!r}") from None
     if waits_for:
-        release_children(session, waits_for, queue, Actor.API)
+        release_children(session, waits_for, queue, Actor.API, settings)
         session.refresh(job)
     else:
         send(session, job, queue)
 
 
-def request_cancel(session: Session, job_id: str, owner: str) -> Job:
-    """A queued job is cancelled at once; a running one is asked to stop (its runner does at its
-    next report). Conflict for a job that already ended."""
+def _deleted_reference(session: Session, job: Job) -> str | None:
+    """The parent job or scene a refused new job names that no longer exists, if one does not."""
+    if job.parent_job_id is not None and session.get(Job, job.parent_job_id) is None:
+        return f"parent job {job.parent_job_id}"
+    if job.scene_id is not None and session.get(Scene, job.scene_id) is None:
+        return f"scene {job.scene_id}"
+    return None
+
+
+def request_cancel(session: Session, queue: JobQueue, settings: Settings, job_id: str, owner: str) -> Job:
+    """A queued job is cancelled at once, and what follows its end follows (`job_ended`: its
+    webhook, the jobs waiting on it cancelled); a running one is asked to stop (its runner does at
+    its next report, and the worker's end does the rest). Conflict for a job that already ended."""
     job = owned(session, job_id, owner, for_update=True)
     if JobState(job.state).finished:
         raise Conflict(f"job {job_id} already {job.state}")
     job.cancel_requested = True
-    if job.state == JobState.QUEUED:
+    cancelled_now = job.state == JobState.QUEUED
+    if cancelled_now:
         cancel(job, Actor.API)
     session.commit()
+    if cancelled_now:
+        job_ended(session, job.id, queue, Actor.API, settings)
     return job
 
 
@@ -189,7 +211,8 @@ def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
         session.delete(child)
     session.flush()  # the renders before the job they name
     session.delete(job)
-    session.commit()  # rows first: a failed file removal leaves garbage, never a dangling row
+    # rows first: a failed file removal leaves garbage, never a dangling row
+    commit_or_conflict(session, f"job {job_id} was named by a new job while it was being deleted; nothing was deleted")
     storage.delete_prefix(f"{job_prefix(job.id)}/")
 
 

@@ -1,6 +1,7 @@
 """A running job's lease, as the worker holding it reads and writes it: the claim, the fencing
 check, progress and heartbeat, the cancel flag, the artifacts it publishes, and how it ends the
-job or hands it back after a transient fault (each state change through service.job_states).
+job or hands it back after a transient fault (each state change through service.job_states;
+what follows an end is service.chaining's).
 
 A claim (`claim`) raises the job's `lease_token` (service.job_states.start); from then on every
 write of the runner goes through `held`, which raises `LeaseLost` once another claim raised the
@@ -14,12 +15,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from datetime import timedelta
-from typing import Any
 
 from sqlalchemy import delete, select
 from sqlalchemy.orm import Session
 
-from service import job_states, webhooks
+from service import job_states
 from service.job_states import RESUME_STAGE, Actor
 from service.jobs import ancestors
 from service.models import Artifact, Job, JobState, utcnow
@@ -52,12 +52,23 @@ class Claim:
     token: int  # the job's lease_token this claim set
 
 
-def claim(session: Session, job_id: str, worker: str, lease_seconds: float, max_attempts: int) -> Claim | None:
+@dataclass(frozen=True)
+class Ended:
+    """A claim that ended the job instead of starting it: what follows an end is the caller's to
+    do once it commits (service.chaining.job_ended)."""
+
+    job_id: str
+    state: JobState
+
+
+def claim(
+    session: Session, job_id: str, worker: str, lease_seconds: float, max_attempts: int
+) -> Claim | Ended | None:
     """Mark the job running on `worker` under a new lease token, unless it is finished (None) or
     another worker's lease is live (JobBusy). The row is locked (`FOR UPDATE` on PostgreSQL) until
     the caller commits, so of two workers given the same job one claims it. A claim that finds a
     cancel asked for cancels the job; one that finds the last attempt lost (running with an
-    expired lease, or sent again by the reaper) with the attempts spent fails it."""
+    expired lease, or sent again by the reaper) with the attempts spent fails it (both `Ended`)."""
     job = session.scalars(select(Job).where(Job.id == job_id).with_for_update()).first()
     if job is None:
         log.warning("job %s does not exist; dropping its task", job_id)
@@ -70,14 +81,14 @@ def claim(session: Session, job_id: str, worker: str, lease_seconds: float, max_
         raise JobBusy((job.heartbeat_at + lease - now).total_seconds())  # its runner cancels it, if asked
     if job.cancel_requested:
         job_states.cancel(job, Actor.WORKER)
-        return None
+        return Ended(job.id, JobState.CANCELLED)
     # Found running with an expired lease, or sent again by the reaper (service.queue): the
     # last attempt died (e.g. hard time limit, OOM kill).
     lost = job.state == JobState.RUNNING or job.stage == RESUME_STAGE
     if lost and job.attempts >= max_attempts:
         error = f"gave up after {job.attempts} attempts: the worker running it was lost each time"
         job_states.fail(job, error, Actor.WORKER)
-        return None
+        return Ended(job.id, JobState.FAILED)
     token = job_states.start(job, worker)
     log.info("job %s (%s): attempt %d on %s", job.id, job.type, job.attempts, worker)
     return Claim(job.id, job.type, dict(job.params), job.scene_id, ancestors(session, job), token)
@@ -140,20 +151,11 @@ def publish_videos(session: Session, shown: str, rows: list[Artifact]) -> None:
     session.add_all(rows)
 
 
-@dataclass(frozen=True)
-class Notice:
-    """The completion webhook an ended job's owner asked for: where it goes, whose key signs it
-    (`service.webhooks.owner_secret`), and its body (`service.webhooks.payload`)."""
-
-    url: str
-    owner: str
-    body: dict[str, Any]
-
-
-def end(job: Job, state: JobState, error: str | None, seconds: dict[str, float] | None) -> Notice | None:
+def end(job: Job, state: JobState, error: str | None, seconds: dict[str, float] | None) -> None:
     """Put the job in the end state `state` as the worker (service.job_states): failed with
     `error`, and with its runner's `seconds` per stage (None: its task gives up without a runner).
-    Returns the completion webhook due, read in the same session as the end it reports."""
+    What follows the end (its webhook, its waiting continuations) is the caller's to do once it
+    commits (service.chaining.job_ended)."""
     if seconds is not None:
         job.stage_seconds = seconds
     if state == JobState.SUCCEEDED:
@@ -162,7 +164,6 @@ def end(job: Job, state: JobState, error: str | None, seconds: dict[str, float] 
         job_states.cancel(job, Actor.WORKER)
     else:
         job_states.fail(job, error or "", Actor.WORKER)
-    return Notice(job.webhook_url, job.owner, webhooks.payload(job)) if job.webhook_url else None
 
 
 def hand_back(job: Job, seconds: dict[str, float]) -> None:

@@ -135,8 +135,9 @@ class Job(Base):
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     finished_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
     heartbeat_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
-    # When the reaper last sent this queued job again because its broker message looked lost
-    # (service.queue.reap_stale); it waits a lease before sending it once more.
+    # When this queued job's last hand-off to the broker began (service.queue.take_for_sending), or
+    # the reaper last sent it again because its broker message looked lost (reap_stale); it waits a
+    # lease before sending it once more, and a hand-off still `SENDING` a lease later is sent again.
     resent_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)
 
 

@@ -4,11 +4,12 @@ logic may pass another `JobQueue` to `create_app`."""
 from __future__ import annotations
 
 import logging
-from datetime import timedelta
+from datetime import datetime, timedelta
 from typing import Protocol
 
-from sqlalchemy import or_, select, update
+from sqlalchemy import and_, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.sql.elements import ColumnElement
 
 from service.celery_app import make_celery, task_name
 from service.database import session_scope
@@ -82,10 +83,13 @@ def send(session: Session, job: Job, queue: JobQueue) -> bool:
 
 def take_for_sending(session: Session, job_id: str, task_id: str | None) -> bool:
     """Mark a queued job `SENDING` if its `task_id` is still `task_id` (NULL: waiting for its
-    parent; `UNSENT`): one atomic UPDATE, so of the callers racing for it one sends it. Commits."""
+    parent; `UNSENT`): one atomic UPDATE, so of the callers racing for it one sends it. Commits.
+    `resent_at` records when the hand-off began: one that never ends is the reaper's (`_stuck`)."""
     unchanged = Job.task_id.is_(None) if task_id is None else Job.task_id == task_id
     taken = session.execute(
-        update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED, unchanged).values(task_id=SENDING)
+        update(Job).where(Job.id == job_id, Job.state == JobState.QUEUED, unchanged).values(
+            task_id=SENDING, resent_at=utcnow()
+        )
     ).rowcount
     session.commit()
     return bool(taken)
@@ -97,8 +101,8 @@ def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: 
     comes back). The next claim resumes from the checkpoints, or fails the job once it has used
     up its attempts. Each job is taken by one conditional UPDATE (`job_states.send_again`), so
     concurrent reapers (one per API process) send it once. Then send the jobs the broker did not
-    take (`_send_unsent`) and the queued jobs whose message was lost (`_resend_lost`). Returns
-    the ids of the jobs the broker took."""
+    take or whose hand-off to it never ended (`_send_unsent`) and the queued jobs whose message
+    was lost (`_resend_lost`). Returns the ids of the jobs the broker took."""
     cutoff = utcnow() - timedelta(seconds=lease_seconds)
     with session_scope(sessions) as session:
         stale = session.execute(
@@ -109,7 +113,7 @@ def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: 
         with session_scope(sessions) as session:
             if send_again(session, job_id, token, cutoff) and _send_by_id(session, job_id, queue):
                 reaped.append(job_id)
-    return reaped + _send_unsent(sessions, queue) + _resend_lost(sessions, queue, lease_seconds)
+    return reaped + _send_unsent(sessions, queue, cutoff) + _resend_lost(sessions, queue, lease_seconds)
 
 
 def _send_by_id(session: Session, job_id: str, queue: JobQueue) -> bool:
@@ -118,22 +122,41 @@ def _send_by_id(session: Session, job_id: str, queue: JobQueue) -> bool:
     return send(session, job, queue)
 
 
-def _send_unsent(sessions: sessionmaker[Session], queue: JobQueue) -> list[str]:
-    """Send the queued jobs the broker did not take (`send`), oldest first; the first it still
-    refuses ends the pass (the next tries again), so a broker that is down costs one attempt."""
+def _stuck(cutoff: datetime) -> ColumnElement[bool]:
+    """A queued job whose hand-off to the broker began before `cutoff` and never ended (`SENDING`
+    since: the process sending it died between storing it and the broker's answer)."""
+    began = or_(Job.resent_at < cutoff, and_(Job.resent_at.is_(None), Job.created_at < cutoff))
+    return and_(Job.state == JobState.QUEUED, Job.task_id == SENDING, began)
+
+
+def _send_unsent(sessions: sessionmaker[Session], queue: JobQueue, cutoff: datetime) -> list[str]:
+    """Send the queued jobs the broker did not take (`send`) and those whose hand-off began before
+    `cutoff` and never ended (`_stuck`), oldest first; the first it still refuses ends the pass
+    (the next tries again), so a broker that is down costs one attempt."""
     with session_scope(sessions) as session:
         unsent = session.scalars(
-            select(Job.id).where(Job.state == JobState.QUEUED, Job.task_id == UNSENT).order_by(Job.created_at, Job.id)
+            select(Job.id).where(or_(and_(Job.state == JobState.QUEUED, Job.task_id == UNSENT), _stuck(cutoff)))
+            .order_by(Job.created_at, Job.id)
         ).all()
     sent = []
     for job_id in unsent:
         with session_scope(sessions) as session:
-            if not take_for_sending(session, job_id, UNSENT):
+            if not _take_unsent(session, job_id, cutoff):
                 continue  # another reaper took it
             if not _send_by_id(session, job_id, queue):
                 break
             sent.append(job_id)
     return sent
+
+
+def _take_unsent(session: Session, job_id: str, cutoff: datetime) -> bool:
+    """`take_for_sending` of an unsent job, or of a stuck one by one conditional UPDATE (still
+    stuck), so of concurrent reapers one sends it. Commits."""
+    if take_for_sending(session, job_id, UNSENT):
+        return True
+    taken = session.execute(update(Job).where(Job.id == job_id, _stuck(cutoff)).values(resent_at=utcnow())).rowcount
+    session.commit()
+    return bool(taken)
 
 
 def _resend_lost(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: float) -> list[str]:

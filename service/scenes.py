@@ -17,18 +17,20 @@ from sqlalchemy.orm import Session
 from fluidcore.errors import InputError
 from fluidcore.names import safe_join
 from fluidcore.spec.source_hint import SourceHintError
+from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from fluidcore.spec.jobs import ReconstructParams
 from service.job_types import JobType
-from service.models import Job, JobState, Scene
+from service.models import SENDING, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
 from service.storage import Storage, scene_prefix
 
 
-def owned(session: Session, scene_id: str, owner: str) -> Scene:
-    """The scene if it exists and belongs to `owner`; NotFound otherwise (ids are not disclosed)."""
-    scene = session.get(Scene, scene_id)
+def owned(session: Session, scene_id: str, owner: str, for_update: bool = False) -> Scene:
+    """The scene if it exists and belongs to `owner`; NotFound otherwise (ids are not disclosed).
+    `for_update` locks its row (PostgreSQL) until the session commits."""
+    scene = session.get(Scene, scene_id, with_for_update=for_update)
     if scene is None or scene.owner != owner:
         raise NotFound(f"scene {scene_id} not found")
     return scene
@@ -95,7 +97,8 @@ def store(
         session.add(scene)
         if params is not None:
             session.flush()  # the scene row first: the job refers to it
-            job = Job(owner=scene.owner, type=JobType.RECONSTRUCT, scene_id=scene.id, params=params.model_dump(mode="json"))
+            job = Job(owner=scene.owner, type=JobType.RECONSTRUCT, scene_id=scene.id, params=params.model_dump(mode="json"),
+                      task_id=SENDING)  # being handed on (NULL would be a job waiting for a parent)
             session.add(job)
         session.commit()
     except BaseException as exc:
@@ -147,13 +150,16 @@ def capture_geometry(storage: Storage, scene: Scene) -> dict[str, Any]:
 
 
 def delete(session: Session, storage: Storage, scene_id: str, owner: str) -> None:
-    """Delete a scene and its files; Conflict while jobs made from it still exist."""
-    scene = owned(session, scene_id, owner)
+    """Delete a scene and its files; Conflict while jobs made from it still exist, and when a job
+    made from it is stored while it is being deleted. Its row is locked first, so on PostgreSQL
+    such a job waits for the delete and is refused then (service.jobs.create)."""
+    scene = owned(session, scene_id, owner, for_update=True)
     jobs = session.scalars(select(Job.id).where(Job.scene_id == scene.id)).all()
     if jobs:
         raise Conflict(f"scene {scene_id} is used by jobs {', '.join(jobs)}; delete them first")
     session.delete(scene)
-    session.commit()  # the row goes first: a failed file removal leaves garbage, never a dangling row
+    # the row goes first: a failed file removal leaves garbage, never a dangling row
+    commit_or_conflict(session, f"scene {scene_id} was named by a new job while it was being deleted; nothing was deleted")
     storage.delete_prefix(f"{scene_prefix(scene.id)}/")
 
 

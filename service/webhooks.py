@@ -1,5 +1,7 @@
 """Signed completion webhooks: a job created with `"webhook": URL` gets one POST when it ends
 (succeeded, failed or cancelled), retried with back-off when the receiver does not answer 2xx.
+Whoever ends a job sends it (`announce`, called by `service.chaining.job_ended` for the job and
+every waiting job its end cancelled): the worker, the API cancelling a queued job, the reaper.
 
 The signature follows the Standard Webhooks convention (also Replicate's): headers
 `webhook-id` (the same on every retry), `webhook-timestamp` (Unix seconds) and
@@ -30,11 +32,14 @@ import socket
 import threading
 import time
 import urllib.request
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from concurrent.futures import TimeoutError as ResolveTimeout
 from typing import Any
 from urllib.parse import urlsplit
+
+from service.models import Job
+from service.settings import Settings, signing_key
 
 log = logging.getLogger(__name__)
 
@@ -172,7 +177,7 @@ def sign(secret: str, message_id: str, timestamp: int, body: bytes) -> str:
     return "v1," + base64.b64encode(mac).decode()
 
 
-def payload(job: Any) -> dict[str, Any]:
+def payload(job: Job) -> dict[str, Any]:
     """What the receiver gets: the job's identity, end state and where to fetch the rest."""
     base = f"/v1/jobs/{job.id}"
     return {
@@ -214,3 +219,16 @@ def deliver_in_background(url: str, secret: str, message_id: str, body: dict[str
                               kwargs={"allow_private": allow_private}, name=f"webhook-{message_id}", daemon=True)
     thread.start()
     return thread
+
+
+def announce(settings: Settings, ended: Iterable[Job]) -> list[threading.Thread]:
+    """Send the completion webhook of each ended job that asked for one, in the background, signed
+    with its owner's key; the message id (`msg_JOB_STATE`) is the same on every retry. Returns the
+    delivery threads (a test joins them)."""
+    threads = []
+    for job in ended:
+        if job.webhook_url:
+            secret = owner_secret(signing_key(settings), job.owner)
+            threads.append(deliver_in_background(job.webhook_url, secret, f"msg_{job.id}_{job.state}", payload(job),
+                                                 allow_private=settings.webhook_allow_private))
+    return threads

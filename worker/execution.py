@@ -21,15 +21,15 @@ from sqlalchemy.orm import Session, sessionmaker
 from fluidcore.errors import InputError, internal_error
 from fluidcore.jobs import Cancelled
 from fluidcore.names import safe_join
-from service import jobs, leases, scenes, webhooks
-from service.chaining import release_children
+from service import jobs, leases, scenes
+from service.chaining import job_ended
 from service.database import session_scope
 from service.job_states import Actor
 from service.job_types import JobType
-from service.leases import Claim, LeaseLost
+from service.leases import Claim, Ended, LeaseLost
 from service.models import Artifact, Job, JobState
 from service.queue import JobQueue
-from service.settings import Settings, signing_key
+from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
 from service.videos import VIDEO_FOLDER, VIDEO_TYPE, video_kind
 from worker.runners import Runner, RunInputs
@@ -85,7 +85,7 @@ class JobExecutor:
         queue: JobQueue | None = None,
     ) -> None:
         """`queue` sends the jobs waiting on a job that succeeded (service.chaining); without one,
-        they stay waiting (tests that drive single jobs)."""
+        they stay waiting (tests and benchmarks that drive single jobs)."""
         self.queue = queue
         self.settings = settings
         self.sessions = sessions
@@ -98,7 +98,8 @@ class JobExecutor:
     # -- lifecycle ---------------------------------------------------------------------------
 
     def run(self, job_id: str) -> str | None:
-        """Run the job to an end state and return it, or None when there was nothing to do.
+        """Run the job to an end state and return it (its claim may end it without running it: a
+        cancel asked for, the attempts spent), or None when there was nothing to do.
 
         Raises JobBusy (another worker's lease is live) and transient storage / database
         errors after putting the job back to queued, so the caller can retry.
@@ -106,6 +107,10 @@ class JobExecutor:
         claim = self.claim(job_id)
         if claim is None:
             return None
+        if isinstance(claim, Ended):
+            log.info("job %s %s at its claim", job_id, claim.state.value)
+            self._ended(job_id)
+            return claim.state.value
         try:
             with JobLog(self.storage, job_id) as job_log:
                 log.info("job %s (%s): attempt with lease token %d on %s", job_id, claim.job_type, claim.token,
@@ -151,8 +156,9 @@ class JobExecutor:
             reporter.stop_heartbeat()
         return self.finish(job_id, JobState.SUCCEEDED, reporter)
 
-    def claim(self, job_id: str) -> Claim | None:
-        """Mark the job running on this worker, unless it is finished or another worker's lease is live."""
+    def claim(self, job_id: str) -> Claim | Ended | None:
+        """Mark the job running on this worker, unless it is finished, another worker's lease is
+        live, or the claim ends it (`service.leases.claim`)."""
         with session_scope(self.sessions) as session:
             return leases.claim(session, job_id, self.worker_name, self.settings.job_lease_seconds,
                                 self.settings.max_job_attempts)
@@ -260,26 +266,27 @@ class JobExecutor:
     def finish(
         self, job_id: str, state: JobState, reporter: ProgressReporter | None = None, error: str | None = None
     ) -> str:
-        """Put the job in an end state (`service.leases.end`). Without a reporter: the task gives
-        up after its transient retries, and a job that ended meanwhile is left as it ended."""
+        """Put the job in an end state (`service.leases.end`), then what follows an end. Without a
+        reporter: the task gives up after its transient retries, and a job that ended meanwhile is
+        left as it ended."""
         with session_scope(self.sessions) as session:
             if reporter is None:
                 job = jobs.get(session, job_id)
                 if JobState(job.state).finished:
                     log.info("job %s already %s; not failed again", job_id, job.state)
                     return str(job.state)
-                notice = leases.end(job, state, error, None)
+                leases.end(job, state, error, None)
             else:
-                notice = leases.end(reporter.owned(session), state, error, reporter.final_stage_seconds())
+                leases.end(reporter.owned(session), state, error, reporter.final_stage_seconds())
         log.info("job %s %s%s", job_id, state.value, f": {error}" if error else "")
-        if notice is not None:
-            secret = webhooks.owner_secret(signing_key(self.settings), notice.owner)
-            webhooks.deliver_in_background(notice.url, secret, f"msg_{job_id}_{state.value}", notice.body,
-                                           allow_private=self.settings.webhook_allow_private)
-        if self.queue is not None:
-            with self.sessions() as session:
-                release_children(session, job_id, self.queue, Actor.WORKER)
+        self._ended(job_id)
         return state.value
+
+    def _ended(self, job_id: str) -> None:
+        """What follows every end this worker commits (`service.chaining.job_ended`): the job's
+        webhook, its waiting continuations sent or cancelled with theirs."""
+        with self.sessions() as session:
+            job_ended(session, job_id, self.queue, Actor.WORKER, self.settings)
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:
         """A transient fault: give the job back (no live lease) so the retry can claim it at once."""

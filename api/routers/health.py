@@ -4,12 +4,15 @@ a worker has beaten within the lease (service.worker_beats).
 Both are async and skip the admission queue (api.middleware), so they answer while the request
 threads and the connection pool are busy. `/readyz` opens its own database connection (outside
 the pool) and runs each check on a small thread pool of its own, reporting a check that takes
-longer than CHECK_TIMEOUT_S as failed (503) instead of waiting for it.
+longer than CHECK_TIMEOUT_S as failed (503) instead of waiting for it. A 503 carries
+`Retry-After`: a quarter lease, how often workers beat and the reaper sends what waits, so the
+next check can see a dependency that is back.
 """
 
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -35,7 +38,10 @@ async def healthz() -> Health:
     return Health(status="ok")
 
 
-@router.get("/readyz", response_model=Health, responses={503: {"model": Health}})
+@router.get(
+    "/readyz", response_model=Health,
+    responses={503: {"model": Health, "description": "a dependency is down; retry after `Retry-After` seconds"}},
+)
 async def readyz(request: Request) -> JSONResponse:
     state = request.app.state
     checks: dict[str, Callable[[], None]] = {
@@ -48,7 +54,10 @@ async def readyz(request: Request) -> JSONResponse:
     results = dict(zip(checks, outcomes))
     ready = all(value == "ok" for value in results.values())
     body = Health(status="ok" if ready else "unavailable", checks=results)
-    return JSONResponse(body.model_dump(), status_code=200 if ready else 503)
+    if ready:
+        return JSONResponse(body.model_dump())
+    retry = math.ceil(state.settings.job_lease_seconds / 4)
+    return JSONResponse(body.model_dump(), status_code=503, headers={"Retry-After": str(retry)})
 
 
 async def _run(check: Callable[[], None]) -> str:

@@ -40,7 +40,9 @@ def create_job(
     that was queued.
 
     A continuation may name a parent that is still queued or running: it waits (stage "waiting
-    for job PARENT") and starts when the parent succeeds, or fails saying why the parent did not.
+    for job PARENT") and starts when the parent succeeds, or is cancelled saying why the parent
+    did not (`error`: "parent job PARENT failed" or "... was cancelled"). A scene or parent
+    deleted while the job is being created is a 409.
     While the job broker is down a job waits queued with stage "waiting for the queue" and is
     sent when the broker answers again (`service.queue.send`).
     """
@@ -71,7 +73,7 @@ def create_job(
         webhook_url=body.get("webhook"),
     )
     try:
-        jobs.create(session, queue, job, waits_for)
+        jobs.create(session, queue, settings, job, waits_for)
     except DuplicateRequest:  # a concurrent request with the same Idempotency-Key won the race
         existing = replay(session, Job, owner, idempotency_key or "", request_hash)
         if existing is None:
@@ -115,9 +117,10 @@ def get_job_logs(job_id: str, owner: OwnerDep, session: SessionDep, storage: Sto
 @router.post(
     "/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409)
 )
-def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep) -> JobOut:
-    """A queued job is cancelled at once; a running one stops at its next frame boundary."""
-    return job_out(jobs.request_cancel(session, job_id, owner))
+def cancel_job(job_id: str, owner: OwnerDep, session: SessionDep, queue: QueueDep, settings: SettingsDep) -> JobOut:
+    """A queued job is cancelled at once; a running one stops at its next frame boundary. Either
+    way its webhook is sent when it ends, and the continuations waiting on it are cancelled."""
+    return job_out(jobs.request_cancel(session, queue, settings, job_id, owner))
 
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, responses=error_responses(404, 409))

@@ -74,7 +74,7 @@ def request_video(
     if render is not None and not JobState(render.state).finished:
         return _video_out(video, None, render, storage, settings)
     render = Job(owner=owner, type=JobType.RENDER, parent_job_id=job.id, params={"video": video})
-    jobs.create(session, queue, render, waits_for=None)
+    jobs.create(session, queue, settings, render, waits_for=None)
     return _video_out(video, None, render, storage, settings)
 
 

@@ -56,6 +56,7 @@ def test_health_ready_and_web_page(sqlite_service: Service) -> None:
     assert client.get("/healthz").json() == {"status": "ok", "checks": {}}
     no_worker = client.get("/readyz")  # issue 20 item 3: jobs sent now would only wait
     assert no_worker.status_code == 503 and no_worker.json()["checks"]["worker"].startswith("error: no worker")
+    assert no_worker.headers["retry-after"] == "4"  # a quarter of the 16 s lease: when workers beat again
     beacon = WorkerBeacon(sqlite_service.sessions, "host:1", period_s=60)
     beacon.beat()
     ready = client.get("/readyz")
@@ -71,7 +72,7 @@ def test_health_ready_and_web_page(sqlite_service: Service) -> None:
 def test_readyz_names_the_failing_dependency(tmp_path: Path) -> None:
     for service in make_service(tmp_path, queue=RecordingQueue(fail=True)):
         ready = service.client.get("/readyz")
-        assert ready.status_code == 503
+        assert ready.status_code == 503 and ready.headers["retry-after"] == "4"  # issue 36: the docs promise it
         body = ready.json()
         assert body["status"] == "unavailable"
         assert body["checks"]["broker"].startswith("error:") and body["checks"]["database"] == "ok"

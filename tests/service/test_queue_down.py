@@ -10,10 +10,11 @@ from datetime import timedelta
 from pathlib import Path
 
 import pytest
+from sqlalchemy import select
 
 from tests.support.api import Service, executor, make_service
 from service.job_states import RESUME_STAGE, UNSENT_STAGE
-from service.models import UNSENT, Job, JobState, Scene, utcnow
+from service.models import SENDING, UNSENT, Job, JobState, Scene, utcnow
 from service.queue import reap_stale, requeue_orphans
 from tests.support.service import scene_files, store_run, upload_parts
 
@@ -163,3 +164,34 @@ def test_a_reaper_pass_tries_a_broker_that_is_still_down_once(
         waits_for_the_queue(service, job_id)  # the one tried is unsent again, not left "sending"
     service.queue.fail = False
     assert reap_stale(service.sessions, service.queue, LEASE) == waiting
+
+
+def test_a_job_whose_hand_off_never_ended_is_sent_by_the_reaper(
+    service: Service, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A process that stores a job (or releases a continuation) and dies before the broker answers
+    leaves it `SENDING`; a lease after the hand-off began, the reaper sends it, once. An upload's
+    reconstruction was stored with no task at all, which nothing ever sent (issue 36)."""
+    def dies(*args: object) -> bool:  # the hand-off never ends; here a 500, in life the process gone
+        raise RuntimeError("the API process died here")
+
+    monkeypatch.setattr("service.scenes.send", dies)
+    alice = service.key("alice")
+    with pytest.raises(RuntimeError, match="died here"):  # the test client raises what the 500 hides
+        service.client.post("/v1/scenes", files=upload_parts(scene_files(tmp_path / "scene")),
+                            data={"reconstruct": '{"frames": [0, 2]}'}, headers=alice)
+    with service.sessions() as session:
+        stored = session.scalars(select(Job.id)).one()
+    fresh = Job(owner="alice", type="reconstruct", state=JobState.QUEUED, task_id=SENDING)  # being sent right now
+    released = Job(owner="alice", type="predict", state=JobState.QUEUED, task_id=SENDING,
+                   created_at=utcnow() - timedelta(hours=1), resent_at=utcnow())  # its parent just ended
+    with service.sessions() as session:
+        session.add_all([fresh, released])
+        session.commit()
+    assert reap_stale(service.sessions, service.queue, LEASE) == []  # none has been handed off for a lease
+    service.set_job(stored, created_at=utcnow() - timedelta(seconds=2 * LEASE))
+    service.set_job(released.id, resent_at=utcnow() - timedelta(seconds=2 * LEASE))
+    assert sorted(reap_stale(service.sessions, service.queue, LEASE)) == sorted([stored, released.id])
+    assert sorted(service.queue.sent) == sorted([(stored, "reconstruct"), (released.id, "predict")])
+    assert job_row(service, stored).stage == "queued" and job_row(service, fresh.id).task_id == SENDING
+    assert reap_stale(service.sessions, service.queue, LEASE) == []  # sent once

@@ -17,38 +17,14 @@ from pathlib import Path
 import pytest
 
 from service import webhooks
-from tests.support.service import scene_files, upload_parts
+from tests.support.service import Receiver, scene_files, upload_parts, webhook_receiver
 from tests.support.api import Service, executor, make_service
-
-
-class Receiver:
-    """Answers each POST with the next status of `statuses` and records what arrived."""
-
-    def __init__(self, statuses: list[int]) -> None:
-        self.statuses, self.received = statuses, []
-        receiver = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self) -> None:  # noqa: N802 - http.server's name
-                body = self.rfile.read(int(self.headers["content-length"]))
-                receiver.received.append(({k.lower(): v for k, v in self.headers.items()}, body))
-                self.send_response(receiver.statuses.pop(0) if receiver.statuses else 200)
-                self.end_headers()
-
-            def log_message(self, *args: object) -> None:
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_port}/hook"
-        threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
 
 @pytest.fixture
 def receiver() -> Iterator[Receiver]:
-    receiver = Receiver([500, 200])
-    yield receiver
-    receiver.server.shutdown()
-    receiver.server.server_close()
+    with webhook_receiver([500, 200]) as receiver:
+        yield receiver
 
 
 @pytest.fixture

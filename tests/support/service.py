@@ -13,6 +13,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Iterator
@@ -199,6 +200,51 @@ class RecordingQueue:
 
         if self.fail:
             raise QueueUnavailable("broker down (test)")
+
+
+class Receiver:
+    """A webhook receiver on loopback: answers each POST with the next status of `statuses` (then
+    200) and records what arrived, as (lower-cased headers, body)."""
+
+    def __init__(self, statuses: list[int]) -> None:
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        self.statuses, self.received = statuses, []
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:  # noqa: N802 - http.server's name
+                body = self.rfile.read(int(self.headers["content-length"]))
+                receiver.received.append(({k.lower(): v for k, v in self.headers.items()}, body))
+                self.send_response(receiver.statuses.pop(0) if receiver.statuses else 200)
+                self.end_headers()
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_port}/hook"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def states(self, count: int, timeout: float = 10.0) -> dict[str, dict]:
+        """The payloads of the first `count` deliveries by job id, once that many arrived (each
+        webhook is sent on a thread of its own)."""
+        deadline = time.monotonic() + timeout
+        while len(self.received) < count and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert len(self.received) >= count, f"{len(self.received)} of {count} webhooks arrived"
+        payloads = [json.loads(body) for _, body in self.received]
+        return {payload["id"]: payload for payload in payloads}
+
+
+@contextmanager
+def webhook_receiver(statuses: list[int] | None = None) -> Iterator[Receiver]:
+    receiver = Receiver(list(statuses or []))
+    try:
+        yield receiver
+    finally:
+        receiver.server.shutdown()
+        receiver.server.server_close()
 
 
 class SimulatedCrash(BaseException):

@@ -211,7 +211,7 @@ def test_progress_and_stage_time_are_visible_while_running(world: World) -> None
 
 def test_a_job_whose_worker_keeps_dying_is_failed(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), state=JobState.RUNNING, attempts=3)
-    assert world.executor().run(job_id) is None
+    assert world.executor().run(job_id) == "failed"  # by its claim: it never ran
     job = world.get(job_id)
     assert job.state == JobState.FAILED and "gave up after 3 attempts" in job.error
 
@@ -240,7 +240,7 @@ def test_cancel_stops_between_frames(world: World) -> None:
 
 def test_a_job_cancelled_while_queued_never_runs(world: World) -> None:
     job_id = world.job(scene_id=world.scene(), state=JobState.QUEUED, cancel_requested=True)
-    assert world.executor().run(job_id) is None
+    assert world.executor().run(job_id) == "cancelled"
     assert world.get(job_id).state == JobState.CANCELLED
     assert world.storage.list(f"{run_prefix(job_id)}/") == []
 

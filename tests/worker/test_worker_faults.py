@@ -155,7 +155,7 @@ def test_the_reaper_sends_a_dead_workers_job_again(world: World) -> None:
     assert world.get(stale).state == JobState.QUEUED and world.get(stale).stage == RESUME_STAGE
     assert world.get(alive).state == JobState.RUNNING
     assert world.executor().run(stale) == "succeeded"  # resumes
-    assert world.executor().run(spent) is None  # out of attempts: failed, not run again
+    assert world.executor().run(spent) == "failed"  # out of attempts: failed by its claim, not run again
     assert "gave up after 3 attempts" in world.get(spent).error
 
 

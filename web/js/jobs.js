@@ -116,7 +116,9 @@ function updateRow(job) {
   tr.querySelector("progress").value = job.progress;
   tr.querySelector("progress").setAttribute("aria-label", `progress of ${describeJob(job)}`);
   tr.querySelector(".job-percent").textContent = `${Math.round(job.progress * 100)} %`;
-  tr.querySelector(".job-error").textContent = job.error ? `Failed: ${job.error}` : "";
+  // A cancelled job has an error only when its parent ended it ("parent job ... failed").
+  const ended = job.state === "cancelled" ? "Cancelled" : "Failed";
+  tr.querySelector(".job-error").textContent = job.error ? `${ended}: ${job.error}` : "";
   if (row.state !== job.state + job.cancel_requested) { // rebuild buttons only when they change
     row.state = job.state + job.cancel_requested;
     tr.querySelector(".job-actions").replaceChildren(actionButtons(job));
