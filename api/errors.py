@@ -1,14 +1,14 @@
 """Error answers: one body shape for every 4xx/5xx, documented per route in the OpenAPI schema,
 and the handlers that produce it.
 
-Every error is `{"detail": ...}`: a sentence for 400/401/403/404/405/409/413/416/503, and for 422 either a
+Every error is `{"detail": ...}`: a sentence for 400/401/403/404/405/409/413/416/429/503, and for 422 either a
 sentence (checks the API makes itself, e.g. "params.frames: end 90 is past the scene's 60
 frames") or pydantic's list of field errors. Clients and schema-driven fuzzers can rely on it
 because `error_responses` puts exactly that shape into the schema.
 
 A fluidcore `InputError` that reaches a route unhandled (a stored camera file the geometry reader
 refuses, parameters `service` refuses, ...) is a 422 with its message, the service's `NotFound` a
-404 and its `Conflict` a 409; any other exception is a bug: a 500 whose detail is only
+404, its `Conflict` a 409 and its `OverLimit` (an owner's limit) a 429; any other exception is a bug: a 500 whose detail is only
 "internal error (id ...)", its traceback in the API's log under that id (`fluidcore.errors`).
 
 Request JSON is parsed strictly (`StrictJSONRoute`): NaN / Infinity literals and nesting deep
@@ -34,7 +34,7 @@ from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.routing import Match
 
 from fluidcore.errors import InputError, internal_error
-from service.errors import Conflict, NotFound
+from service.errors import Conflict, NotFound, OverLimit
 from service.storage import StorageError
 from api.uploads import UploadRejected
 
@@ -67,6 +67,7 @@ _DESCRIPTIONS = {
     413: "request body or an uploaded file over its size limit",
     416: "byte range outside the file",
     422: "invalid input (the message names the field)",
+    429: "one of the caller's limits reached (the message says which and how to free room; `Retry-After` where waiting helps)",
     503: "database or storage unavailable; retry after `Retry-After` seconds",
 }
 
@@ -159,6 +160,13 @@ async def conflict(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=409)
 
 
+async def over_limit(request: Request, exc: Exception) -> JSONResponse:
+    """An owner's limit (service.quotas): 429, with `Retry-After` when waiting alone frees room."""
+    assert isinstance(exc, OverLimit)
+    headers = {"Retry-After": str(exc.retry_after)} if exc.retry_after is not None else None
+    return JSONResponse({"detail": str(exc)}, status_code=429, headers=headers)
+
+
 async def storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
     """Object storage down or full: the request may succeed later, nothing was half-written."""
     return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503, headers={"Retry-After": "1"})
@@ -177,6 +185,7 @@ HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, An
     InputError: input_rejected,
     NotFound: not_found,
     Conflict: conflict,
+    OverLimit: over_limit,
     Exception: internal_failure,
 }
 

@@ -178,7 +178,9 @@ def free_port() -> int:
 @contextmanager
 def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
     """FLUIDNEXUS_* variables for the backend; PostgreSQL database and Redis keys removed afterwards."""
-    env = {"FLUIDNEXUS_DATA_DIR": str(data_dir)}
+    # Its clients stand for many users under one key: one owner's limits (service.quotas) would
+    # refuse its uploads after 200 scenes and measure those instead.
+    env = {"FLUIDNEXUS_DATA_DIR": str(data_dir), "FLUIDNEXUS_MAX_SCENES_PER_OWNER": str(10**9)}
     if backend == "sqlite":
         yield env
         return

@@ -24,3 +24,13 @@ class RefusedParams(InputError):
 class DuplicateRequest(Exception):
     """A concurrent request with the same Idempotency-Key stored its row first; nothing of this
     one was kept (the caller answers with that row)."""
+
+
+class OverLimit(Exception):
+    """The owner reached one of their limits (`service.quotas`); the message names it and how to
+    free room. `retry_after`: seconds after which waiting alone may help (None: only deleting
+    something does)."""
+
+    def __init__(self, message: str, retry_after: int | None = None) -> None:
+        super().__init__(message)
+        self.retry_after = retry_after

@@ -15,16 +15,18 @@ it is never written).
                                     (service.chaining, run by whoever sees the parent end)
     queued  -> failed      worker   lost on every attempt, or transient retries spent while it
                                     waited for its retry
-    queued  -> succeeded, failed, cancelled   worker   the lease holder ends a job the reaper sent
-                                    again before another claim took it: its token is still the
-                                    job's, so its result stands (the second message is dropped)
 
-A queued job is in one of four sub-states, told by `Job.task_id`, none a state a client acts on:
+A queued job is in one of five sub-states, told by `Job.task_id`, none a state a client acts on:
 waiting for its parent (NULL, stage `waiting_stage(parent)`), being handed to the broker
 (`SENDING`, since `resent_at` or its creation; a lease later the reaper sends it: the process
 handing it on died), not taken by the broker (`UNSENT`, stage `UNSENT_STAGE`: service.queue.send, the one
-rule for a broker that is down) and sent (the broker's task id). Running jobs are fenced by
-`lease_token`, which only `start` raises (worker.execution).
+rule for a broker that is down), waiting for its owner's turn (`HELD`, stage `TURN_STAGE`:
+service.queue.send, the one rule of fairness among owners) and sent (the broker's task id).
+Running jobs are fenced (service.leases.held): a runner writes only while the job is running
+under the `lease_token` it claimed with, which only `start` raises. So a runner whose job the
+reaper queued again (its heartbeat stopped for a lease: a frozen or cut-off worker) writes
+nothing more when it wakes up, and the job says what happens to it: queued, "waiting to
+resume", until a claim runs it again.
 """
 
 from __future__ import annotations
@@ -43,7 +45,8 @@ SUCCEEDED, FAILED, CANCELLED = JobState.SUCCEEDED, JobState.FAILED, JobState.CAN
 
 QUEUED_STAGE = "queued"
 UNSENT_STAGE = "waiting for the queue"  # the broker did not take it; the reaper sends it (service.queue)
-RESUME_STAGE = "waiting to resume"  # sent again after its worker was lost: the claim counts the attempt as lost
+RESUME_STAGE = "waiting to resume: its worker stopped responding"  # the claim counts the attempt as lost
+TURN_STAGE = "waiting for its turn behind your earlier jobs"  # service.queue.send: the owner's share is full
 RETRY_STAGE = "waiting to retry"  # given back after a transient fault; its task retries
 STARTING_STAGE = "preparing"
 DONE_STAGE = "done"
@@ -72,7 +75,6 @@ TRANSITIONS: dict[tuple[JobState, JobState], frozenset[Actor]] = {
     (RUNNING, QUEUED): frozenset({_WORKER, _REAPER}),
     (QUEUED, CANCELLED): frozenset({_API, _WORKER, _REAPER}),
     (QUEUED, FAILED): frozenset({_WORKER}),
-    (QUEUED, SUCCEEDED): frozenset({_WORKER}),
 }
 
 

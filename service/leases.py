@@ -4,9 +4,12 @@ job or hands it back after a transient fault (each state change through service.
 what follows an end is service.chaining's).
 
 A claim (`claim`) raises the job's `lease_token` (service.job_states.start); from then on every
-write of the runner goes through `held`, which raises `LeaseLost` once another claim raised the
-token again (its heartbeats stopped reaching the database for longer than the lease, and the
-reaper or a retry handed the job to another runner): a superseded runner writes nothing more.
+write of the runner goes through `held`, which raises `LeaseLost` once the job is not running
+under that token any more: the reaper queued it again (its heartbeats stopped reaching the
+database for longer than the lease: a frozen worker, a cut-off one) or another claim raised the
+token. A runner that wakes up after that writes nothing more (no progress, checkpoint, artifact
+or end state), so the job's state says what happens to it, never `queued` while a stale runner
+finishes it.
 Each function works inside the caller's session, so the caller's `session_scope` is the commit.
 """
 
@@ -28,8 +31,9 @@ log = logging.getLogger(__name__)
 
 
 class LeaseLost(Exception):
-    """Another runner claimed the job (our heartbeats stopped reaching the database for longer
-    than the lease): stop at once and write nothing more; the job is the new runner's."""
+    """The job was queued again or claimed by another runner (our heartbeats stopped reaching the
+    database for longer than the lease): stop at once and write nothing more; the job is the
+    next claim's."""
 
 
 class JobBusy(Exception):
@@ -95,11 +99,13 @@ def claim(
 
 
 def held(session: Session, job_id: str, token: int) -> Job:
-    """The job row, if its lease token is still `token`; else LeaseLost (the fence every write of
-    a runner passes first)."""
+    """The job row, if it is running under lease token `token`; else LeaseLost (the fence every
+    write of a runner passes first)."""
     job = session.get(Job, job_id)
     if job is None or job.lease_token != token:
         raise LeaseLost(f"job {job_id} was claimed by another runner")
+    if job.state != JobState.RUNNING:
+        raise LeaseLost(f"job {job_id} was queued again ({job.stage}) after its heartbeat stopped for a lease")
     return job
 
 
@@ -167,9 +173,7 @@ def end(job: Job, state: JobState, error: str | None, seconds: dict[str, float] 
 
 
 def hand_back(job: Job, seconds: dict[str, float]) -> None:
-    """A transient fault: the `held` job, if still running, queued again with no live lease and
-    its runner's `seconds` per stage, so the task's retry claims it at once. One the reaper sent
-    again meanwhile is queued already and left so."""
-    if job.state == JobState.RUNNING:
-        job_states.give_back(job)
-        job.stage_seconds = seconds
+    """A transient fault: the `held` job queued again with no live lease and its runner's
+    `seconds` per stage, so the task's retry claims it at once."""
+    job_states.give_back(job)
+    job.stage_seconds = seconds

@@ -92,9 +92,11 @@ class Scene(Base):
 
 
 # Job.task_id of a queued job that has no broker task (service.job_states): SENDING while it is
-# handed to the broker, UNSENT when the broker did not take it (service.queue.send)
+# handed to the broker, UNSENT when the broker did not take it, HELD while it waits its owner's
+# turn (service.queue.send)
 SENDING = "sending"
 UNSENT = "unsent"
+HELD = "held"
 
 
 class Job(Base):
@@ -123,7 +125,7 @@ class Job(Base):
 
     idempotency_key: Mapped[str | None] = mapped_column(String(256), default=None)
     request_hash: Mapped[str | None] = mapped_column(String(64), default=None)
-    task_id: Mapped[str | None] = mapped_column(String(64), default=None)  # the broker's task id, SENDING or UNSENT; NULL: waiting for its parent
+    task_id: Mapped[str | None] = mapped_column(String(64), default=None)  # the broker's task id, SENDING, UNSENT or HELD; NULL: waiting for its parent
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
     # Fencing token: raised by every claim; a runner writes to the job only while it still holds

@@ -1,5 +1,14 @@
 """How a job reaches the workers. The Celery implementation is the real one; tests of the API's own
-logic may pass another `JobQueue` to `create_app`."""
+logic may pass another `JobQueue` to `create_app`.
+
+Fairness among owners is decided here, once, at the send (`send`): each owner has at most
+`JobQueue.owner_share` jobs sent to the broker or running (`Settings.jobs_in_flight_per_owner`);
+a job beyond waits in the database, queued "waiting for its turn" (`HELD`), and is sent when one
+of its owner's jobs ends (`send_turns`, called by the worker that ended it, and the reaper's
+every pass), oldest first. The broker stays a plain FIFO: what it holds is at most a share per
+owner, so another owner's single job is sent at once and waits behind at most the shares ahead
+of it, never behind a whole backlog (issue 36: 300 jobs of one key once delayed another's by
+5 min 40 s)."""
 
 from __future__ import annotations
 
@@ -7,15 +16,15 @@ import logging
 from datetime import datetime, timedelta
 from typing import Protocol
 
-from sqlalchemy import and_, or_, select, update
+from sqlalchemy import and_, func, or_, select, update
 from sqlalchemy.orm import Session, sessionmaker
 from sqlalchemy.sql.elements import ColumnElement
 
 from service.celery_app import make_celery, task_name
 from service.database import session_scope
 from service.job_types import JobType
-from service.job_states import QUEUED_STAGE, RESUME_STAGE, UNSENT_STAGE, orphaned, send_again
-from service.models import SENDING, UNSENT, Job, JobState, utcnow
+from service.job_states import QUEUED_STAGE, RESUME_STAGE, TURN_STAGE, UNSENT_STAGE, orphaned, send_again
+from service.models import HELD, SENDING, UNSENT, Job, JobState, utcnow
 from service.settings import GPU_QUEUE, Settings
 
 log = logging.getLogger(__name__)
@@ -26,6 +35,8 @@ class QueueUnavailable(Exception):
 
 
 class JobQueue(Protocol):
+    owner_share: int  # jobs of one owner sent or running at once; the rest wait their turn (`send`)
+
     def enqueue(self, job_id: str, job_type: JobType) -> str:
         """Send the job to a worker; returns the broker's task id."""
 
@@ -39,6 +50,7 @@ class CeleryQueue:
 
     def __init__(self, settings: Settings) -> None:
         self.app = make_celery(settings)
+        self.owner_share = settings.jobs_in_flight_per_owner
 
     def enqueue(self, job_id: str, job_type: JobType) -> str:
         try:
@@ -68,7 +80,16 @@ def send(session: Session, job: Job, queue: JobQueue) -> bool:
     it), would lose what a client asked for: a continuation queued hours before, a running job
     the reaper recovers, a large upload. A 503 for a job that is stored and will run would not be
     the truth either, and would invite a retry that runs it twice; the job itself says why it
-    waits (state "queued", stage "waiting for the queue")."""
+    waits (state "queued", stage "waiting for the queue").
+
+    Before its first send a job waits its owner's turn: while the owner has `queue.owner_share`
+    jobs sent or running, it is marked `HELD` with the stage "waiting for its turn ..." and
+    `send_turns` sends it when one of them ends. A job sent once (the reaper's sends) keeps its
+    turn. Returns False only when the broker refused the job."""
+    if _first_send(job) and _in_flight(session, job.owner, job.id) >= queue.owner_share:
+        job.task_id, job.stage = HELD, TURN_STAGE
+        session.commit()
+        return True
     try:
         job.task_id = queue.enqueue(job.id, JobType(job.type))
         sent = True
@@ -95,14 +116,84 @@ def take_for_sending(session: Session, job_id: str, task_id: str | None) -> bool
     return bool(taken)
 
 
+def _first_send(job: Job) -> bool:
+    """Whether `send` hands the job to the broker for the first time: a new job, a released
+    continuation, a job the broker refused before (all marked `SENDING` by their caller), but
+    not one the reaper sends again (its old task id kept) or one resuming a lost attempt."""
+    return job.task_id == SENDING and job.stage != RESUME_STAGE
+
+
+def _in_flight(session: Session, owner: str, other_than: str | None = None) -> int:
+    """The owner's jobs sent to the broker (or being sent) or running, but `other_than`."""
+    query = select(func.count()).select_from(Job).where(
+        Job.owner == owner,
+        or_(
+            Job.state == JobState.RUNNING,
+            and_(Job.state == JobState.QUEUED, Job.task_id.is_not(None), Job.task_id.not_in([UNSENT, HELD])),
+        ),
+    )
+    if other_than is not None:
+        query = query.where(Job.id != other_than)
+    return session.scalar(query) or 0
+
+
+def send_turns(session: Session, ended: str, queue: JobQueue) -> list[str]:
+    """Send the jobs whose turn the end of job `ended` gave (its owner's, `_send_owner_turns`);
+    the worker calls it after every job it ends. Returns their ids."""
+    owner = session.scalar(select(Job.owner).where(Job.id == ended))
+    return [] if owner is None else _send_owner_turns(session, owner, queue)
+
+
+def _send_owner_turns(session: Session, owner: str, queue: JobQueue) -> list[str]:
+    """Send the owner's oldest jobs waiting for their turn (`HELD`) while the owner has fewer than
+    `queue.owner_share` jobs sent or running; returns their ids. Each is taken by one atomic
+    UPDATE (`take_for_sending`), so concurrent callers (the worker that ended a job, the
+    reapers) send it once. At most a share is sent per call; commits as it goes."""
+    sent: list[str] = []
+    for _ in range(queue.owner_share):
+        if _in_flight(session, owner) >= queue.owner_share:
+            break
+        job_id = session.scalar(
+            select(Job.id).where(Job.owner == owner, Job.state == JobState.QUEUED, Job.task_id == HELD)
+            .order_by(Job.created_at, Job.id).limit(1)
+        )
+        if job_id is None:
+            break
+        if not take_for_sending(session, job_id, HELD):
+            continue  # another caller took it; count again
+        job = session.get(Job, job_id)
+        assert job is not None
+        session.refresh(job)
+        if not send(session, job, queue):
+            break  # refused by the broker: UNSENT, the reaper sends it when the broker answers
+        if job.task_id != HELD:
+            sent.append(job_id)
+    return sent
+
+
+def _send_turns_of_all(sessions: sessionmaker[Session], queue: JobQueue) -> list[str]:
+    """`send_turns` for every owner with a job waiting for its turn (the reaper's pass: a turn
+    freed by an end no worker reported, a cancel or a delete is used within a quarter lease)."""
+    with session_scope(sessions) as session:
+        owners = session.scalars(
+            select(Job.owner).where(Job.state == JobState.QUEUED, Job.task_id == HELD).distinct()
+        ).all()
+    sent = []
+    for owner in owners:
+        with session_scope(sessions) as session:
+            sent += _send_owner_turns(session, owner, queue)
+    return sent
+
+
 def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: float) -> list[str]:
     """Send again every running job whose heartbeat is older than the lease: its worker died, or
     lost the broker or the database for longer than the lease (its fencing token stops it when it
     comes back). The next claim resumes from the checkpoints, or fails the job once it has used
     up its attempts. Each job is taken by one conditional UPDATE (`job_states.send_again`), so
     concurrent reapers (one per API process) send it once. Then send the jobs the broker did not
-    take or whose hand-off to it never ended (`_send_unsent`) and the queued jobs whose message
-    was lost (`_resend_lost`). Returns the ids of the jobs the broker took."""
+    take or whose hand-off to it never ended (`_send_unsent`), the queued jobs whose message was
+    lost (`_resend_lost`) and the jobs whose owner's turn came (`_send_turns_of_all`). Returns the
+    ids of the jobs the broker took."""
     cutoff = utcnow() - timedelta(seconds=lease_seconds)
     with session_scope(sessions) as session:
         stale = session.execute(
@@ -113,7 +204,8 @@ def reap_stale(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds: 
         with session_scope(sessions) as session:
             if send_again(session, job_id, token, cutoff) and _send_by_id(session, job_id, queue):
                 reaped.append(job_id)
-    return reaped + _send_unsent(sessions, queue, cutoff) + _resend_lost(sessions, queue, lease_seconds)
+    unsent = _send_unsent(sessions, queue, cutoff)
+    return reaped + unsent + _resend_lost(sessions, queue, lease_seconds) + _send_turns_of_all(sessions, queue)
 
 
 def _send_by_id(session: Session, job_id: str, queue: JobQueue) -> bool:
@@ -174,7 +266,7 @@ def _resend_lost(sessions: sessionmaker[Session], queue: JobQueue, lease_seconds
             return []
         lost = session.execute(
             select(Job.id, Job.resent_at).where(
-                Job.state == JobState.QUEUED, Job.task_id.is_not(None), Job.task_id.not_in([SENDING, UNSENT]),
+                Job.state == JobState.QUEUED, Job.task_id.is_not(None), Job.task_id.not_in([SENDING, UNSENT, HELD]),
                 Job.created_at < cutoff, or_(Job.resent_at.is_(None), Job.resent_at < cutoff),
             )
         ).all()

@@ -81,6 +81,22 @@ class Settings(BaseSettings):
         default=4 * 3840 * 2160, gt=0, description="width x height summed over a scene's cameras"
     )
 
+    # Per-owner shares (issue 36; docs/service.md "Limits"): far above what one person's normal use
+    # reaches, so that one key cannot fill the queue, the database or the disk for everyone.
+    max_unfinished_jobs_per_owner: int = Field(
+        default=50, gt=0, description="an owner's queued and running jobs; a new one beyond is a 429 with Retry-After"
+    )
+    max_scenes_per_owner: int = Field(default=200, gt=0, description="an owner's stored scenes; an upload beyond is a 429")
+    max_stored_bytes_per_owner: int = Field(
+        default=100 * 1024**3, gt=0,
+        description="an owner's stored videos and job files (service.quotas.stored_bytes); an upload or job beyond is a 429",
+    )
+    jobs_in_flight_per_owner: int = Field(
+        default=2, gt=0,
+        description="an owner's jobs sent to the workers or running at once; the rest wait their turn (service.queue), "
+        "so one owner's backlog never starves another's job. Set it to the number of workers",
+    )
+
     # Worker.
     work_dir: Path | None = Field(default=None, description="worker-local run cache; default data_dir/work")
     device: str = Field(default="auto", description="'auto' (cuda when available), 'cpu' or 'cuda:N'")
@@ -89,6 +105,11 @@ class Settings(BaseSettings):
     job_hard_time_limit: int = Field(default=6 * 3600 + 300, gt=0, description="seconds; the child is killed")
     job_lease_seconds: int = Field(
         default=16, ge=4, description="a running job without a heartbeat this long is taken over (heartbeat: a quarter of it)"
+    )
+    worker_unresponsive_seconds: int = Field(
+        default=60, ge=2,
+        description="serve kills and restarts its embedded worker once its heartbeat (every quarter lease) has not "
+        "moved this long: a frozen worker (SIGSTOP, a hung driver) is replaced like a dead one",
     )
     max_transient_retries: int = Field(default=3, ge=0)
     max_job_attempts: int = Field(

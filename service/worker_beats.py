@@ -4,6 +4,8 @@
 - `/readyz` answers 503 while no worker has beaten within the lease: jobs sent now would wait.
 - The reaper (service.queue.reap_stale) sends a queued job again only once a worker has sat idle
   for a whole lease beside it: a live idle worker would have taken the job, so its message was lost.
+- `fluidnexus serve` kills and restarts its embedded worker once its row stops moving for
+  `worker_unresponsive_seconds` (`BeatWatch`): a frozen worker is replaced like a dead one.
 
 One row per Celery main process (`host:pid`), written by a thread in each pool child every
 quarter lease; a stopped or restarted worker's row is removed (`forget`) or simply goes stale.
@@ -16,6 +18,7 @@ import os
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 from sqlalchemy import delete, func, select
@@ -91,3 +94,36 @@ def idle_for_a_lease(session: Session, lease_seconds: float) -> bool:
         WorkerBeat.heartbeat_at >= cutoff, WorkerBeat.idle_since <= cutoff
     )
     return bool(session.scalar(query))
+
+
+def last_beat(session: Session, name: str) -> datetime | None:
+    """When the worker `name` last beat (None: it has not yet, or its row was removed)."""
+    return session.scalar(select(WorkerBeat.heartbeat_at).where(WorkerBeat.name == name))
+
+
+@dataclass
+class BeatWatch:
+    """Tells when one worker stopped responding: its heartbeat has not moved for `timeout_s`
+    seconds of the watcher's own clock (`now`, monotonic), over reads that all succeeded.
+
+    Why this shape: a worker whose process is alive but frozen (SIGSTOP, a hung driver call, a
+    deadlock) never exits, so waiting on the process finds nothing; its heartbeat thread stops
+    with it. The watcher compares the beat with the last one it read rather than with the wall
+    clock, so a database that was down (the worker could not write, the watcher could not read:
+    `unreadable`) or a clock step never gets a healthy worker killed, and a worker still booting
+    (no beat yet: importing torch can take a while) is not judged at all."""
+
+    timeout_s: float
+    _beat: datetime | None = None
+    _since: float | None = None  # when the watcher first read the current beat
+
+    def unresponsive(self, beat: datetime | None, now: float) -> bool:
+        """Record the beat read at `now`; True once it has not moved for `timeout_s`."""
+        if beat is None or beat != self._beat or self._since is None:
+            self._beat, self._since = beat, None if beat is None else now
+            return False
+        return now - self._since >= self.timeout_s
+
+    def unreadable(self) -> None:
+        """The beat could not be read: start over, so an outage counts for nothing."""
+        self._beat, self._since = None, None

@@ -28,7 +28,7 @@ from service.job_states import Actor
 from service.job_types import JobType
 from service.leases import Claim, Ended, LeaseLost
 from service.models import Artifact, Job, JobState
-from service.queue import JobQueue
+from service.queue import JobQueue, send_turns
 from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
 from service.videos import VIDEO_FOLDER, VIDEO_TYPE, video_kind
@@ -116,8 +116,8 @@ class JobExecutor:
                 log.info("job %s (%s): attempt with lease token %d on %s", job_id, claim.job_type, claim.token,
                          self.worker_name)
                 return self._run_claimed(claim, job_log)
-        except LeaseLost:  # the folder may be the new runner's too (same machine): leave it
-            log.warning("job %s: lease lost to another runner; stopped", job_id)
+        except LeaseLost as lost:  # the folder may be the new runner's too (same machine): leave it
+            log.warning("%s; stopped", lost)
             return None
         finally:  # storage holds the checkpoints and results; the local copies would only pile up
             if self._holds(claim):
@@ -193,6 +193,7 @@ class JobExecutor:
         if reporter.cancel_requested():  # fetching the inputs can take a while
             raise Cancelled("cancelled while preparing")
         files = self.runners[claim.job_type](inputs)
+        reporter.check_held()  # a runner that woke up after its job was queued again pushes nothing
         mirror.push()
         if reporter.cancel_requested():
             raise Cancelled("cancelled before publishing")
@@ -284,15 +285,20 @@ class JobExecutor:
 
     def _ended(self, job_id: str) -> None:
         """What follows every end this worker commits (`service.chaining.job_ended`): the job's
-        webhook, its waiting continuations sent or cancelled with theirs."""
+        webhook, its waiting continuations sent or cancelled with theirs; then the owner's next
+        job waiting for its turn (`service.queue.send_turns`)."""
         with self.sessions() as session:
             job_ended(session, job_id, self.queue, Actor.WORKER, self.settings)
+            if self.queue is not None:
+                send_turns(session, job_id, self.queue)
 
     def _requeue(self, job_id: str, reporter: ProgressReporter) -> None:
         """A transient fault: give the job back (no live lease) so the retry can claim it at once."""
         try:
             with session_scope(self.sessions) as session:
                 leases.hand_back(reporter.owned(session), reporter.final_stage_seconds())
+        except LeaseLost:  # queued again by the reaper already: the next claim runs it
+            log.info("job %s: queued again meanwhile; not handed back", job_id)
         except Exception:  # the database itself may be what failed; the lease then expires on its own
             log.exception("could not put job %s back in the queue", job_id)
 

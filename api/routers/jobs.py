@@ -13,7 +13,7 @@ from api.errors import StrictJSONRoute, error_responses
 from api.idempotency import replay
 from api.schemas import JobLogs, JobOut, JobRequest, Page
 from api.views import job_out
-from service import jobs, webhooks
+from service import jobs, quotas, webhooks
 from service.errors import DuplicateRequest
 from service.job_types import JobType
 from service.models import Job, JobState
@@ -24,7 +24,7 @@ router = APIRouter(
 )
 
 @router.post(
-    "", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409, 413)
+    "", status_code=status.HTTP_202_ACCEPTED, response_model=JobOut, responses=error_responses(404, 409, 413, 429)
 )
 def create_job(
     request: Annotated[JobRequest, Body()],
@@ -44,7 +44,9 @@ def create_job(
     did not (`error`: "parent job PARENT failed" or "... was cancelled"). A scene or parent
     deleted while the job is being created is a 409.
     While the job broker is down a job waits queued with stage "waiting for the queue" and is
-    sent when the broker answers again (`service.queue.send`).
+    sent when the broker answers again (`service.queue.send`); one waiting behind its owner's
+    earlier jobs has stage "waiting for its turn ...". 429 when the owner has too many unfinished
+    jobs or stores too much (`service.quotas`).
     """
     idempotency_key = idempotency_key or None  # an empty header is no key
     body = request.model_dump(mode="json")
@@ -55,6 +57,7 @@ def create_job(
             response.headers["Idempotent-Replayed"] = "true"
             return job_out(existing)
 
+    quotas.check_new_job(session, owner, settings)
     if request.webhook is not None:
         _check_webhook(str(request.webhook), settings)
     job_type = JobType(request.type)

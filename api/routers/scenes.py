@@ -23,7 +23,7 @@ from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo, SceneVideoLin
 from api.uploads import ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import check_name, safe_join
 from fluidcore.spec.jobs import ReconstructParams
-from service import scenes
+from service import quotas, scenes
 from service.errors import DuplicateRequest
 from service.models import Job, Scene, new_id
 from service.storage import Storage, scene_prefix
@@ -43,7 +43,7 @@ async def one_cameras_part(request: Request) -> None:
     "",
     status_code=status.HTTP_201_CREATED,
     response_model=SceneOut,
-    responses=error_responses(400, 413),
+    responses=error_responses(400, 413, 429),
     dependencies=[Depends(one_cameras_part)],
 )
 def create_scene(
@@ -79,7 +79,9 @@ def create_scene(
     With `reconstruct`, its params are checked against the upload (frames within the videos,
     source inside the box) before anything is stored, and the scene and its queued
     reconstruction are stored together: a refused reconstruction (422) leaves no scene behind,
-    so a retry never piles up copies. While the job broker is down the reconstruction waits
+    so a retry never piles up copies. 429 when the owner has too many scenes, stores too much, or
+    (with `reconstruct`) has too many unfinished jobs (`service.quotas`), checked before the
+    upload is validated. While the job broker is down the reconstruction waits
     queued ("waiting for the queue") and is sent when the broker answers (`service.queue.send`)."""
     idempotency_key = idempotency_key or None  # an empty header is no key
     if (cameras is None) == (fov is None):
@@ -103,6 +105,9 @@ def create_scene(
             if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
                 response.headers["Idempotent-Replayed"] = "true"
                 return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
+        quotas.check_new_scene(session, owner, settings, sum(sizes.values()))  # the videos, as stored_bytes counts
+        if params is not None:
+            quotas.check_new_job(session, owner, settings)
         single = None if fov is None else (fov, distance, up)
         validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
         if params is not None:

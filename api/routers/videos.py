@@ -20,7 +20,7 @@ from api.errors import error_responses
 from api.schemas import VideoList, VideoOut
 from api.views import artifact_out, job_out
 from fluidcore.artifacts import video_names
-from service import jobs
+from service import jobs, quotas
 from fluidcore.spec.jobs import RenderParams
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState
@@ -47,7 +47,7 @@ def list_videos(job_id: str, owner: OwnerDep, session: SessionDep, storage: Stor
 
 @router.post(
     "/{job_id}/videos/{video}", response_model=VideoOut, status_code=status.HTTP_200_OK,
-    responses={202: {"model": VideoOut, "description": "being rendered: poll `render_job`"}, **error_responses(404, 409)},
+    responses={202: {"model": VideoOut, "description": "being rendered: poll `render_job`"}, **error_responses(404, 409, 429)},
 )
 def request_video(
     job_id: str, video: str, owner: OwnerDep, session: SessionDep, storage: StorageDep, settings: SettingsDep,
@@ -73,6 +73,7 @@ def request_video(
     response.status_code = status.HTTP_202_ACCEPTED
     if render is not None and not JobState(render.state).finished:
         return _video_out(video, None, render, storage, settings)
+    quotas.check_new_job(session, owner, settings)
     render = Job(owner=owner, type=JobType.RENDER, parent_job_id=job.id, params={"video": video})
     jobs.create(session, queue, settings, render, waits_for=None)
     return _video_out(video, None, render, storage, settings)

@@ -29,6 +29,7 @@ if TYPE_CHECKING:
 
     from service.queue import CeleryQueue
     from service.settings import Settings
+    from service.worker_beats import BeatWatch
 
 DataDir = Annotated[
     Path | None,
@@ -88,7 +89,12 @@ def _exit_on_sigterm(signum: int, frame: object) -> None:
 
 class WorkerSupervisor:
     """Starts the embedded worker and starts it again, with back-off, whenever it dies (a SIGKILL,
-    an out-of-memory kill): otherwise its jobs would wait forever while the API looks healthy.
+    an out-of-memory kill) or stops responding: otherwise its jobs would wait forever while the
+    API looks healthy. A worker that stops responding (its heartbeat row, beaten by its pool child
+    every quarter lease, has not moved for `worker_unresponsive_seconds`: a SIGSTOP, a hung
+    driver call) is SIGKILLed with its pool children, and then handled like a dead one; the job
+    it ran was queued again by the API's reaper once its lease expired ("waiting to resume"),
+    and the fence in service.leases keeps the frozen runner from writing anything if it wakes.
 
     On a death it kills what is left of the worker's process group, removes the dead worker's
     heartbeat (so /readyz answers 503 until the new one beats) and, with the embedded broker,
@@ -111,7 +117,7 @@ class WorkerSupervisor:
         delay = RESTART_DELAYS_S[0]
         while True:
             started = time.monotonic()
-            code = self.process.wait()
+            code = self._wait_for_exit()
             if self._stopping.is_set():
                 return
             # A worker that ran a while before dying starts the back-off again; one dying at boot backs off.
@@ -123,6 +129,37 @@ class WorkerSupervisor:
                 return
             self.process = _start_worker(self.settings.resolved_data_dir())
             delay = min(delay * 2, RESTART_DELAYS_S[-1])
+
+    def _wait_for_exit(self) -> int:
+        """The worker's exit code once it exits; it is killed first if it stops responding."""
+        from service.worker_beats import BeatWatch
+
+        timeout = self.settings.worker_unresponsive_seconds
+        watch = BeatWatch(timeout)
+        while True:
+            try:
+                return self.process.wait(self.settings.job_lease_seconds / 4)  # the beat's period
+            except subprocess.TimeoutExpired:
+                pass
+            if not self._stopping.is_set() and self._unresponsive(watch):
+                typer.echo(f"embedded worker {self.process.pid} stopped responding (no heartbeat for {timeout} s); "
+                           "killing it", err=True)
+                try:
+                    os.killpg(self.process.pid, signal.SIGKILL)  # the frozen pool child with it
+                except ProcessLookupError:
+                    pass
+
+    def _unresponsive(self, watch: BeatWatch) -> bool:
+        from service.database import session_scope
+        from service.worker_beats import last_beat, worker_name
+
+        try:
+            with session_scope(self.sessions) as session:
+                beat = last_beat(session, worker_name(self.process.pid))
+        except Exception:  # database down: the worker cannot beat either; judge once it is back
+            watch.unreadable()
+            return False
+        return watch.unresponsive(beat, time.monotonic())
 
     def _clean_up_after(self, pid: int) -> None:
         from service.queue import requeue_orphans

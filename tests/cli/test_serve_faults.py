@@ -188,6 +188,56 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
                     os.kill(pid, signal.SIGKILL)
 
 
+def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: Path) -> None:
+    """Issue 36 item 6: SIGSTOP of the embedded worker's pool child while it runs a job (before:
+    nothing restarted it, and after SIGCONT the job ran to success reported `queued`). Its
+    heartbeats stop: the API's reaper queues the job again, "waiting to resume", once its lease
+    (8 s here) has expired; serve kills the frozen worker once its heartbeat is 12 s old
+    (`FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS`) and starts a new one, which resumes the job to
+    success. Test-double runners (one frame a second) stand in for fluidcore."""
+    from service.job_states import RESUME_STAGE
+    from tests.support.service import scene_files, upload_parts
+
+    root = str(Path(__file__).resolve().parents[2])
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    process, base = start_serve(tmp_path / "data", env={
+        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
+        "FLUIDNEXUS_JOB_LEASE_SECONDS": "8", "FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS": "12",
+        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
+    })
+    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    workers: set[int] = set()
+    try:
+        wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
+        scene = client.post("/v1/scenes", files=upload_parts(scene_files(tmp_path / "scene")), data={"name": "s"}).json()["id"]
+        job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene, "params": {"frames": [0, 6]}}).json()["id"]
+        wait_until(lambda: client.get(f"/v1/jobs/{job}").json()["progress"] > 0.2, 60, "the job's first frames")
+        workers = descendants(process.pid)
+        (celery,) = direct_children(process.pid)
+        (child,) = {pid for pid in descendants(celery) if _parent(pid) == celery}
+        os.kill(child, signal.SIGSTOP)
+        wait_until(lambda: client.get(f"/v1/jobs/{job}").json()["stage"] == RESUME_STAGE, 60,
+                   "the reaper to queue the job again")
+        assert client.get(f"/v1/jobs/{job}").json()["state"] == "queued"
+        wait_until(lambda: not alive(child) and not alive(celery), 60, "serve to kill the frozen worker")
+        wait_until(lambda: client.get(f"/v1/jobs/{job}").json()["state"] == "succeeded", 120, "the job to resume and succeed")
+        done = client.get(f"/v1/jobs/{job}").json()
+        assert done["attempts"] >= 2 and done["progress"] == 1.0
+        new_celery = direct_children(process.pid)
+        assert new_celery and celery not in new_celery
+    finally:
+        client.close()
+        process.terminate()
+        try:
+            output = process.communicate(timeout=40)[0]
+        finally:
+            for pid in [process.pid, *workers, *descendants(process.pid)]:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+    assert f"embedded worker {celery} stopped responding (no heartbeat for 12 s); killing it" in output, output[-3000:]
+
+
 def wait_until(predicate, timeout: float, what: str) -> None:  # type: ignore[no-untyped-def]
     deadline = time.monotonic() + timeout
     while not predicate():

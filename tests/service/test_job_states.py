@@ -26,7 +26,6 @@ ALLOWED = {  # (from, to): who may; written out here, not read from the module u
     (R, Q): {"worker", "reaper"},
     (Q, C): {"API", "worker", "reaper"},  # the reaper: a continuation whose parent's end went unnoticed
     (Q, F): {"worker"},
-    (Q, S): {"worker"},
 }
 
 

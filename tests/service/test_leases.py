@@ -195,16 +195,39 @@ def test_the_ends_record_the_seconds(sessions: sessionmaker[Session]) -> None:
     assert (ended[given_up].state, ended[given_up].error, ended[given_up].stage_seconds) == (JobState.FAILED, "gave up", {})
 
 
-def test_a_job_handed_back_is_queued_unless_the_reaper_queued_it_first(sessions: sessionmaker[Session]) -> None:
+def test_a_job_handed_back_is_queued_with_no_lease(sessions: sessionmaker[Session]) -> None:
     running = add_job(sessions, state=JobState.RUNNING, heartbeat_at=utcnow())
-    resent = add_job(sessions, stage=RESUME_STAGE)
     with session_scope(sessions) as session:
         leases.hand_back(session.get(Job, running), {"fit": 3.0})
-        leases.hand_back(session.get(Job, resent), {"fit": 3.0})
     job = read(sessions, running)
     assert (job.state, job.stage, job.heartbeat_at, job.stage_seconds) == (JobState.QUEUED, RETRY_STAGE, None, {"fit": 3.0})
-    job = read(sessions, resent)
-    assert (job.state, job.stage, job.stage_seconds) == (JobState.QUEUED, RESUME_STAGE, {})
+
+
+def test_a_runner_whose_job_the_reaper_queued_again_holds_it_no_more(sessions: sessionmaker[Session]) -> None:
+    """Issue 36 item 6: a frozen worker's job is queued again by the reaper once its heartbeat is a
+    lease old; the runner that wakes up after that may write nothing (no heartbeat, progress,
+    hand-back or end), before or after the next claim, so the job never runs reported `queued`."""
+    from service.queue import reap_stale
+    from tests.support.service import RecordingQueue
+
+    job_id = add_job(sessions)
+    frozen = claim(sessions, job_id)
+    assert frozen is not None
+    with session_scope(sessions) as session:  # frozen for more than a lease
+        session.get(Job, job_id).heartbeat_at = utcnow() - timedelta(seconds=LEASE_S + 1)
+    assert reap_stale(sessions, RecordingQueue(), LEASE_S) == [job_id]
+    job = read(sessions, job_id)
+    assert (job.state, job.stage, job.lease_token) == (JobState.QUEUED, RESUME_STAGE, frozen.token)
+    with session_scope(sessions) as session:  # it wakes up: every write meets the fence
+        with pytest.raises(LeaseLost, match=f"job {job_id} was queued again \\(waiting to resume"):
+            leases.held(session, job_id, frozen.token)
+    assert read(sessions, job_id).state == JobState.QUEUED
+    resumed = claim(sessions, job_id, "w2")
+    assert resumed is not None and resumed.token == frozen.token + 1
+    with session_scope(sessions) as session:
+        with pytest.raises(LeaseLost, match="claimed by another runner"):
+            leases.held(session, job_id, frozen.token)
+        assert leases.held(session, job_id, resumed.token).worker == "w2"
 
 
 def test_a_scene_s_files_are_its_stored_keys(sessions: sessionmaker[Session]) -> None:

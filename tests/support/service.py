@@ -181,11 +181,13 @@ def keyed_client(tmp_path: Path, owner: str = "alice") -> Iterator[tuple[object,
 # -- test doubles -----------------------------------------------------------------------------------
 
 class RecordingQueue:
-    """A JobQueue that records what the API sends (for tests of the API's own logic)."""
+    """A JobQueue that records what the API sends (for tests of the API's own logic). Its owner
+    share is unbounded unless a test sets one (service.queue's turns are tested with one)."""
 
-    def __init__(self, fail: bool = False) -> None:
+    def __init__(self, fail: bool = False, owner_share: int = 1_000_000) -> None:
         self.sent: list[tuple[str, str]] = []
         self.fail = fail
+        self.owner_share = owner_share
 
     def enqueue(self, job_id: str, job_type: str) -> str:
         from service.queue import QueueUnavailable

@@ -122,6 +122,42 @@ def test_a_runner_whose_job_was_taken_over_stops_and_writes_nothing(world: World
     assert computed.read_text().split() == ["0", "1"]  # stopped at the report of the frame in flight, unpushed
 
 
+def test_a_runner_that_wakes_after_the_reaper_queued_its_job_writes_nothing(world: World) -> None:
+    """Issue 36 item 6: a worker frozen (SIGSTOP) for more than a lease has its job queued again by
+    the reaper; when it wakes up (SIGCONT) it stops at its next report without writing progress,
+    checkpoints, artifacts or an end state, so the job says what happens to it (queued, "waiting
+    to resume") instead of running to success reported `queued`. The next claim resumes it."""
+    from service.job_states import RESUME_STAGE
+    from tests.support.service import RecordingQueue
+
+    job_id = world.job(scene_id=world.scene(), params={"frames": [0, 4]})
+    lease = world.settings.job_lease_seconds
+    queue = RecordingQueue()
+    seen = []
+
+    def frozen_after_one_frame(inputs: RunInputs) -> list[Path]:
+        def progress(fraction: float, stage: str) -> None:
+            inputs.progress(fraction, stage)
+            if not seen:  # frozen here for more than a lease ...
+                with session_scope(world.sessions) as session:
+                    session.get(Job, job_id).heartbeat_at -= timedelta(seconds=lease + 1)
+                assert reap_stale(world.sessions, queue, lease) == [job_id]  # ... and the reaper's pass ran
+                job = world.get(job_id)
+                seen.append((job.state, job.stage, job.progress, len(world.storage.list(f"jobs/{job_id}/run/"))))
+
+        return fake_job(RunInputs(**{**inputs.__dict__, "progress": progress}))
+
+    assert world.executor("frozen", {**FAKE_RUNNERS, "reconstruct": frozen_after_one_frame}).run(job_id) is None
+    ((state, stage, progress, files),) = seen
+    assert (state, stage) == (JobState.QUEUED, RESUME_STAGE)
+    job = world.get(job_id)  # it woke up: nothing it did afterwards reached the job or storage
+    assert (job.state, job.stage, job.progress, job.attempts) == (JobState.QUEUED, RESUME_STAGE, progress, 1)
+    assert len(world.storage.list(f"jobs/{job_id}/run/")) == files and world.artifacts(job_id) == {}
+    assert world.executor("second").run(job_id) == "succeeded"  # the message the reaper sent
+    job = world.get(job_id)
+    assert (job.attempts, job.worker, job.lease_token) == (2, "second", 2)
+
+
 def test_heartbeats_keep_a_job_without_progress_alive(world: World) -> None:
     world.settings = world.settings.model_copy(update={"job_lease_seconds": 4})
     job_id = world.job(scene_id=world.scene(), params={"frames": [0, 1]})
