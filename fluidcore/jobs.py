@@ -59,14 +59,15 @@ class JobContext:
         return on_batch
 
 
-def parse_frames(text: str | None) -> tuple[int, int] | None:
-    """'A:B' -> (A, B), the half-open frame range [A, B); None passes through."""
+def parse_frames(text: str | None, field: str = "frames") -> tuple[int, int] | None:
+    """'A:B' -> (A, B), the half-open frame range [A, B); None passes through. `field` names the
+    option in the messages."""
     if text is None:
         return None
     try:
         start, stop = (int(x) for x in text.split(":"))
     except ValueError:
-        raise JobInputError(f"frames must look like START:END (e.g. 0:60), got {text!r}") from None
+        raise JobInputError(f"{field} must look like START:END (e.g. 0:60), got {text!r}") from None
     if start < 0 or stop <= start:
-        raise JobInputError(f"frames must satisfy 0 <= START < END, got {text!r}")
+        raise JobInputError(f"{field} must satisfy 0 <= START < END, got {text!r}")
     return start, stop

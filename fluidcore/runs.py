@@ -136,6 +136,17 @@ class SourceEstimateRecord(BaseModel):
     generated: dict[str, float] = {}  # generated view -> its ray's weight in the triangulation (the input view's is 1)
 
 
+class BackgroundRecord(BaseModel):
+    """How one input view's background was found (`fluidcore.reconstruct.images`): from a plate
+    (frames of the clip without smoke) or from the smoke's frames themselves, and then how much
+    of the view the smoke covered in every frame, filled from its surroundings."""
+
+    model_config = _RECORD
+    plate_frames: tuple[int, int] | None = None  # [start, end) of the plate; None: estimated from the clip
+    textured: bool  # an image was kept (False: one colour everywhere)
+    covered: float = 0.0  # fraction of the view's pixels the smoke never left (filled from around them)
+
+
 class IdentificationPrior(BaseModel):
     """What the identification started from (the physics preset in the scene's units) and what
     it kept of it."""
@@ -210,6 +221,7 @@ class ReconstructSettings(BaseModel):
     source_hint: SourceHint | None = None  # the source the reconstruction was given, as given
     source_estimate: SourceEstimateRecord | None = None  # None: the user gave the whole source, or an older run
     views: tuple[ViewRecord, ...] = ()
+    backgrounds: dict[str, BackgroundRecord] = {}  # input camera -> how its background was found; {}: an older run
 
 
 class AppearanceProfile(BaseModel):

@@ -108,6 +108,7 @@ def reconstruct(inputs: RunInputs) -> None:
         physics=params.physics,
         frames=params.frames,
         source=params.source,
+        background_frames=params.background_frames,
         simulation=params,  # a ReconstructParams is its SimulationConfig
         context=inputs.context,
     )

@@ -27,12 +27,12 @@ if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
 
 
-def _frame_range(infos: Mapping[str, object], frames: tuple[int, int] | None) -> tuple[int, int]:
+def _frame_range(infos: Mapping[str, object], frames: tuple[int, int] | None, field: str = "frames") -> tuple[int, int]:
     available = min(info.n_frames for info in infos.values())
     if frames is None:
         return 0, available
     if frames[1] > available:
-        raise JobInputError(f"frames: {frames[0]}:{frames[1]} asked, but the shortest input video has {available} frames")
+        raise JobInputError(f"{field}: {frames[0]}:{frames[1]} asked, but the shortest input video has {available} frames")
     return frames
 
 
@@ -44,6 +44,7 @@ def run_reconstruct(
     quality: str | ReconstructConfig = DEFAULT_QUALITY,
     frames: tuple[int, int] | None = None,
     source: SourceHint | None = None,
+    background_frames: tuple[int, int] | None = None,
     physics: str = DEFAULT_PHYSICS,
     simulation: SimulationConfig | None = None,
     progress_bar: bool = False,
@@ -56,7 +57,9 @@ def run_reconstruct(
     uses); `simulation`, when given, replaces its air and spreading settings (the user's
     `SimulationConfig`, or a request model that extends it). `physics` is "auto" (identified from the input view) or a preset name ("scalarflow",
     "fluidnexus"; fluidcore.reconstruct.identify). `source`: where the user knows the smoke's
-    source to be (otherwise estimated; one view leaves its depth to a guess). Returns the run folder. `progress_bar` draws a
+    source to be (otherwise estimated; one view leaves its depth to a guess). `background_frames`:
+    frames of the same videos that show no smoke, the background plate (otherwise the background
+    is estimated from the smoke's frames). Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
     With one input view, the generative priors (`generative`, default: the weights of
     `fluidcore.weights.weights_dir()`) replace the symmetry pseudo-views when their weights
@@ -65,6 +68,7 @@ def run_reconstruct(
     from fluidcore import cameras as camera_io
     from fluidcore import video
     from fluidcore.generative.stages import GenerativeSettings
+    from fluidcore.reconstruct.loop import Plate
     from fluidcore.reconstruct.pipeline import Footage, reconstruct
 
     preset = quality if isinstance(quality, ReconstructConfig) else get(quality)
@@ -84,13 +88,17 @@ def run_reconstruct(
         except camera_io.CameraError as exc:
             raise JobInputError(str(exc)) from None
     frame_range = _frame_range(infos, frames)
+    plate = None
+    if background_frames is not None:
+        plate_range = _frame_range(infos, background_frames, "background_frames")
+        plate = Plate(plate_range, _decoded(cameras, videos, plate_range, preset.fit.long_side))
     fps = infos[next(iter(videos))].fps
     pinholes = {name: camera.pinhole() for name, camera in cameras.items()}
     context.progress(0.0, "prepare")
     # handed over, not kept: the pipeline lets the decoded frames go once they are its targets
     return reconstruct(
         Footage(pinholes, _decoded(cameras, videos, frame_range, preset.fit.long_side), frame_range, fps,
-                camera_io.capture_box(cameras_path, pinholes), source=source),
+                camera_io.capture_box(cameras_path, pinholes), source=source, plate=plate),
         preset, out_dir, physics=physics, generative=generative or GenerativeSettings(), context=context,
         progress_bar=progress_bar,
     )

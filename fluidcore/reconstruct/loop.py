@@ -45,7 +45,7 @@ from fluidcore.errors import InputError
 from fluidcore.physics import Box, interpolate_velocity
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
-from fluidcore.reconstruct.images import estimate_background, resize_image, smoke_mask, to_float
+from fluidcore.reconstruct.images import Background, estimate_background, plate_background, resize_image, smoke_mask, to_float
 from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
 from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
 from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source, source_frames
@@ -53,7 +53,7 @@ from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
+from fluidcore.runs import BackgroundRecord, PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import MIN_FIT_SIDE, ReconstructConfig
 from fluidcore.spec.scene import Air, Scene, SourcePlace
@@ -67,6 +67,14 @@ class ReconstructionError(InputError):
 
 
 @dataclass(frozen=True)
+class Plate:
+    """A background plate: frames of the input videos that show no smoke."""
+
+    frame_range: tuple[int, int]  # [start, end) in the videos
+    videos: Mapping[str, np.ndarray]  # input camera -> uint8 (P, H, W, 3), any size with the camera's aspect
+
+
+@dataclass(frozen=True)
 class InputViews:
     """The input videos as fitting targets, and what is read off them before any fit."""
 
@@ -74,6 +82,7 @@ class InputViews:
     frame_range: tuple[int, int]
     channels: int
     background_images: dict[str, np.ndarray]  # camera -> background image at the camera's full size (where not flat)
+    backgrounds: dict[str, BackgroundRecord]  # camera -> how its background was found
 
     @property
     def names(self) -> list[str]:
@@ -92,6 +101,7 @@ class Reconstruction:
     channels: int
     background_color: np.ndarray
     background_images: dict[str, np.ndarray]
+    backgrounds: dict[str, BackgroundRecord]
     smoke_color: np.ndarray
     scene: Scene  # what the reconstruction simulates, and every prediction from it
     quality: ReconstructConfig
@@ -118,6 +128,7 @@ class Reconstruction:
             symmetry=self.symmetry,
             source_hint=self.source_hint,
             source_estimate=self.source_estimate,
+            backgrounds=self.backgrounds,
             views=tuple({"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views),
         )
 
@@ -128,11 +139,12 @@ def read_inputs(
     *,
     frame_range: tuple[int, int],
     quality: ReconstructConfig,
+    plate: Plate | None = None,
     device: str | torch.device = "cpu",
 ) -> InputViews:
     """The input `videos` (uint8 (T, H, W, 3) per input camera, frames of `frame_range` only, at
     any size with the camera's aspect) as targets at the quality's working resolution, with their
-    backgrounds."""
+    backgrounds: from the `plate` where one is given, else estimated from the frames."""
     if not videos:
         raise ReconstructionError("videos: at least one input view is needed")
     unknown = sorted(set(videos) - set(cameras))
@@ -145,19 +157,33 @@ def read_inputs(
     from fluidcore.video import is_grayscale
 
     channels = 1 if all(is_grayscale(v) for v in videos.values()) else 3
-    targets, backgrounds = [], {}
+    targets, images, records = [], {}, {}
     for name, frames in videos.items():
         camera = cameras[name]
         width, height = render_size(camera.width, camera.height, quality.fit.long_side)
-        data = to_float(frames, channels)
-        data = np.stack([resize_image(f, width, height) for f in data])
-        background = estimate_background(data)
+        data = _working(frames, channels, width, height)
+        if plate is None:
+            background = estimate_background(data)
+        else:
+            background = plate_background(_working(plate.videos[name], channels, width, height), data)
+        records[name] = _background_record(background, None if plate is None else plate.frame_range)
         if background.image is not None:
-            backgrounds[name] = resize_image(background.image, camera.width, camera.height)
+            images[name] = resize_image(background.image, camera.width, camera.height)
         bg = torch.from_numpy(background.as_image(height, width).copy()) if background.image is not None else torch.from_numpy(background.color)
         noise = torch.from_numpy(background.noise).to(device)
         targets.append(ViewTarget(camera.scaled(width, height), torch.from_numpy(data).to(device), bg.to(device), noise))
-    return InputViews(tuple(targets), frame_range, channels, backgrounds)
+    return InputViews(tuple(targets), frame_range, channels, images, records)
+
+
+def _working(frames: np.ndarray, channels: int, width: int, height: int) -> np.ndarray:
+    """uint8 (T, H, W, 3) -> float (T, height, width, channels): the frames as the fit reads them."""
+    data = to_float(frames, channels)
+    return np.stack([resize_image(f, width, height) for f in data])
+
+
+def _background_record(background: Background, plate_frames: tuple[int, int] | None) -> BackgroundRecord:
+    covered = 0.0 if background.covered is None else float(background.covered.mean())
+    return BackgroundRecord(plate_frames=plate_frames, textured=background.image is not None, covered=covered)
 
 
 def prepare(
@@ -236,6 +262,7 @@ def prepare(
         channels=channels,
         background_color=background_color.astype(np.float32),
         background_images=inputs.background_images,
+        backgrounds=inputs.backgrounds,
         smoke_color=smoke_color,
         scene=chosen.scene,
         quality=quality,

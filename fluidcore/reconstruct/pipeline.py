@@ -21,7 +21,7 @@ import torch
 
 from fluidcore.cameras import Camera
 from fluidcore.jobs import BatchProgress, Cancelled, JobContext
-from fluidcore.reconstruct.loop import InputViews, Reconstruction, Reconstructor, prepare, read_inputs
+from fluidcore.reconstruct.loop import InputViews, Plate, Reconstruction, Reconstructor, prepare, read_inputs
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, generated_targets
 from fluidcore.runs import FrameState, Run
@@ -46,13 +46,15 @@ class Footage:
     box: tuple[np.ndarray, np.ndarray]  # the scene box (lo, hi), world units
     up: Sequence[float] = WORLD_UP
     source: SourceHint | SourcePlace | None = None  # where the source is known to be; None: estimated
+    plate: Plate | None = None  # frames without smoke; None: the background is estimated from the videos
 
 
 def prepared(footage: Footage, quality: ReconstructConfig, *, physics: str = DEFAULT_PHYSICS,
              device: str | torch.device = "cpu") -> Reconstruction:
     """The reconstruction of `footage` as `prepare` leaves it, before any fit and without
     generated views: its source and physics (what the source benchmark compares with the truth)."""
-    inputs = read_inputs(footage.cameras, footage.videos, frame_range=footage.frame_range, quality=quality, device=device)
+    inputs = read_inputs(footage.cameras, footage.videos, frame_range=footage.frame_range, quality=quality,
+                         plate=footage.plate, device=device)
     return _prepare(footage, inputs, quality, physics, (), True, device)
 
 
@@ -78,8 +80,8 @@ def reconstruct(
     fits the input views alone. `first_state`, `status` and `stage` are `fit`'s.
     """
     inputs = read_inputs(footage.cameras, footage.videos, frame_range=footage.frame_range, quality=quality,
-                         device=context.device)
-    footage = replace(footage, videos={})  # the targets hold the frames now: a job's decoded ones can go
+                         plate=footage.plate, device=context.device)
+    footage = replace(footage, videos={}, plate=None)  # the targets hold the frames now: a job's decoded ones can go
     novel = None
     if generative is not None:
         from fluidcore.generative.stages import GENERATED_DIR, save_generated_views

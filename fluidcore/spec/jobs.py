@@ -27,8 +27,15 @@ QualityName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # the preset 
 PhysicsName = Literal[tuple(PHYSICS_MODES)]  # type: ignore[valid-type]  # fluidcore.reconstruct.identify
 
 
+# Frames a background plate may span: a plate is a still scene, a few seconds say all it can
+# (its per-pixel median), and each of its frames is decoded beside the clip's.
+MAX_PLATE_FRAMES = 300
+
+
 class ReconstructParams(SimulationConfig):
     """`frames` = [start, end): video frame indices (end exclusive); all frames when omitted.
+    `background_frames` = [start, end): frames of the same videos that show no smoke (before the
+    source starts, say), the background plate; estimated from the smoke's frames when omitted.
     `source`: where the smoke comes from, when known (world units; checked against the scene
     box): one view cannot tell the source's depth, and the whole plume inherits the guess.
     `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
@@ -39,11 +46,17 @@ class ReconstructParams(SimulationConfig):
     physics: PhysicsName = DEFAULT_PHYSICS
     frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
     source: SourceHint | None = None
+    background_frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
 
     @model_validator(mode="after")
     def _ordered(self) -> ReconstructParams:
-        if self.frames is not None and self.frames[1] <= self.frames[0]:
-            raise ValueError(f"frames: end ({self.frames[1]}) must be greater than start ({self.frames[0]})")
+        for name, span in (("frames", self.frames), ("background_frames", self.background_frames)):
+            if span is not None and span[1] <= span[0]:
+                raise ValueError(f"{name}: end ({span[1]}) must be greater than start ({span[0]})")
+        plate = self.background_frames
+        if plate is not None and plate[1] - plate[0] > MAX_PLATE_FRAMES:
+            raise ValueError(f"background_frames: {plate[1] - plate[0]} frames, at most {MAX_PLATE_FRAMES}: a plate "
+                             "is a still background, a few seconds of it are enough")
         return self
 
 

@@ -79,6 +79,11 @@ def reconstruct(
     source: str | None = typer.Option(
         None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
     ),
+    background_frames: str | None = typer.Option(
+        None, "--background-frames",
+        help="START:END (end exclusive): frames of the same videos without smoke, the background plate. Give it when the "
+        "smoke never leaves part of the view (a steady stem): estimated from the smoke's frames otherwise.",
+    ),
     air_cells: int = spec_option(ReconstructParams, "air_cells", "--air-cells"),
     air_vorticity: float = spec_option(ReconstructParams, "air_vorticity", "--air-vorticity"),
     entrainment: bool = spec_option(ReconstructParams, "entrainment", "--entrainment"),
@@ -102,13 +107,13 @@ def reconstruct(
         params = job_params(  # the API's reconstruct params: one check, one message naming the field
             ReconstructParams, quality=quality, physics=physics, frames=parse_frames(frames),
             source=None if source is None else parse_source(source), air_cells=air_cells, air_vorticity=air_vorticity,
-            entrainment=entrainment,
+            entrainment=entrainment, background_frames=parse_frames(background_frames, "--background-frames"),
         )
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=params.quality, physics=params.physics, frames=params.frames,
-            source=params.source, simulation=params,  # a ReconstructParams is its SimulationConfig
+            source=params.source, background_frames=params.background_frames, simulation=params,  # a ReconstructParams is its SimulationConfig
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit(as_json, str(path), **run_fields(path))

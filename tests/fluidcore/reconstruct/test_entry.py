@@ -4,11 +4,14 @@ source benchmark share."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from fluidcore import synth
 from fluidcore.reconstruct import prepare, read_inputs
+from fluidcore.reconstruct.loop import Plate
 from fluidcore.reconstruct.pipeline import Footage, prepared, reconstruct
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.runs import Run
@@ -53,3 +56,14 @@ def test_reconstruct_fits_the_footage_into_a_run(plume: synth.SynthScene, tmp_pa
     assert run.settings.source_hint == SourceHint(center=place.center, radius=place.radius) and run.settings.source_estimate is None
     hinted = prepared(_footage(plume, SourceHint(center=place.center)), QUICK, physics="scalarflow")
     assert hinted.scene.source.center == place.center and hinted.source_estimate.depth_cue == "given"
+
+
+def test_a_plate_replaces_the_estimated_background_and_is_recorded(plume: synth.SynthScene) -> None:
+    """The background of each input view comes from the plate when one is given (the record says
+    which frames); without one it is estimated, and the record says so."""
+    empty = np.full_like(plume.videos[INPUT][:1], 0)  # a plate of the synthetic scene's black background
+    plated = prepared(replace(_footage(plume), plate=Plate((0, 1), {INPUT: empty})), QUICK, physics="scalarflow")
+    assert plated.backgrounds[INPUT].plate_frames == (0, 1) and plated.backgrounds[INPUT].textured
+    assert plated.settings().backgrounds[INPUT].plate_frames == (0, 1)
+    estimated = prepared(_footage(plume), QUICK, physics="scalarflow")
+    assert estimated.backgrounds[INPUT].plate_frames is None
