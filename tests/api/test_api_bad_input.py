@@ -192,3 +192,19 @@ def test_an_empty_idempotency_key_is_no_key(service: Service, scene_dir: dict[st
     second = service.client.post("/v1/jobs", json=body, headers={**alice, "Idempotency-Key": ""})
     assert first.status_code == second.status_code == 202
     assert first.json()["id"] != second.json()["id"] and "Idempotent-Replayed" not in second.headers
+
+
+def test_a_background_plate_is_a_bounded_frame_span(service: Service, scene_dir: dict[str, Path]) -> None:
+    """`background_frames` (the plate) is checked like `frames`: reversed or longer than a plate
+    needs is a 422 naming the field, and nothing is queued; a span is queued as given."""
+    alice = service.key("alice")
+    scene_id = service.client.post("/v1/scenes", files=upload_parts(scene_dir), headers=alice).json()["id"]
+    jobs = service.count(Job)
+    for span, words in (([3, 1], "must be greater than start"), ([0, 10_000], "at most")):
+        body = {"type": "reconstruct", "scene_id": scene_id, "params": {"background_frames": span}}
+        response = service.client.post("/v1/jobs", json=body, headers=alice)
+        assert response.status_code == 422 and "background_frames" in response.text and words in response.text, response.text
+    assert service.count(Job) == jobs
+    body = {"type": "reconstruct", "scene_id": scene_id, "params": {"background_frames": [0, 1]}}
+    response = service.client.post("/v1/jobs", json=body, headers=alice)
+    assert response.status_code == 202 and response.json()["params"]["background_frames"] == [0, 1]

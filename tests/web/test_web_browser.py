@@ -177,6 +177,12 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    plate = page.get_by_label("Background plate")
+    plate.fill("5:2")  # a plate's frames the wrong way round: refused before anything is sent
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Background plate: its end frame (2) must come after its first (5).")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    plate.fill("")
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     page.get_by_label("End frame").fill("3")  # a range past the 2-frame clip: refused, nothing stored
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("End frame 3 is past the video")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()

@@ -67,6 +67,8 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   const cameras = parsed && parsed.cameras;
   const source = parseSource($("source").value);
   if (source.error) problems.push(source.error);
+  const plate = parseFrameSpan($("background-frames").value);
+  if (plate.error) problems.push(plate.error);
   else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
     problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
   }
@@ -184,6 +186,17 @@ async function submit(event, onDone) {
   }
 }
 
+/** "START:END" -> { value: [start, end] }, "" -> {}, anything else -> { error } (the background plate's frames). */
+function parseFrameSpan(text) {
+  const trimmed = text.trim();
+  if (!trimmed) return {};
+  const match = /^(\d+)\s*:\s*(\d+)$/.exec(trimmed);
+  if (!match) return { error: `Background plate: write its frames as START:END (e.g. 0:15), not "${trimmed}".` };
+  const [start, end] = [Number(match[1]), Number(match[2])];
+  if (end <= start) return { error: `Background plate: its end frame (${end}) must come after its first (${start}).` };
+  return { value: [start, end] };
+}
+
 /** The reconstruction's params (the API's ReconstructParams); no end frame: to the clip's end. */
 function reconstructParams() {
   const params = { quality: $("quality").value, physics: $("physics").value };
@@ -192,6 +205,8 @@ function reconstructParams() {
   if ($("entrainment").checked) params.entrainment = true;
   const source = parseSource($("source").value).value;
   if (source) params.source = source;
+  const plate = parseFrameSpan($("background-frames").value).value;
+  if (plate) params.background_frames = plate;
   const start = Number($("frame-start").value || 0), end = $("frame-end").value;
   if (end) params.frames = [start, Number(end)];
   else if (start > 0) params.frames = [start, Math.min(...state.videos.map((v) => v.frames || Infinity))];
@@ -204,6 +219,7 @@ function reset() {
   $("upload-files").value = "";
   $("scene-name").value = "";
   $("source").value = "";
+  $("background-frames").value = "";
   $("upload-progress").hidden = true;
   $("upload-error").textContent = "";
   render();
@@ -221,7 +237,7 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
-  for (const id of ["source", "frame-start", "frame-end", "air-cells"]) $(id).addEventListener("input", render);
+  for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames"]) $(id).addEventListener("input", render);
   render();
   loadLimits().then((all) => { limits = all.reconstruct; showLimits(); }, (error) => { limits = { error: error.message }; })
     .finally(render);

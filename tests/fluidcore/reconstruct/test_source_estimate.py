@@ -53,6 +53,18 @@ def test_a_flat_inlet_is_its_half_width_and_the_ball_rests_on_its_bottom() -> No
     assert v0 == pytest.approx(176.0 - r, abs=1.5)  # a ball of radius r resting on the inlet's bottom edge
 
 
+def test_specks_that_stay_put_beside_the_source_do_not_widen_it() -> None:
+    """What a background estimate gets wrong on a textured background stays put in every frame
+    too: specks level with the source, left and right of it, are not the inlet (before, its
+    bottom rows reached from one speck to the other)."""
+    center, radius = (80.0, 160.0), 8.0
+    masks = _frames(_disc(center, radius), 0.5 * radius, 1.6 * radius)
+    masks[:, 162:166, 10:14] = True  # specks in every frame, far left and far right at the source's height
+    masks[:, 158:161, 140:145] = True
+    u, v, r = source_estimate.source_in_view(masks, UP)
+    assert r == pytest.approx(radius, rel=0.1) and abs(u - center[0]) <= 1.0
+
+
 def test_a_tilted_up_direction_measures_across_it() -> None:
     """A camera rolled by 30 degrees: the disc is measured along the image's up, not along rows."""
     angle = np.deg2rad(30.0)
