@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fluidcore.reconstruct import images, source_estimate
+from fluidcore.reconstruct.rays import ray_in_box
 
 H, W = 200, 160
 UP = np.array([0.0, -1.0])  # image rows grow downwards, so the world's up points to smaller v
@@ -142,6 +143,29 @@ def test_a_level_camera_leaves_the_depth_to_a_range_that_holds_the_truth() -> No
     assert np.linalg.norm(near + t * segment - SOURCE) < 0.01  # the truth lies on the reported stretch of the ray
     assert np.all(near >= BOX[0] - 1e-9) and np.all(far <= BOX[1] + 1e-9)
     assert estimate.radius == pytest.approx(SOURCE_RADIUS * (1.4 - 0.0) / (1.4 + 0.06), rel=0.2)  # at the axis guess's depth
+
+
+def test_a_raised_source_near_a_wall_gets_a_range_the_box_and_its_smoke_shorten() -> None:
+    """A source on a stand (20 cm above the floor), 24 cm from the box's axis, 2 cm from a wall in x, with a
+    column of smoke above it: the rays through the column leave the box through that wall, so the
+    plume cannot lie as deep as the source's ray alone would allow. The reported range holds the
+    truth and is shorter than the box's stretch of the ray; the centre lies in it."""
+    camera = _camera((0.0, 0.3, 1.4), (0.0, 0.3, 0.0))  # level with the source
+    source = np.array([0.24, 0.2, 0.05])
+    column = [source + np.array([0.0, h, 0.0]) for h in np.linspace(0.0, 0.4, 9)]
+    silhouette = np.any([_sphere_points(camera, c, SOURCE_RADIUS) > 0 for c in column], axis=0)
+    masks = np.stack([silhouette] * 8)
+    estimate = source_estimate.estimate_source({"cam": camera}, {"cam": masks}, BOX)
+    assert estimate.depth_cue == "box axis"
+    near, far = estimate.depth_range
+    origin, direction = camera.center(), (source - camera.center()) / np.linalg.norm(source - camera.center())
+    box_near, box_far = ray_in_box(origin, direction, *BOX)
+    assert np.linalg.norm(far - near) < 0.8 * np.linalg.norm(box_far - box_near)
+    segment = far - near
+    t = (source - near) @ segment / (segment @ segment)
+    assert 0.0 <= t <= 1.0 and np.linalg.norm(near + t * segment - source) < 0.01  # the truth lies in it
+    s = (estimate.center - near) @ segment / (segment @ segment)
+    assert -1e-9 <= s <= 1.0 + 1e-9
 
 
 def test_two_views_triangulate_and_report_no_range() -> None:
