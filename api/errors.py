@@ -134,7 +134,24 @@ def _finite(value: Any) -> Any:
 
 async def validation_failed(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    return JSONResponse({"detail": _finite(jsonable_encoder(exc.errors()))}, status_code=422)
+    return JSONResponse({"detail": _finite(jsonable_encoder([_explained(e) for e in exc.errors()]))}, status_code=422)
+
+
+def _explained(error: dict[str, Any]) -> dict[str, Any]:
+    """`error` (pydantic's) with a message a client can act on where pydantic's names its own
+    machinery: a body without its "type" ("Unable to extract tag using discriminator 'type'"),
+    and a JSON body sent as something else ("Input should be a valid dictionary ...", when the
+    client left out Content-Type: application/json)."""
+    from service.job_types import JobType
+
+    at_body = tuple(error.get("loc", ())) == ("body",)
+    if error.get("type") == "union_tag_not_found" and at_body:
+        kinds = ", ".join(member.value for member in JobType)
+        return {**error, "msg": f'the job needs its "type": one of {kinds}'}
+    if error.get("type") == "model_attributes_type" and at_body and isinstance(error.get("input"), (str, bytes)):
+        return {**error, "msg": "the body must be a JSON object, sent with the header Content-Type: application/json "
+                                "(curl: -H 'Content-Type: application/json', or --json)"}
+    return error
 
 
 async def upload_rejected(request: Request, exc: Exception) -> JSONResponse:

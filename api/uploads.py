@@ -102,9 +102,13 @@ def match_camera(filename: str, cameras: dict[str, Camera]) -> str:
     raise UploadRejected(f"video: {filename!r} matches no camera; known cameras: {known}")
 
 
-def single_camera_file(folder: Path, video_sizes: dict[str, int], fov: float, distance: float, up: str) -> str:
+def single_camera_file(folder: Path, video_sizes: dict[str, int], fov: float, distance: float, up: str,
+                       max_pixels: int) -> str:
     """Write the transforms.json of `fluidnexus cameras single` for the one spooled video (an
-    upload without a camera file); returns its file name. Same parameters, same file as the CLI."""
+    upload without a camera file); returns its file name. Same parameters, same file as the CLI;
+    the video's first frame is decoded under `max_pixels` (the camera-file path's cap:
+    `Settings.max_camera_pixels`; before, the built-in 8K cap let one 8000x8000 16-bit RGBA PNG
+    frame cost 1.04 GB and 6.4 s)."""
     from fluidcore.cameras import CameraError
     from fluidcore.cameras.single import write_single_camera
     from fluidcore.video import VideoError
@@ -115,7 +119,7 @@ def single_camera_file(folder: Path, video_sizes: dict[str, int], fov: float, di
     if name in video_sizes:
         raise UploadRejected(f"video: the file name {name!r} is reserved for the generated cameras file")
     try:
-        write_single_camera(folder / name, folder / next(iter(video_sizes)), fov, distance, up)
+        write_single_camera(folder / name, folder / next(iter(video_sizes)), fov, distance, up, max_pixels=max_pixels)
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
     except VideoError as exc:
@@ -199,7 +203,7 @@ def check_upload(
     if cameras_file is None:
         if single is None:
             raise UploadRejected("cameras: give either a cameras file or fov")
-        cameras_file = single_camera_file(folder, video_sizes, *single)
+        cameras_file = single_camera_file(folder, video_sizes, *single, max_pixels=settings.max_camera_pixels)
     validated = validate_scene(folder, cameras_file, video_sizes, settings)
     return validated, scene_info.from_cameras_file(validated.cameras_path)
 

@@ -3,11 +3,13 @@
     python bench/upload_attacks.py [--rounds 3] [--json]
 
 Starts `fluidnexus serve --no-worker` on 127.0.0.1 (embedded SQLite, `bench.load.live_server`),
-then `--rounds` times sends four hostile uploads at once:
+then `--rounds` times sends six hostile uploads at once:
   - `png16k`: a 0.7 MB MOV holding one 16000x16000 PNG frame (768 MB as RGB) for a 270x480 camera;
   - `png16k_lying`: the same frame, its container header claiming 270x480;
   - `zip_bomb`: a 0.5 MB COLMAP zip whose points3D.txt unpacks to 500 MiB of zeros;
-  - `zip_20k`: a 2.5 MB COLMAP zip of 20,000 `sparse/N/cameras.txt` members.
+  - `zip_20k`: a 2.5 MB COLMAP zip of 20,000 `sparse/N/cameras.txt` members;
+  - `images_821k`: a COLMAP zip whose images.txt lists 821,732 images (issue 36: 285 s, 1.28 GB);
+  - `images_bin_1e9`: a COLMAP zip whose images.bin declares 1e9 images (issue 36: HTTP 500).
 Reported per upload: status, seconds to the answer, the answer's message; and the server's peak
 resident memory (VmHWM of its process, `--no-worker`) before and after, and that of each upload
 validation process below it (api.uploads.Validators). Targets: every upload refused (4xx) within
@@ -82,6 +84,28 @@ def zip_bomb(path: Path, unpacked_bytes: int) -> Path:
     return path
 
 
+def many_images_zip(path: Path, images: int) -> Path:
+    """A COLMAP text model in a zip whose images.txt lists `images` posed images of one camera
+    (the issue 36 probe: 821,732 of them in 3.8 MB)."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=9) as archive:
+        archive.writestr("sparse/0/cameras.txt", "1 PINHOLE 270 480 300 300 135 240\n")
+        with archive.open("sparse/0/images.txt", "w") as member:
+            for index in range(1, images + 1):
+                member.write(f"{index} 1 0 0 0 0 0 4 1 view{index}.png\n\n".encode())
+        archive.writestr("sparse/0/points3D.txt", "")
+    return path
+
+
+def declared_images_zip(path: Path, declared: int) -> Path:
+    """A COLMAP binary model in a zip whose images.bin declares `declared` images and holds none."""
+    cameras = struct.pack("<Q", 1) + struct.pack("<iiQQ", 1, 1, 270, 480) + struct.pack("<4d", 300, 300, 135, 240)
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("sparse/0/cameras.bin", cameras)
+        archive.writestr("sparse/0/images.bin", struct.pack("<Q", declared))
+        archive.writestr("sparse/0/points3D.bin", struct.pack("<Q", 0))
+    return path
+
+
 def many_member_zip(path: Path, members: int) -> Path:
     """A zip of `members` tiny `sparse/N/cameras.txt` files."""
     with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as archive:
@@ -91,7 +115,7 @@ def many_member_zip(path: Path, members: int) -> Path:
 
 
 def attacks(folder: Path) -> dict[str, Parts]:
-    """The four hostile uploads as multipart parts for POST /v1/scenes."""
+    """The hostile uploads as multipart parts for POST /v1/scenes."""
     import numpy as np
 
     from fluidcore.video import write_mp4
@@ -112,6 +136,8 @@ def attacks(folder: Path) -> dict[str, Parts]:
         "png16k_lying": mov("png16k_lying", CAMERA),
         "zip_bomb": colmap(zip_bomb(folder / "bomb.zip", 500 << 20)),
         "zip_20k": colmap(many_member_zip(folder / "many.zip", 20_000)),
+        "images_821k": colmap(many_images_zip(folder / "images.zip", 821_732)),
+        "images_bin_1e9": colmap(declared_images_zip(folder / "declared.zip", 10**9)),
     }
 
 

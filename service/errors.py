@@ -10,6 +10,14 @@ class NotFound(LookupError):
     """A job, scene or artifact that does not exist, or is not the caller's: the two are one
     answer, so ids are never disclosed."""
 
+    @classmethod
+    def named(cls, kind: str, ident: str) -> NotFound:
+        """`kind` ("job", "scene") `ident` not found; an empty id is said to be empty (a client that
+        sent "" read "scene  not found", two spaces and no hint)."""
+        if not ident.strip():
+            return cls(f"{kind} id is empty: give the id of one of your {kind}s (GET /v1/{kind}s lists them)")
+        return cls(f"{kind} {ident} not found")
+
 
 class Conflict(Exception):
     """A request that the state of what it names refuses now (a job still running, a scene still

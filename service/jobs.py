@@ -43,7 +43,7 @@ def get(session: Session, job_id: str) -> Job:
     """The job, whoever owns it (a signed download link names it); NotFound otherwise."""
     job = session.get(Job, job_id)
     if job is None:
-        raise NotFound(f"job {job_id} not found")
+        raise NotFound.named("job", job_id)
     return job
 
 
@@ -53,7 +53,7 @@ def owned(session: Session, job_id: str, owner: str, for_update: bool = False) -
     query = select(Job).where(Job.id == job_id)
     job = session.scalars(query.with_for_update() if for_update else query).first()
     if job is None or job.owner != owner:
-        raise NotFound(f"job {job_id} not found")
+        raise NotFound.named("job", job_id)
     return job
 
 

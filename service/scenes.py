@@ -32,7 +32,7 @@ def owned(session: Session, scene_id: str, owner: str, for_update: bool = False)
     `for_update` locks its row (PostgreSQL) until the session commits."""
     scene = session.get(Scene, scene_id, with_for_update=for_update)
     if scene is None or scene.owner != owner:
-        raise NotFound(f"scene {scene_id} not found")
+        raise NotFound.named("scene", scene_id)
     return scene
 
 
@@ -40,7 +40,7 @@ def get(session: Session, scene_id: str) -> Scene:
     """The scene, whoever owns it (a signed link to one of its videos names it); NotFound otherwise."""
     scene = session.get(Scene, scene_id)
     if scene is None:
-        raise NotFound(f"scene {scene_id} not found")
+        raise NotFound.named("scene", scene_id)
     return scene
 
 

@@ -84,8 +84,12 @@ def create_scene(
     upload is validated. While the job broker is down the reconstruction waits
     queued ("waiting for the queue") and is sent when the broker answers (`service.queue.send`)."""
     idempotency_key = idempotency_key or None  # an empty header is no key
-    if (cameras is None) == (fov is None):
-        raise HTTPException(422, "cameras: give either a cameras file or fov (for one video without calibration), not both")
+    if cameras is None and fov is None:
+        raise HTTPException(422, "cameras: give a cameras file (transforms.json, info.json or a zipped COLMAP model), "
+                                 "or fov (the horizontal field of view in degrees) for one video without calibration")
+    if cameras is not None and fov is not None:
+        raise HTTPException(422, "cameras: give a cameras file or fov, not both: fov makes the cameras file of a "
+                                 "video without calibration")
     params = None if reconstruct is None else parse_reconstruct(reconstruct)
     with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)

@@ -12,7 +12,9 @@ the frames with OpenCV (fluidcore.cameras.undistort). Fisheye and other models a
 Zips (what the API receives) are opened defensively: member names may not escape the folder
 (fluidcore.names.safe_join) and the members read must have plain names (`check_relative`), and
 the member count and the declared size of the model files are capped before anything is
-unpacked, so an upload cannot write elsewhere, fill the disk or keep the API busy.
+unpacked, so an upload cannot write elsewhere, fill the disk or keep the API busy; the counts of
+images, cameras and points the model files declare are capped before pycolmap reads them
+(`fluidcore.cameras.colmap_limits`).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from types import ModuleType
 import numpy as np
 
 from fluidcore.cameras.camera import Camera, CameraError, check_camera_name, check_new_camera
+from fluidcore.cameras.colmap_limits import check_model_sizes
 from fluidcore.names import UnsafeName, UnsafePath, check_relative, safe_join
 
 # Where each supported model's extra parameters go in OpenCV's (k1, k2, p1, p2, k3, k4, k5, k6).
@@ -72,6 +75,7 @@ def load_colmap_dir(folder: Path) -> dict[str, Camera]:
     model_dir = find_model_dir(folder)
     if model_dir is None:
         raise CameraError(f"{folder.name}: no COLMAP model (cameras.bin/.txt and images.bin/.txt) found")
+    check_model_sizes(model_dir)
     pycolmap = _import_pycolmap()
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))

@@ -56,17 +56,26 @@ def single_camera(
 
 def write_single_camera(
     out: str | os.PathLike[str], video: str | os.PathLike[str], fov_deg: float, distance: float = 1.0, up: str = "up",
-    name: str | None = None,
+    name: str | None = None, max_pixels: int | None = None,
 ) -> Path:
     """Write a transforms.json for one `video` (its size read from the file) with its scene box.
 
     The camera is named after the video's file stem (or `name`); `file_path` is the video's
-    path relative to the JSON file, as nerfstudio stores it.
+    path relative to the JSON file, as nerfstudio stores it. `max_pixels` caps the frame the
+    size is read from (default `fluidcore.video.MAX_PIXELS`; the API passes its own, lower cap).
     """
-    from fluidcore.video import probe
+    from fluidcore.video import MAX_PIXELS, VideoError, probe, read_header
 
     out, video = Path(out), Path(video)
-    info = probe(video)
+    cap = MAX_PIXELS if max_pixels is None else max_pixels
+    header = read_header(video, cap)  # a frame over the cap is refused by its declared size, before any decoding
+    try:
+        info = probe(video, cap)
+    except VideoError as error:
+        if header.width * header.height:
+            raise
+        raise VideoError(f"{video.name}: its header gives no frame size, and its first frame does not decode within the "
+                         f"limit of {cap} pixels ({error})") from None
     file_path = os.path.relpath(video.resolve(), out.resolve().parent)
     camera, box = single_camera(name or video.stem, info.width, info.height, fov_deg, distance, up, file_path)
     return write_transforms(out, {camera.name: camera}, scene_box=box_json(box))

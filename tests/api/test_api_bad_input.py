@@ -208,3 +208,23 @@ def test_a_background_plate_is_a_bounded_frame_span(service: Service, scene_dir:
     body = {"type": "reconstruct", "scene_id": scene_id, "params": {"background_frames": [0, 1]}}
     response = service.client.post("/v1/jobs", json=body, headers=alice)
     assert response.status_code == 202 and response.json()["params"]["background_frames"] == [0, 1]
+
+
+def test_common_mistakes_get_messages_that_say_what_to_do(service: Service, scene_dir: dict[str, Path]) -> None:
+    """Issue 35: pydantic's and the lookups' own words ("Unable to extract tag using discriminator
+    'type'", "Input should be a valid dictionary", "scene  not found") said nothing a client can act on."""
+    alice = service.key("alice")
+    untyped = service.client.post("/v1/jobs", json={"scene_id": "x"}, headers=alice)
+    assert untyped.status_code == 422
+    assert untyped.json()["detail"][0]["msg"] == 'the job needs its "type": one of reconstruct, predict, interact, resimulate, render'
+    plain = service.client.post("/v1/jobs", content=b'{"type": "reconstruct", "scene_id": "x"}', headers=alice)
+    assert plain.status_code == 422 and "Content-Type: application/json" in plain.json()["detail"][0]["msg"]
+    for response, kind in (
+        (service.client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": ""}, headers=alice), "scene"),
+        (service.client.post("/v1/jobs", json={"type": "predict", "parent_job_id": " "}, headers=alice), "job"),
+    ):
+        assert response.status_code == 404
+        assert response.json()["detail"] == f"{kind} id is empty: give the id of one of your {kind}s (GET /v1/{kind}s lists them)"
+    both = service.client.post("/v1/scenes", files=upload_parts(scene_dir), data={"fov": "50"}, headers=alice)
+    assert both.status_code == 422 and "give a cameras file or fov, not both" in both.json()["detail"]
+    assert stored(service) == (0, 0, [])

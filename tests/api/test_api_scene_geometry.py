@@ -53,7 +53,7 @@ def test_upload_with_fov_instead_of_a_camera_file(client, tmp_path: Path) -> Non
 @pytest.mark.parametrize(
     ("data", "videos", "message"),
     [
-        ({}, 1, "give either a cameras file or fov"),
+        ({}, 1, "cameras: give a cameras file (transforms.json, info.json or a zipped COLMAP model), or fov"),
         ({"fov": "0.1"}, 1, "cameras: fov must be between"),
         ({"fov": "50", "up": "north"}, 1, "cameras: up must be one of"),
         ({"fov": "50"}, 2, "exactly one video"),

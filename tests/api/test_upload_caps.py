@@ -16,7 +16,7 @@ import av
 import numpy as np
 import pytest
 
-from bench.upload_attacks import many_member_zip, png_mov, zip_bomb
+from bench.upload_attacks import declared_images_zip, many_images_zip, many_member_zip, png_mov, zip_bomb
 from fluidcore.cameras import CameraError, load
 from fluidcore.video import VideoError, verify
 from service.models import Job, Scene
@@ -133,6 +133,22 @@ def test_colmap_zips_are_counted_and_sized_before_unpacking(
     assert stored(service) == (0, 0, [])
 
 
+def test_colmap_models_declaring_too_many_images_are_422_before_pycolmap(
+    service: Service, scene_dir: dict[str, Path], tmp_path: Path
+) -> None:
+    """Issue 36: 821,732 images in images.txt took 285 s and 1.28 GB; 1e9 declared in images.bin was a 500."""
+    alice = service.key("alice")
+    for archive, message in [
+        (many_images_zip(tmp_path / "images.zip", 3_000), "cameras: images.txt: more than 1,000 images, the limit"),
+        (declared_images_zip(tmp_path / "declared.zip", 10**9),
+         "cameras: images.bin: declares 1,000,000,000 images, more than the limit of 1,000"),
+    ]:
+        response = post(service, alice, _colmap_parts(archive, scene_dir))
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == message
+    assert stored(service) == (0, 0, [])
+
+
 def test_several_models_in_one_zip_are_refused_before_unpacking(tmp_path: Path) -> None:
     archive = many_member_zip(tmp_path / "two.zip", 2)
     with pytest.raises(CameraError, match=r"several COLMAP models \(sparse/0, sparse/1\)"):
@@ -217,3 +233,15 @@ def test_a_validation_process_that_dies_is_replaced(tmp_path: Path, scene_dir: d
         assert validators._pool is not crashed
     finally:
         validators.close()
+
+
+def test_a_clip_without_a_camera_file_is_probed_under_the_camera_pixel_cap(service: Service, tmp_path: Path) -> None:
+    """Issue 36: the fov upload decoded its first frame under the built-in 8K cap, not
+    `max_camera_pixels`: one 8000x8000 PNG frame cost 1.04 GB. A 5000x5000 frame (under 8K, over
+    the 3840x2160 cap, its size in no header) is refused by the decoder's cap, as on the camera-file path."""
+    clip = png_mov(tmp_path / "phone.mov", (5000, 5000))
+    response = service.client.post("/v1/scenes", files=[("video", ("phone.mov", clip.read_bytes(), "video/quicktime"))],
+                                   data={"fov": "50"}, headers=service.key("alice"))
+    assert response.status_code == 422, response.text
+    assert "first frame does not decode within the limit of 8294400 pixels" in response.json()["detail"]
+    assert stored(service) == (0, 0, [])
