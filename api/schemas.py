@@ -10,6 +10,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 
 from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
+from fluidcore.health import Level as HealthLevel
 from fluidcore.spec.controls import WindParams
 from service.job_types import JobType
 from service.models import JobState
@@ -103,6 +104,22 @@ class CameraPlace(BaseModel):
     forward: Vec3
 
 
+class HealthCheck(BaseModel):
+    name: str
+    level: HealthLevel
+    message: str
+    value: float | None = None
+
+
+class HealthReport(BaseModel):
+    """How far to trust the reconstruction (`fluidcore.health`): a warning says the result is
+    likely poor and what to give next, a note what one view or the identification could not tell."""
+
+    warnings: list[str]
+    notes: list[str]
+    checks: list[HealthCheck]
+
+
 class SceneGeometry(BaseModel):
     """World units (fluidcore.scene_info): a ball must lie inside `box` (null when the camera file
     declares none and the cameras share no bounded view); `source` is the smoke source the
@@ -112,6 +129,7 @@ class SceneGeometry(BaseModel):
     up: Vec3
     source: SceneSource | None
     cameras: dict[str, CameraPlace]
+    health: HealthReport | None = Field(default=None, description="the latest finished reconstruction's; null before one")
 
 
 class SceneOut(BaseModel):

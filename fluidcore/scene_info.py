@@ -58,7 +58,9 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 def from_run(run: RunRecord) -> dict[str, Any]:
     """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source,
     cameras; for a reconstruction whose source was estimated, how its depth was found and, from
-    one view, the stretch of the input ray the centre could lie on (`source.depth`)."""
+    one view, the stretch of the input ray the centre could lie on (`source.depth`); for a
+    reconstruction, its health report (`fluidcore.health`)."""
+    from fluidcore.health import report
     from fluidcore.runs import RunKind
 
     scene = run.scene
@@ -68,4 +70,6 @@ def from_run(run: RunRecord) -> dict[str, Any]:
     if estimate is not None:
         source["depth"] = {"cue": estimate.depth_cue,
                            "range": None if estimate.depth_range is None else [list(p) for p in estimate.depth_range]}
-    return describe(run.cameras(), box, up=scene.up, source=source)
+    found = describe(run.cameras(), box, up=scene.up, source=source)
+    health = report(run)
+    return found if health is None else {**found, "health": health}

@@ -70,18 +70,34 @@ def emit(as_json: bool, text: str, **fields: object) -> None:
 
 
 def run_fields(path: object) -> dict[str, object]:
-    """What --json reports about a run folder a command wrote: path, kind, frames, parent."""
+    """What --json reports about a run folder a command wrote: path, kind, frames, parent, and a
+    reconstruction's health report (`fluidcore.health`)."""
+    from fluidcore.health import report
     from fluidcore.runs import Run
 
     run = Run.open(path)
     frames = run.frames()
+    health = report(run)
     return {
         "run": str(path),
         "kind": run.kind,
         "frames": [frames[0], frames[-1]] if frames else [],
         "parent": None if run.parent is None else str(run.parent.path),
         "settings": run.settings.model_dump(mode="json", include={"branch_frame", "wind", "ball"}),
+        **({} if health is None else {"health": health}),
     }
+
+
+def emit_run(as_json: bool, path: object) -> None:
+    """A command's run folder on stdout (`emit` of `run_fields`); without --json, a
+    reconstruction's health warnings and notes follow on stderr, one per line."""
+    fields = run_fields(path)
+    emit(as_json, str(path), **fields)
+    health = fields.get("health")
+    if not as_json and health:
+        for level in ("warnings", "notes"):
+            for message in health[level]:
+                typer.echo(f"{level[:-1]}: {message}", err=True)
 
 
 def echo_json(obj: object) -> None:

@@ -14,7 +14,7 @@ import typer
 
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.spec.jobs import InteractParams, PredictParams
-from fluidnexus.reporting import check_device, emit, run_fields, user_errors
+from fluidnexus.reporting import check_device, emit_run, user_errors
 from fluidnexus.cli.generative import ModelsDir
 from fluidnexus.cli.options import json_help, spec_option
 
@@ -55,7 +55,7 @@ def predict(
             run, out, frames=params.frames, from_frame=from_frame, generative=GenerativeSettings(models_root=models),
             context=JobContext(device, _ProgressBar()),
         )
-        emit(as_json, str(path), **run_fields(path))
+        emit_run(as_json, path)
 
 
 def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OPT, as_json: bool = JSON_OPT) -> None:
@@ -66,7 +66,7 @@ def resimulate(run: Path = RUN_ARG, out: Path = OUT_OPT, device: str = DEVICE_OP
     with user_errors():
         check_device(device)
         path = run_resimulate(run, out, context=JobContext(device, _ProgressBar()))
-        emit(as_json, str(path), **run_fields(path))
+        emit_run(as_json, path)
 
 
 def interact(
@@ -91,7 +91,7 @@ def interact(
         check_device(device)
         context = JobContext(device, _ProgressBar())
         path = run_interact(run, out, params, frames=params.frames, from_frame=params.from_frame, context=context)
-        emit(as_json, str(path), **run_fields(path))
+        emit_run(as_json, path)
 
 
 class _ProgressBar:

@@ -15,7 +15,7 @@ from fluidcore.names import check_name
 from fluidcore.spec.jobs import ReconstructParams
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES
-from fluidnexus.reporting import UserError, check_device, emit, run_fields, user_errors
+from fluidnexus.reporting import UserError, check_device, emit, emit_run, user_errors
 from fluidnexus.cli.generative import ModelsDir
 from fluidnexus.cli.options import spec_option
 
@@ -116,7 +116,7 @@ def reconstruct(
             source=params.source, background_frames=params.background_frames, simulation=params,  # a ReconstructParams is its SimulationConfig
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
-        emit(as_json, str(path), **run_fields(path))
+        emit_run(as_json, path)
 
 
 def render(

@@ -85,6 +85,10 @@ def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
     geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
     assert geometry["box"] == {"min": [0.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
     assert geometry["source"] == {"center": [0.5, -0.8, 0.0], "radius": 0.1, "depth": None, "job_id": given}
+    # its health report: a source 0.1 of a 1-wide box is fine; no frames fitted yet, so no fit check
+    checks = {check["name"]: check for check in geometry["health"]["checks"]}
+    assert checks["source size"]["level"] == "ok" and checks["source size"]["value"] == pytest.approx(0.2)
+    assert "input fit" not in checks and geometry["health"]["warnings"] == []
 
     # a later one that estimated it from one view: how the depth was found, and the range the view allows
     estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=((0.5, -0.8, 1.0), (0.5, -0.8, -1.0)),

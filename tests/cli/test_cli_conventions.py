@@ -43,7 +43,10 @@ def test_json_on_every_run_command(scene: Path, tmp_path: Path) -> None:
     run = tmp_path / "rec"
     report = _json(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_00={scene / 'videos' / 'view_00.mp4'}",
                     "--frames", "0:2", "--out", str(run), "--threads", "1"])
+    health = report.pop("health")
     assert report == {"run": str(run), "kind": "reconstruct", "frames": [0, 1], "parent": None, "settings": {}}
+    assert {check["name"] for check in health["checks"]} >= {"input fit", "source size"}
+    assert all(isinstance(message, str) for message in health["warnings"] + health["notes"])
     predicted = _json(["predict", str(run), "--frames", "2", "--out", str(tmp_path / "pred")])
     assert predicted["kind"] == "predict" and predicted["frames"] == [2, 3]
     assert Path(predicted["parent"]).resolve() == run.resolve()

@@ -173,3 +173,21 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
     losses.scroll_into_view_if_needed()
     page.screenshot(path=screens / "results-loss-plot.png", full_page=True)
     page.close()
+
+
+def test_the_health_report_says_what_to_do_when_the_fit_is_poor(  # type: ignore[no-untyped-def]
+    static_web: str, browser, sqlite_service: Service, scene_dir: dict, tmp_path: Path, screens: Path,
+) -> None:
+    """The run's input view is fitted at 20-24 dB (LOSSES): below the 30 dB healthy runs reach, so
+    the page warns and names the remedies (fluidcore.health)."""
+    api = sqlite_service
+    auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
+    page = open_results(browser, static_web, api, auth, job_id, 700)
+    warning = page.locator("#results-health li.warning")
+    sync_api.expect(warning).to_have_count(1)
+    sync_api.expect(warning).to_contain_text("Warning (this reconstruction): the reconstruction fits its own input view at only 22.2 dB")
+    sync_api.expect(warning).to_contain_text("--background-frames")
+    box = warning.bounding_box()
+    assert box is not None and box["x"] + box["width"] <= 700
+    page.screenshot(path=screens / "results-health-700.png", full_page=True)
+    page.close()

@@ -376,8 +376,25 @@ async function factualFor(job) {
   return twin || null;
 }
 
+/** The health report of the reconstruction this job stands on (GET /v1/scenes/{id}: geometry.health,
+ * fluidcore.health): warnings first, then notes; nothing before the scene has a reconstruction. */
+async function showHealth(job) {
+  const list = $("results-health");
+  list.replaceChildren();
+  if (!job.scene_id) return;
+  const geometry = (await api(`/v1/scenes/${job.scene_id}`)).geometry;
+  if (!geometry.health) return;
+  const item = (text, kind) => Object.assign(document.createElement("li"), { textContent: text, className: kind });
+  const of = geometry.source.job_id === job.id ? "this reconstruction" : `reconstruction ${geometry.source.job_id}`;
+  list.replaceChildren(
+    ...geometry.health.warnings.map((w) => item(`Warning (${of}): ${w}`, "warning")),
+    ...geometry.health.notes.map((n) => item(`Note (${of}): ${n}`, "note")),
+  );
+}
+
 export async function showResults(jobId) {
   $("results-error").textContent = "";
+  $("results-health").replaceChildren();
   $("results-title").textContent = "Results";
   $("results-summary").textContent = "Loading…";
   $("players").replaceChildren();
@@ -401,6 +418,7 @@ export async function showResults(jobId) {
     $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual, footage).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
     downloads(jobId, own.items, videos.items);
+    showHealth(job).catch(() => {}); // the results stand without it
     startSync();
   } catch (error) {
     $("results-error").textContent = `Could not load the results: ${error.message}`;

@@ -1,0 +1,127 @@
+"""How far to trust a reconstruction: checks read off its run record, each with what to do (issue 34).
+
+Derived from the manifest on every read (`report`), never stored apart from it, so a run written
+before a check existed gets it too, and the CLI (`reconstruct`, `scene info`), the API
+(`GET /v1/scenes/{id}` geometry) and the browser say the same thing. Torch-free.
+
+A *warning* says the result is likely poor and what to give next; a *note* says what one view or
+the identification could not tell, which the user may want to pin. Each threshold below gives
+the values the dev scenes (D, F, H: independent-solver plumes) and ScalarFlow (real) showed at
+preview quality, seed 0, none of which may warn, and the FluidNexus-Smoke clip's (a steady stem
+before a textured cloth, `cameras single --fov 40`; docs/background_results.json), which should.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any, Literal
+
+if TYPE_CHECKING:
+    from fluidcore.runs import RunRecord
+
+# Mean input-view PSNR over the frames: D 35.3, F 38.0, H 40.7, ScalarFlow 35.4; FluidNexus-Smoke 26.5.
+MIN_INPUT_FIT_DB = 30.0
+# Source diameter over the box's narrower horizontal side: D 0.14, ScalarFlow 0.08;
+# FluidNexus-Smoke 0.76 with the stem in its background.
+MAX_SOURCE_SHARE = 0.3
+# The identification's silhouette misfit (1 - IoU plus the rise error): D 0.37, ScalarFlow 0.32;
+# FluidNexus-Smoke 0.69 to 0.78.
+MAX_MISFIT = 0.5
+# Fraction of an input view whose background was filled because the smoke never left it: 0 on the
+# dev scenes and ScalarFlow (flat backgrounds); 4.8% on FluidNexus-Smoke.
+COVERED_NOTE = 0.005
+
+Level = Literal["ok", "note", "warning"]
+
+
+@dataclass(frozen=True)
+class Check:
+    name: str
+    level: Level
+    message: str
+    value: float | None = None
+
+
+def report(run: RunRecord) -> dict[str, Any] | None:
+    """{"warnings": [...], "notes": [...], "checks": [...]} of a reconstruction's run record; None
+    for a run of another kind (a continuation inherits its reconstruction's)."""
+    from fluidcore.runs import RunKind
+
+    if run.kind is not RunKind.RECONSTRUCT:
+        return None
+    checks = [check for check in (_fit(run), _source_size(run), _identification(run), _buoyancy_bound(run),
+                                  *_backgrounds(run), _depth(run)) if check is not None]
+    return {
+        "warnings": [c.message for c in checks if c.level == "warning"],
+        "notes": [c.message for c in checks if c.level == "note"],
+        "checks": [asdict(c) for c in checks],
+    }
+
+
+def _fit(run: RunRecord) -> Check | None:
+    values = [entry.get("losses", {}).get("input_psnr") for entry in run.manifest.get("frames", [])]
+    values = [float(v) for v in values if v is not None and math.isfinite(v)]
+    if not values:
+        return None
+    mean = sum(values) / len(values)
+    if mean >= MIN_INPUT_FIT_DB:
+        return Check("input fit", "ok", f"the input view is fitted at {mean:.1f} dB", mean)
+    return Check("input fit", "warning",
+                 f"the reconstruction fits its own input view at only {mean:.1f} dB (healthy runs: {MIN_INPUT_FIT_DB:g}+): "
+                 "check the source (a hint: --source), the background (a plate: --background-frames), or add a view", mean)
+
+
+def _source_size(run: RunRecord) -> Check:
+    scene = run.scene
+    lo, hi, up = scene.box_lo, scene.box_hi, scene.up
+    widths = [h - l for h, l, u in zip(hi, lo, up, strict=True) if abs(u) < 0.5]  # the sides across up
+    share = 2.0 * scene.source.radius / min(widths or [max(h - l for h, l in zip(hi, lo, strict=True))])
+    if share <= MAX_SOURCE_SHARE:
+        return Check("source size", "ok", f"the source is {share:.2f} of the box's width", share)
+    return Check("source size", "warning",
+                 f"the smoke source is {share:.2f} of the box's width across: smoke that never leaves the view (a steady "
+                 "stem) or specks of background read as smoke widen it; give the source (--source X,Y,Z,R) or a "
+                 "background plate (--background-frames)", share)
+
+
+def _identification(run: RunRecord) -> Check | None:
+    identified = run.settings.physics.identified
+    if identified is None:
+        return None
+    if identified.misfit <= MAX_MISFIT:
+        return Check("identification", "ok", f"the identified plume matches the video's silhouettes (misfit {identified.misfit:.2f})",
+                     identified.misfit)
+    return Check("identification", "warning",
+                 f"the identified physics matches the video's smoke poorly (misfit {identified.misfit:.2f}, healthy runs "
+                 f"below {MAX_MISFIT:g}): predictions and what-ifs inherit it; give the source (--source X,Y,Z,R) or a "
+                 "background plate (--background-frames)", identified.misfit)
+
+
+def _buoyancy_bound(run: RunRecord) -> Check | None:
+    identified = run.settings.physics.identified
+    if identified is None or not math.isclose(identified.buoyancy, identified.floor, rel_tol=1e-6):
+        return None
+    return Check("buoyancy bound", "note",
+                 f"the identified buoyancy ({identified.buoyancy:.3g}) sits on its floor, set from the observed rise speed "
+                 f"({identified.rise_speed:.3g}/s) and the drag: the video's rise, not the fit, decided it", identified.buoyancy)
+
+
+def _backgrounds(run: RunRecord) -> list[Check]:
+    return [
+        Check("background", "note",
+              f"the smoke never left {100 * record.covered:.1f}% of view {view}: its background there was filled from "
+              "around it; if the smoke there is steady, give a background plate (--background-frames)", record.covered)
+        for view, record in run.settings.backgrounds.items() if record.covered > COVERED_NOTE
+    ]
+
+
+def _depth(run: RunRecord) -> Check | None:
+    estimate = run.settings.source_estimate
+    if estimate is None or estimate.depth_range is None:
+        return None
+    near, far = estimate.depth_range
+    stretch = math.dist(near, far)
+    return Check("depth", "note",
+                 f"one view: the source's depth comes from the {estimate.depth_cue} cue, anywhere on a {stretch:.3g}-unit "
+                 "stretch of its ray; pin it with --source or add a second view", stretch)

@@ -1,0 +1,77 @@
+"""The health report of a reconstruction (fluidcore.health): each warning fires on a run that
+earns it and stays silent on a healthy one; notes say what one view or the identification could
+not tell; every reader (scene info, the API's geometry, the CLI) gets the same report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from fluidcore import health, scene_info
+from fluidcore.cameras import Camera, look_at
+from fluidcore.runs import (BackgroundRecord, IdentificationPrior, IdentifiedRecord, PhysicsRecord, ReconstructSettings, Run,
+                            RunRecord, SourceEstimateRecord)
+from fluidcore.spec.physics import PBFConfig, Source
+from fluidcore.spec.reconstruct import get
+from fluidcore.spec.scene import Scene, SourcePlace
+
+BOX = ((-0.25, 0.0, -0.25), (0.25, 0.8, 0.25))  # 0.5 wide across up (+y)
+
+
+def _identified(misfit: float, buoyancy: float, floor: float) -> IdentifiedRecord:
+    prior = IdentificationPrior(preset="scalarflow", buoyancy=1.0, drag=1.0, rho0=1.0, held_from_prior=("drag",),
+                                inflow_speed="buoyancy / drag", budget=30, source=SourcePlace((0.0, 0.05, 0.0), 0.03))
+    return IdentifiedRecord(buoyancy=buoyancy, inflow_speed=0.2, rate=10, age=0, misfit=misfit, rise_speed=0.2, floor=floor,
+                            evaluations=10, source_center=(0.0, 0.05, 0.0), source_radius=0.03, prior=prior)
+
+
+def _run(tmp_path: Path, *, psnr: float = 35.0, radius: float = 0.03, misfit: float = 0.3, buoyancy: float = 1.0,
+         floor: float = 0.5, covered: float = 0.0, depth_range=None) -> RunRecord:  # noqa: ANN001
+    like = Camera("like", 60.0, 60.0, 24.0, 32.0, 48, 64, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+    camera = look_at((0.0, 0.4, 1.6), (0.0, 0.4, 0.0), (0.0, 1.0, 0.0), like, "view_02")
+    estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=depth_range)
+    settings = ReconstructSettings(
+        quality=get("preview"), physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor)),
+        source_estimate=estimate, backgrounds={"view_02": BackgroundRecord(textured=covered > 0, covered=covered)},
+    )
+    run = Run.create(tmp_path / f"run{len(list(tmp_path.iterdir()))}", kind="reconstruct", cameras={"view_02": camera},
+                     input_views=["view_02"], frame_range=(0, 2), fps=30.0, channels=1, background_color=[0.0],
+                     settings=settings,
+                     scene=Scene(BOX[0], BOX[1], (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.0, 0.05, 0.0), radius, 1)))
+    frames = [{"t": t, "losses": {"input_psnr": psnr}} for t in (0, 1)]
+    return RunRecord({**run.manifest, "frames": frames})
+
+
+def test_a_healthy_run_warns_of_nothing(tmp_path: Path) -> None:
+    report = health.report(_run(tmp_path))
+    assert report["warnings"] == [] and report["notes"] == []
+    assert {c["name"] for c in report["checks"]} == {"input fit", "source size", "identification"}
+
+
+@pytest.mark.parametrize(
+    ("fields", "check", "words"),
+    [
+        ({"psnr": 26.1}, "input fit", "fits its own input view at only 26.1 dB"),
+        ({"radius": 0.1}, "source size", "0.40 of the box's width"),  # a 0.2-wide source in a 0.5-wide box
+        ({"misfit": 0.79}, "identification", "misfit 0.79"),
+    ],
+)
+def test_each_warning_fires_and_says_what_to_do(tmp_path: Path, fields: dict, check: str, words: str) -> None:
+    report = health.report(_run(tmp_path, **fields))
+    (warning,) = report["warnings"]
+    assert words in warning and ("--source" in warning or "--background-frames" in warning)
+    assert [c["name"] for c in report["checks"] if c["level"] == "warning"] == [check]
+
+
+def test_notes_say_what_was_not_fitted(tmp_path: Path) -> None:
+    report = health.report(_run(tmp_path, buoyancy=0.5, floor=0.5, covered=0.05,
+                                depth_range=((0.0, 0.05, 0.25), (0.0, 0.05, -0.25))))
+    assert report["warnings"] == []
+    notes = " | ".join(report["notes"])
+    assert "sits on its floor" in notes and "never left 5.0% of view view_02" in notes and "0.5-unit stretch" in notes
+
+
+def test_scene_info_carries_the_same_report(tmp_path: Path) -> None:
+    run = _run(tmp_path, psnr=20.0)
+    assert scene_info.from_run(run)["health"] == health.report(run)
