@@ -131,11 +131,14 @@ def validate_scene(
     folder: Path, cameras_file: str, video_sizes: dict[str, int], settings: Settings
 ) -> ValidatedScene:
     """Check the spooled cameras file and videos in `folder`; raise UploadRejected naming the problem."""
-    from fluidcore.cameras import CameraError, load
-    from fluidcore.video import VideoError, read_header, verify
+    from fluidcore.cameras import CameraError, declared_fps, load
+    from fluidcore.cameras.world_up import declared_up
+    from fluidcore.video import VideoError, common_rate, read_header, verify
 
     try:
         cameras = load(folder / cameras_file)
+        declared_up(folder / cameras_file)  # the file's own `up` and `fps`, checked here, read by the job
+        declared_fps(folder / cameras_file)
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
     _check_file_paths(cameras)
@@ -164,16 +167,16 @@ def validate_scene(
             info.n_frames, info.codec,
         )
 
-    rates = {v.fps for v in videos.values()}
-    if max(rates) - min(rates) > 1e-3 * max(rates):
-        listing = ", ".join(f"{v.filename}: {v.fps:g}" for v in videos.values())
-        raise UploadRejected(f"video: all videos must have the same frame rate ({listing})")
+    try:
+        fps = common_rate({v.filename: v.fps for v in videos.values()})
+    except VideoError as exc:
+        raise UploadRejected(f"video: {exc}") from None
     return ValidatedScene(
         cameras_path=folder / cameras_file,
         camera_names=sorted(cameras),
         videos=videos,
         n_frames=min(v.n_frames for v in videos.values()),
-        fps=max(rates),
+        fps=fps,
     )
 
 

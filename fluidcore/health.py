@@ -51,7 +51,7 @@ def report(run: RunRecord) -> dict[str, Any] | None:
     if run.kind is not RunKind.RECONSTRUCT:
         return None
     checks = [check for check in (_fit(run), _source_size(run), _identification(run), _buoyancy_bound(run),
-                                  *_backgrounds(run), _depth(run)) if check is not None]
+                                  *_backgrounds(run), _depth(run), _frame_rate(run), _up(run)) if check is not None]
     return {
         "warnings": [c.message for c in checks if c.level == "warning"],
         "notes": [c.message for c in checks if c.level == "note"],
@@ -125,3 +125,30 @@ def _depth(run: RunRecord) -> Check | None:
     return Check("depth", "note",
                  f"one view: the source's depth comes from the {estimate.depth_cue} cue, anywhere on a {stretch:.3g}-unit "
                  "stretch of its ray; pin it with --source or add a second view", stretch)
+
+
+def _frame_rate(run: RunRecord) -> Check | None:
+    from fluidcore.video import rate_mismatch
+
+    capture = run.settings.capture
+    if capture is None or capture.declared_fps is None:
+        return None
+    mismatch = rate_mismatch(run.fps, capture.declared_fps)
+    if mismatch is None:
+        return Check("frame rate", "ok", f"the videos play at {run.fps:g} fps, as the camera file says", run.fps)
+    return Check("frame rate", "warning", mismatch, run.fps)
+
+
+def _up(run: RunRecord) -> Check | None:
+    """A note when up is a guess: the cameras agreed on no axis, or on one other than the +y most
+    files use (a +z-up Blender world reads right from its cameras; a note says so)."""
+    capture = run.settings.capture
+    if capture is None:
+        return None
+    axis, found = capture.up_axis, capture.up_found
+    if found in ("given", "camera file") or (found == "cameras" and axis == "+y"):
+        return Check("world up", "ok", f"up is {axis} ({'as given' if found == 'given' else 'from the ' + found})")
+    why = ("the cameras agree on no up direction, so +y was assumed" if found == "default"
+           else f"up was read as {axis} from the cameras' mean image up")
+    return Check("world up", "note", f"{why}: the smoke rises along it and the floor faces it; if that is wrong, give "
+                 "--world-up (or world_up in the reconstruct job, or `up` in the camera file)")

@@ -83,7 +83,7 @@ from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.spec.controls import BallParams, WindParams
 from fluidcore.spec.reconstruct import ReconstructConfig, VisualSettings, quality_fields
-from fluidcore.spec.scene import Scene, SceneError, SourcePlace
+from fluidcore.spec.scene import Scene, SceneError, SourcePlace, UpAxis, UpFound
 from fluidcore.spec.source_hint import SourceHint
 
 FORMAT = "fluidnexus-run"
@@ -145,6 +145,17 @@ class BackgroundRecord(BaseModel):
     plate_frames: tuple[int, int] | None = None  # [start, end) of the plate; None: estimated from the clip
     textured: bool  # an image was kept (False: one colour everywhere)
     covered: float = 0.0  # fraction of the view's pixels the smoke never left (filled from around them)
+
+
+class CaptureRecord(BaseModel):
+    """What a reconstruction read off the capture beyond its frames: which way the world's up
+    points and how that was found (`fluidcore.cameras.world_up`), and the frame rate the camera
+    file states, if any, beside the videos' own (the manifest's `fps`, which the run uses)."""
+
+    model_config = _RECORD
+    up_axis: UpAxis  # the scene's `up` as an axis name
+    up_found: UpFound
+    declared_fps: float | None = None  # the camera file's `fps`; None: it states none
 
 
 class IdentificationPrior(BaseModel):
@@ -222,6 +233,7 @@ class ReconstructSettings(BaseModel):
     source_estimate: SourceEstimateRecord | None = None  # None: the user gave the whole source, or an older run
     views: tuple[ViewRecord, ...] = ()
     backgrounds: dict[str, BackgroundRecord] = {}  # input camera -> how its background was found; {}: an older run
+    capture: CaptureRecord | None = None  # None: an older run, or a refinement (its parent's scene)
 
 
 class AppearanceProfile(BaseModel):

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from fluidcore.cameras import Camera, CameraError, capture_box, load
+from fluidcore.cameras.world_up import world_up
 
 if TYPE_CHECKING:
     from fluidcore.runs import RunRecord
@@ -52,7 +53,7 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
         box = capture_box(path, cameras)
     except CameraError:
         box = None
-    return describe(cameras, box)
+    return describe(cameras, box, up=world_up(path, cameras).vector)
 
 
 def from_run(run: RunRecord) -> dict[str, Any]:

@@ -237,6 +237,32 @@ def _count_packets(container: av.container.InputContainer, stream: av.VideoStrea
         raise VideoError(f"{path.name}: corrupt or truncated video ({_reason(error)})") from None
 
 
+RATE_TOLERANCE = 0.01  # relative: 29.97 and 30 fps are one rate, 24 and 25 are not
+
+
+def common_rate(rates: dict[str, float]) -> float:
+    """The one frame rate of a scene's videos (file name -> fps): videos of one moment in time
+    share it, or the physics' seconds would differ from view to view (VideoError listing them)."""
+    if not rates:
+        raise VideoError("no videos")
+    high, low = max(rates.values()), min(rates.values())
+    if high - low > RATE_TOLERANCE * high:
+        listing = ", ".join(f"{name}: {fps:g}" for name, fps in rates.items())
+        raise VideoError(f"all videos must have the same frame rate ({listing})")
+    return high
+
+
+def rate_mismatch(video_fps: float, declared_fps: float | None) -> str | None:
+    """What to tell the user when the camera file states another frame rate than the videos play
+    at; None when it states none or the same. The videos' rate is what the run uses: it is how
+    their frames are spaced in time, whatever the file says."""
+    if declared_fps is None or abs(video_fps - declared_fps) <= RATE_TOLERANCE * max(video_fps, declared_fps):
+        return None
+    return (f"the videos play at {video_fps:g} fps but the camera file says {declared_fps:g} fps: the videos' rate is "
+            "used, so the smoke's speeds are per second of the video as encoded; if the clip was slowed down or sped "
+            "up when it was encoded, re-encode it at its real rate")
+
+
 def read_frames(
     path: str | Path,
     start: int = 0,

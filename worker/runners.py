@@ -109,6 +109,7 @@ def reconstruct(inputs: RunInputs) -> None:
         frames=params.frames,
         source=params.source,
         background_frames=params.background_frames,
+        world_up=params.world_up,
         simulation=params,  # a ReconstructParams is its SimulationConfig
         context=inputs.context,
     )

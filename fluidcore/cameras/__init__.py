@@ -18,7 +18,7 @@ from pathlib import Path
 from fluidcore.cameras.boxes import Box, box_center, capture_box, check_box_visible, frusta_box, scene_box
 from fluidcore.cameras.camera import Camera, CameraError, check_ranges, check_rigid, look_at, orbit, render_size, rotate_about_axis
 from fluidcore.cameras.colmap import find_model_dir, load_colmap_dir, load_colmap_zip
-from fluidcore.cameras.json_formats import is_camera_json, load_json_cameras, read_json, to_transforms, write_transforms
+from fluidcore.cameras.json_formats import declared_fps, is_camera_json, load_json_cameras, read_json, to_transforms, write_transforms
 from fluidcore.cameras.undistort import undistort_frames
 
 ZIP_MAGIC = b"PK\x03\x04"
@@ -87,6 +87,7 @@ __all__ = [
     "capture_box",
     "check_box_visible",
     "check_ranges",
+    "declared_fps",
     "check_rigid",
     "check_video_size",
     "frusta_box",

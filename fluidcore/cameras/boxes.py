@@ -28,7 +28,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fluidcore.cameras.camera import Camera, CameraError
-from fluidcore.cameras.json_formats import read_json
+from fluidcore.cameras.json_formats import top_level_fields
 
 Box = tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) float64, world coordinates
 
@@ -37,9 +37,9 @@ def scene_box(path: str | Path) -> Box | None:
     """The world-space box a camera JSON file declares (`scene_box`, or `voxel_scale` +
     `voxel_matrix`), or None when the file declares none (or is not JSON, e.g. a COLMAP model)."""
     path = Path(path)
-    if path.is_dir() or _is_zip(path):
+    data = top_level_fields(path)
+    if data is None:
         return None
-    data = read_json(path)
     if data.get("scene_box") is not None:
         return bounds_box(data["scene_box"], f"{path.name}: scene_box")
     if data.get("voxel_matrix") is None and data.get("voxel_scale") is None:
@@ -52,11 +52,6 @@ def capture_box(path: str | Path, cameras: Sequence[Camera] | dict[str, Camera])
     cameras' shared view (`frusta_box`, which raises CameraError when they share none)."""
     box = scene_box(path)
     return box if box is not None else frusta_box(cameras)
-
-
-def _is_zip(path: Path) -> bool:
-    with path.open("rb") as handle:
-        return handle.read(4) == b"PK\x03\x04"
 
 
 def bounds_box(value: Any, source: str) -> Box:

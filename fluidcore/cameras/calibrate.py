@@ -29,6 +29,7 @@ from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
 from fluidcore.cameras.colmap import cameras_from_reconstruction
 from fluidcore.cameras.json_formats import write_transforms
 from fluidcore.cameras.single import box_json
+from fluidcore.cameras.world_up import DEFAULT_UP
 from fluidcore.names import safe_join
 
 BACKGROUND_FRAMES = 15  # frames per video in the median
@@ -133,5 +134,5 @@ def write_rig(
         name: replace(camera, file_path=os.path.relpath(Path(videos[name]).resolve(), out.resolve().parent))
         for name, camera in cameras.items()
     }
-    return write_transforms(out, cameras, scene_box=box_json(frusta_box(cameras)))
+    return write_transforms(out, cameras, scene_box=box_json(frusta_box(cameras)), up=DEFAULT_UP)  # normalised +y up
 

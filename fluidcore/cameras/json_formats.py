@@ -52,6 +52,29 @@ def read_json(path: Path) -> dict[str, Any]:
     return data
 
 
+def top_level_fields(path: Path) -> dict[str, Any] | None:
+    """The top-level object of a camera JSON file (its box, up, fps, ...); None for a COLMAP model
+    (a folder or a zip), which has no such fields."""
+    if path.is_dir():
+        return None
+    with path.open("rb") as handle:
+        if handle.read(4) == b"PK\x03\x04":
+            return None
+    return read_json(path)
+
+
+def declared_fps(path: Path) -> float | None:
+    """The frame rate a camera JSON file states (`fps`, as nerfstudio's and FluidNexus's files may);
+    None when it states none. Only checked against the videos' own rate (`fluidcore.video.rate_mismatch`)."""
+    fields = top_level_fields(path)
+    value = None if fields is None else fields.get("fps")
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (math.isfinite(value) and value > 0):
+        raise CameraError(f"{path.name}: fps must be a positive number, got {value!r}")
+    return float(value)
+
+
 def is_camera_json(data: dict[str, Any]) -> bool:
     """True when the object has camera entries in either layout."""
     return isinstance(data.get("frames"), list) or any(isinstance(data.get(k), list) for k in PINF_VIDEO_LISTS)

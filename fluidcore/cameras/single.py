@@ -20,6 +20,7 @@ import numpy as np
 from fluidcore.cameras.boxes import Box
 from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
 from fluidcore.cameras.json_formats import write_transforms
+from fluidcore.cameras.world_up import DEFAULT_UP
 
 # Image direction (du, dv) in which world up points, for each --up choice.
 IMAGE_UP = {"up": (0.0, -1.0), "down": (0.0, 1.0), "left": (-1.0, 0.0), "right": (1.0, 0.0)}
@@ -78,7 +79,8 @@ def write_single_camera(
                          f"limit of {cap} pixels ({error})") from None
     file_path = os.path.relpath(video.resolve(), out.resolve().parent)
     camera, box = single_camera(name or video.stem, info.width, info.height, fov_deg, distance, up, file_path)
-    return write_transforms(out, {camera.name: camera}, scene_box=box_json(box))
+    # up stated: a camera rolled sideways (`up` left or right) would otherwise read as another world up
+    return write_transforms(out, {camera.name: camera}, scene_box=box_json(box), up=DEFAULT_UP, fps=info.fps)
 
 
 def box_json(box: Box) -> dict[str, list[float]]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -13,7 +14,7 @@ from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
 from fluidcore.physics.state import ParticleState
 from fluidcore.physics.step import BACKENDS, advance, use_fused
-from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Sphere
+from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
 
 
 @dataclass(frozen=True)
@@ -129,9 +130,15 @@ class Simulator:
     def _seed(self, state: ParticleState) -> int:
         if self.source is None or self.source.rate == 0:
             return 0
-        positions, velocities = seeding.emit(self.source, state.step, self.device)
+        positions, velocities = seeding.emit(self.source, state.step, self.device, self._up())
         state.add(positions, velocities)
         return self.source.rate
+
+    def _up(self) -> Vec3:
+        """The scene's up: against gravity, +y where there is none."""
+        g = self.config.gravity
+        norm = math.sqrt(sum(c * c for c in g))
+        return (0.0, 1.0, 0.0) if norm == 0.0 else (-g[0] / norm, -g[1] / norm, -g[2] / norm)
 
     def _inside(self, positions: torch.Tensor) -> torch.Tensor:
         lo, hi = positions.new_tensor(self.box.lo), positions.new_tensor(self.box.hi)

@@ -45,6 +45,7 @@ def run_reconstruct(
     frames: tuple[int, int] | None = None,
     source: SourceHint | None = None,
     background_frames: tuple[int, int] | None = None,
+    world_up: str | None = None,
     physics: str = DEFAULT_PHYSICS,
     simulation: SimulationConfig | None = None,
     progress_bar: bool = False,
@@ -59,7 +60,10 @@ def run_reconstruct(
     "fluidnexus"; fluidcore.reconstruct.identify). `source`: where the user knows the smoke's
     source to be (otherwise estimated; one view leaves its depth to a guess). `background_frames`:
     frames of the same videos that show no smoke, the background plate (otherwise the background
-    is estimated from the smoke's frames). Returns the run folder. `progress_bar` draws a
+    is estimated from the smoke's frames). `world_up`: the axis up points along ("+z"); otherwise
+    read from the camera file or the cameras (`fluidcore.cameras.world_up`). The videos' frame rate
+    is the run's; one the camera file states differently is recorded, and the health report warns.
+    Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
     With one input view, the generative priors (`generative`, default: the weights of
     `fluidcore.weights.weights_dir()`) replace the symmetry pseudo-views when their weights
@@ -69,7 +73,9 @@ def run_reconstruct(
     from fluidcore import video
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.reconstruct.loop import Plate
+    from fluidcore.cameras.world_up import world_up as world_up_of
     from fluidcore.reconstruct.pipeline import Footage, reconstruct
+    from fluidcore.runs import CaptureRecord
 
     preset = quality if isinstance(quality, ReconstructConfig) else get(quality)
     if simulation is not None:
@@ -92,13 +98,18 @@ def run_reconstruct(
     if background_frames is not None:
         plate_range = _frame_range(infos, background_frames, "background_frames")
         plate = Plate(plate_range, _decoded(cameras, videos, plate_range, preset.fit.long_side))
-    fps = infos[next(iter(videos))].fps
+    try:
+        fps = video.common_rate({Path(videos[name]).name: info.fps for name, info in infos.items()})
+        up = world_up_of(cameras_path, cameras, world_up)
+        capture = CaptureRecord(up_axis=up.axis, up_found=up.found, declared_fps=camera_io.declared_fps(cameras_path))
+    except (video.VideoError, camera_io.CameraError) as exc:
+        raise JobInputError(str(exc)) from None
     pinholes = {name: camera.pinhole() for name, camera in cameras.items()}
     context.progress(0.0, "prepare")
     # handed over, not kept: the pipeline lets the decoded frames go once they are its targets
     return reconstruct(
         Footage(pinholes, _decoded(cameras, videos, frame_range, preset.fit.long_side), frame_range, fps,
-                camera_io.capture_box(cameras_path, pinholes), source=source, plate=plate),
+                camera_io.capture_box(cameras_path, pinholes), up=up.vector, source=source, plate=plate, capture=capture),
         preset, out_dir, physics=physics, generative=generative or GenerativeSettings(), context=context,
         progress_bar=progress_bar,
     )

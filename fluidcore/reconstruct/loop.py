@@ -53,7 +53,7 @@ from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
 from fluidcore.render import Gaussians, render
-from fluidcore.runs import BackgroundRecord, PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
+from fluidcore.runs import BackgroundRecord, CaptureRecord, PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import MIN_FIT_SIDE, ReconstructConfig
 from fluidcore.spec.scene import Air, Scene, SourcePlace
@@ -111,6 +111,7 @@ class Reconstruction:
     source_hint: SourceHint | None = None  # the source `prepare` was given (by the user, or a refinement's parent), if any
     source_estimate: SourceEstimateRecord | None = None  # how the source was found from the videos, if it was
     flow: FlowField | None = None  # optical flow of the first input view (None when its loss weight is 0)
+    capture: CaptureRecord | None = None  # how up was found and the camera file's fps (the job's `Footage`)
 
     @property
     def fit_scene(self) -> Scene:
@@ -129,6 +130,7 @@ class Reconstruction:
             source_hint=self.source_hint,
             source_estimate=self.source_estimate,
             backgrounds=self.backgrounds,
+            capture=self.capture,
             views=tuple({"camera": v.camera.name, "kind": v.kind, "weight": v.weight} for v in self.views),
         )
 

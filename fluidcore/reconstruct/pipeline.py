@@ -24,7 +24,7 @@ from fluidcore.jobs import BatchProgress, Cancelled, JobContext
 from fluidcore.reconstruct.loop import InputViews, Plate, Reconstruction, Reconstructor, prepare, read_inputs
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, generated_targets
-from fluidcore.runs import FrameState, Run
+from fluidcore.runs import CaptureRecord, FrameState, Run
 from fluidcore.scene_info import WORLD_UP
 from fluidcore.spec.reconstruct import ReconstructConfig
 from fluidcore.spec.scene import SourcePlace
@@ -47,6 +47,7 @@ class Footage:
     up: Sequence[float] = WORLD_UP
     source: SourceHint | SourcePlace | None = None  # where the source is known to be; None: estimated
     plate: Plate | None = None  # frames without smoke; None: the background is estimated from the videos
+    capture: CaptureRecord | None = None  # how up was found, the camera file's fps; None: a refinement's
 
 
 def prepared(footage: Footage, quality: ReconstructConfig, *, physics: str = DEFAULT_PHYSICS,
@@ -98,9 +99,10 @@ def reconstruct(
 
 def _prepare(footage: Footage, inputs: InputViews, quality: ReconstructConfig, physics: str, extra_views: Sequence[ViewTarget],
              pseudo_views: bool, device: str | torch.device) -> Reconstruction:
-    return prepare(footage.cameras, inputs, fps=footage.fps, quality=quality, box=footage.box, up=footage.up,
-                   source=footage.source, physics=physics, extra_views=extra_views, pseudo_views=pseudo_views,
-                   device=device)
+    rec = prepare(footage.cameras, inputs, fps=footage.fps, quality=quality, box=footage.box, up=footage.up,
+                  source=footage.source, physics=physics, extra_views=extra_views, pseudo_views=pseudo_views,
+                  device=device)
+    return replace(rec, capture=footage.capture)
 
 
 @dataclass(frozen=True)

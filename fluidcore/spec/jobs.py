@@ -18,6 +18,7 @@ from fluidcore.names import check_name
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.spec.controls import FromFrame, Intervention
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS
+from fluidcore.spec.scene import UpAxis
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES, SimulationConfig
 
 _STRICT = ConfigDict(extra="forbid")
@@ -39,7 +40,9 @@ class ReconstructParams(SimulationConfig):
     `source`: where the smoke comes from, when known (world units; checked against the scene
     box): one view cannot tell the source's depth, and the whole plume inherits the guess.
     `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
-    by default (`SimulationConfig`, whose docstring gives the measurements)."""
+    by default (`SimulationConfig`, whose docstring gives the measurements). `world_up`: the axis
+    the world's up points along ("+z" for Blender's files); read from the camera file's `up` or the
+    cameras' mean image up when omitted (`fluidcore.cameras.world_up`)."""
 
     model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY
@@ -47,6 +50,7 @@ class ReconstructParams(SimulationConfig):
     frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
     source: SourceHint | None = None
     background_frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
+    world_up: UpAxis | None = None
 
     @model_validator(mode="after")
     def _ordered(self) -> ReconstructParams:

@@ -15,11 +15,22 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from typing import Any, Literal
 
 from fluidcore.errors import InputError
 from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Vec3, vec3
 from fluidcore.spec.simulation import AIR_CELLS
+
+
+# The scene box is axis-aligned, so up is one of its six axis directions (fluidcore.cameras.world_up
+# finds which; a run records how: `UpFound`).
+UP_AXES: dict[str, Vec3] = {
+    "+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0),
+    "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
+    "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0),
+}
+UpAxis = Literal["+x", "-x", "+y", "-y", "+z", "-z"]
+UpFound = Literal["given", "camera file", "cameras", "default"]
 
 
 class SceneError(InputError):

@@ -84,6 +84,10 @@ def reconstruct(
         help="START:END (end exclusive): frames of the same videos without smoke, the background plate. Give it when the "
         "smoke never leaves part of the view (a steady stem): estimated from the smoke's frames otherwise.",
     ),
+    world_up: str | None = typer.Option(
+        None, "--world-up", help="+x|-x|+y|-y|+z|-z: the axis the world's up points along (+z in Blender's files); default: "
+        "the camera file's `up`, else the cameras' mean image up, else +y.",
+    ),
     air_cells: int = spec_option(ReconstructParams, "air_cells", "--air-cells"),
     air_vorticity: float = spec_option(ReconstructParams, "air_vorticity", "--air-vorticity"),
     entrainment: bool = spec_option(ReconstructParams, "entrainment", "--entrainment"),
@@ -108,12 +112,13 @@ def reconstruct(
             ReconstructParams, quality=quality, physics=physics, frames=parse_frames(frames),
             source=None if source is None else parse_source(source), air_cells=air_cells, air_vorticity=air_vorticity,
             entrainment=entrainment, background_frames=parse_frames(background_frames, "--background-frames"),
+            world_up=world_up,
         )
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=params.quality, physics=params.physics, frames=params.frames,
-            source=params.source, background_frames=params.background_frames, simulation=params,  # a ReconstructParams is its SimulationConfig
+            source=params.source, background_frames=params.background_frames, world_up=params.world_up, simulation=params,  # a ReconstructParams is its SimulationConfig
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit_run(as_json, path)

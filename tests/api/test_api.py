@@ -183,7 +183,8 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     job = created.json()
     assert job["state"] == "queued" and job["progress"] == 0.0
     assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None,
-                             "air_cells": 0, "air_vorticity": 0.0, "entrainment": False, "background_frames": None}
+                             "air_cells": 0, "air_vorticity": 0.0, "entrainment": False, "background_frames": None,
+                             "world_up": None}
     assert service.queue.sent == [(job["id"], "reconstruct")]
     fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
     assert fetched["id"] == job["id"] and fetched["timings"]["started_at"] is None

@@ -228,3 +228,34 @@ def test_common_mistakes_get_messages_that_say_what_to_do(service: Service, scen
     both = service.client.post("/v1/scenes", files=upload_parts(scene_dir), data={"fov": "50"}, headers=alice)
     assert both.status_code == 422 and "give a cameras file or fov, not both" in both.json()["detail"]
     assert stored(service) == (0, 0, [])
+
+
+def test_the_worlds_up_is_an_axis_in_the_camera_file_and_the_job(service: Service, scene_dir: dict[str, Path]) -> None:
+    """A camera file's `up` and fps are checked at upload (422, nothing stored); a stated +z is the
+    scene's up before any reconstruction; the reconstruct job's `world_up` takes an axis only."""
+    alice = service.key("alice")
+    cams = (camera_entry("cam0", 32, 24, 0.0), camera_entry("cam1", 32, 24, 0.5))
+    for extra, words in (({"up": "sky"}, "up: 'sky' is not an axis"), ({"up": [0, 1, 1]}, "degrees off the nearest axis"),
+                         ({"fps": -5}, "fps must be a positive number")):
+        body = json.dumps({"frames": list(cams), **extra}).encode()
+        response = upload_cameras(service, alice, scene_dir, body)
+        assert response.status_code == 422 and words in response.json()["detail"], response.text
+    assert stored(service) == (0, 0, [])
+    response = upload_cameras(service, alice, scene_dir, json.dumps({"frames": list(cams), "up": "+z"}).encode())
+    assert response.status_code == 201, response.text
+    scene_id = response.json()["id"]
+    assert service.client.get(f"/v1/scenes/{scene_id}", headers=alice).json()["geometry"]["up"] == [0.0, 0.0, 1.0]
+    body = {"type": "reconstruct", "scene_id": scene_id, "params": {"world_up": "up"}}
+    response = service.client.post("/v1/jobs", json=body, headers=alice)
+    assert response.status_code == 422 and "world_up" in response.text, response.text
+    body["params"]["world_up"] = "-z"
+    response = service.client.post("/v1/jobs", json=body, headers=alice)
+    assert response.status_code == 202 and response.json()["params"]["world_up"] == "-z"
+
+
+def test_videos_at_different_frame_rates_are_422(service: Service, scene_dir: dict[str, Path], tmp_path: Path) -> None:
+    parts = upload_parts({**scene_dir, "cam1": write_video(tmp_path / "cam1.mp4", fps=25.0)})
+    response = service.client.post("/v1/scenes", files=parts, headers=service.key("alice"))
+    assert response.status_code == 422, response.text
+    assert "all videos must have the same frame rate (cam0.mp4: 30, cam1.mp4: 25)" in response.json()["detail"]
+    assert stored(service) == (0, 0, [])

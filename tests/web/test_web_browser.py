@@ -195,6 +195,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     air.fill("8")
     page.get_by_label("Let the plume spread").check()
+    page.get_by_label("World up").select_option("+y")  # the synth's, said outright
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     page.get_by_label("Scene name").fill("plume")
     page.screenshot(path=screens / "upload.png", full_page=True)
@@ -205,7 +206,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05} and sent["physics"] == "auto"
-    assert (sent["air_cells"], sent["entrainment"]) == (8, True)
+    assert (sent["air_cells"], sent["entrainment"], sent["world_up"]) == (8, True, "+y")
     sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
     sync_api.expect(row(page, "reconstruct").locator(".job-origin")).to_contain_text("scene plume")

@@ -207,6 +207,7 @@ function reconstructParams() {
   if (source) params.source = source;
   const plate = parseFrameSpan($("background-frames").value).value;
   if (plate) params.background_frames = plate;
+  if ($("world-up").value) params.world_up = $("world-up").value;
   const start = Number($("frame-start").value || 0), end = $("frame-end").value;
   if (end) params.frames = [start, Number(end)];
   else if (start > 0) params.frames = [start, Math.min(...state.videos.map((v) => v.frames || Infinity))];
@@ -220,6 +221,7 @@ function reset() {
   $("scene-name").value = "";
   $("source").value = "";
   $("background-frames").value = "";
+  $("world-up").value = "";
   $("upload-progress").hidden = true;
   $("upload-error").textContent = "";
   render();

@@ -31,7 +31,7 @@ from fluidcore.physics import coupling, forces, fused
 from fluidcore.physics import step as step_module
 from fluidcore.physics.neighbours import cell_table, neighbours_torch
 from fluidcore.physics.solver import residual, solve_torch
-from fluidcore.physics.source import emit
+from fluidcore.physics.source import emit, from_y
 
 needs_fused = pytest.mark.skipif(not fused.available(), reason="fused PBF kernel cannot be built here")
 CFG = PRESETS["scalarflow"]
@@ -293,6 +293,21 @@ def test_source_is_deterministic_and_seeds_inside_its_ball() -> None:
     assert torch.equal(a, b) and not torch.equal(a, c)
     assert not torch.equal(a[:50], a[50:100])  # each step seeds new positions
     assert float((a - torch.tensor([0.1, 0.2, 0.3])).norm(dim=1).max()) <= 0.04 + 1e-6
+
+
+def test_source_seeds_a_turned_world_the_same_particles_turned() -> None:
+    """A world turned so that up is +z (y -> z, z -> -y) gets the +y world's draw, turned; -y and
+    a tilted up are rotations too (the draw stays inside the ball)."""
+    turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    plain = emit(Source((0.0, 0.0, 0.0), 0.05, 40, seed=3), 2, "cpu")[0]
+    turned = emit(Source((0.0, 0.0, 0.0), 0.05, 40, seed=3), 2, "cpu", up=(0.0, 0.0, 1.0))[0]
+    torch.testing.assert_close(turned, plain @ turn.T, atol=1e-6, rtol=0)
+    for up in ((0.0, -1.0, 0.0), (0.3, 0.8, -0.2), (-1.0, 0.0, 0.0)):
+        rotation = from_y(up)
+        torch.testing.assert_close(rotation @ rotation.T, torch.eye(3), atol=1e-6, rtol=0)
+        unit = torch.tensor(up) / torch.linalg.vector_norm(torch.tensor(up))
+        torch.testing.assert_close(rotation @ torch.tensor([0.0, 1.0, 0.0]), unit, atol=1e-6, rtol=0)
+        assert float(torch.linalg.det(rotation)) == pytest.approx(1.0, abs=1e-6)
 
 
 def test_simulator_seeds_the_same_particles_on_every_run() -> None:

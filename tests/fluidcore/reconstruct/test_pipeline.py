@@ -66,3 +66,28 @@ def test_bad_requests_are_refused_before_any_work(scene, tmp_path):
     with pytest.raises(jobs.JobInputError, match="START:END"):
         jobs.parse_frames("5")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("fps", [24.0, 60.0])
+def test_the_videos_frame_rate_is_the_runs_and_a_camera_file_that_disagrees_is_reported(scene, tmp_path, fps):
+    """The synth's camera file says 30 fps; its view re-encoded at 24 or 60 is read at that rate,
+    the run records both, and its health report warns."""
+    from fluidcore.health import report
+
+    frames = video.read_frames(scene / "videos" / "view_01.mp4", 0, 3)
+    clip = video.write_mp4(tmp_path / "view_01.mp4", frames, fps=fps)
+    run = Run.open(reconstruct_job.run_reconstruct(scene / "transforms.json", {"view_01": clip}, tmp_path / "run", quality=QUICK))
+    assert run.fps == pytest.approx(fps, rel=1e-3) and run.settings.capture.declared_fps == 30.0
+    assert run.settings.capture.up_axis == "+y" and run.settings.capture.up_found == "cameras"
+    checks = {check["name"]: check for check in report(run)["checks"]}
+    assert checks["frame rate"]["level"] == "warning"
+    assert f"play at {fps:g} fps but the camera file says 30 fps" in checks["frame rate"]["message"]
+    assert checks["world up"]["level"] == "ok"
+
+
+def test_videos_of_one_scene_share_a_frame_rate(scene, tmp_path):
+    frames = video.read_frames(scene / "videos" / "view_01.mp4", 0, 3)
+    videos = {"view_00": scene / "videos" / "view_00.mp4", "view_01": video.write_mp4(tmp_path / "view_01.mp4", frames, fps=25.0)}
+    with pytest.raises(jobs.JobInputError, match=r"same frame rate \(view_00.mp4: 30, view_01.mp4: 25\)"):
+        reconstruct_job.run_reconstruct(scene / "transforms.json", videos, tmp_path / "run", quality=QUICK)
+    assert not (tmp_path / "run").exists()
