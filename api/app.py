@@ -19,7 +19,7 @@ from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodySizeLimit
 from api.routers import artifacts, health, jobs, limits, particles, scenes, videos, webhooks, wind
-from api.uploads import Validators
+from api.uploads import OwnerUploads, Validators
 from service.chaining import release_stranded
 from service.database import make_engine, make_sessionmaker, migrate
 from service.queue import CeleryQueue, JobQueue, reap_stale
@@ -63,10 +63,12 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
     app.state.validators = Validators(settings.max_concurrent_uploads)
+    app.state.owner_uploads = OwnerUploads(settings.max_uploads_per_owner)
 
     app.add_middleware(BodySizeLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes)
     app.add_middleware(
-        AdmissionLimit, requests=settings.max_concurrent_requests, uploads=settings.max_concurrent_uploads
+        AdmissionLimit, requests=settings.max_concurrent_requests, uploads=settings.max_concurrent_uploads,
+        upload_wait=settings.upload_wait_seconds,
     )
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)

@@ -14,7 +14,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api.auth import owner_for_key
-from api.uploads import Validators
+from api.uploads import OwnerUploads, Validators
 from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import Storage
@@ -47,6 +47,10 @@ def get_queue(request: Request) -> JobQueue:
 
 def get_validators(request: Request) -> Validators:
     return request.app.state.validators
+
+
+def get_owner_uploads(request: Request) -> OwnerUploads:
+    return request.app.state.owner_uploads
 
 
 def unauthorized() -> HTTPException:
@@ -90,5 +94,6 @@ StorageDep = Annotated[Storage, Depends(get_storage)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ValidatorsDep = Annotated[Validators, Depends(get_validators)]
+OwnerUploadsDep = Annotated[OwnerUploads, Depends(get_owner_uploads)]
 OwnerDep = Annotated[str, Depends(current_owner)]
 OptionalOwnerDep = Annotated[str | None, Depends(optional_owner)]

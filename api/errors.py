@@ -36,7 +36,7 @@ from starlette.routing import Match
 from fluidcore.errors import InputError, internal_error
 from service.errors import Conflict, NotFound, OverLimit
 from service.storage import StorageError
-from api.uploads import UploadRejected
+from api.uploads import ClientGone, UploadRejected
 
 log = logging.getLogger(__name__)
 
@@ -184,6 +184,12 @@ async def over_limit(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=429, headers=headers)
 
 
+async def client_gone(request: Request, exc: Exception) -> JSONResponse:
+    """The client left before its upload was stored (nginx's 499): nobody reads this answer, the
+    point is that nothing was stored."""
+    return JSONResponse({"detail": "the client closed the connection; nothing was stored"}, status_code=499)
+
+
 async def storage_unavailable(request: Request, exc: Exception) -> JSONResponse:
     """Object storage down or full: the request may succeed later, nothing was half-written."""
     return JSONResponse({"detail": f"storage unavailable: {exc}"}, status_code=503, headers={"Retry-After": "1"})
@@ -197,6 +203,7 @@ async def database_busy(request: Request, exc: Exception) -> JSONResponse:
 HANDLERS: dict[type[Exception], Callable[[Request, Exception], Coroutine[Any, Any, JSONResponse]]] = {
     RequestValidationError: validation_failed,
     UploadRejected: upload_rejected,
+    ClientGone: client_gone,
     StorageError: storage_unavailable,
     PoolTimeout: database_busy,
     InputError: input_rejected,

@@ -20,6 +20,8 @@ from fastapi import HTTPException, status
 from fastapi.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from api.uploads import UPLOAD_RETRY_AFTER_S
+
 HEALTH_PATHS = frozenset({"/healthz", "/readyz"})
 UPLOAD_ROUTE = ("POST", "/v1/scenes")
 
@@ -31,11 +33,14 @@ def is_upload(scope: Scope) -> bool:
 @dataclass
 class AdmissionLimit:
     """At most `requests` requests (`uploads` of them scene uploads, counted apart so slow uploads
-    cannot starve polling) inside `app` at once."""
+    cannot starve polling) inside `app` at once. An upload waits at most `upload_wait` seconds
+    for its place, then gets a 503 with `Retry-After`: a client that would have timed out learns
+    when to come back, and no upload is checked for a client that has long given up (issue 36)."""
 
     app: ASGIApp
     requests: int
     uploads: int
+    upload_wait: float = 5.0
 
     def __post_init__(self) -> None:
         self._requests = asyncio.Semaphore(self.requests)
@@ -45,8 +50,21 @@ class AdmissionLimit:
         if scope["type"] != "http" or scope.get("path") in HEALTH_PATHS:
             await self.app(scope, receive, send)
             return
-        async with self._uploads if is_upload(scope) else self._requests:
+        if not is_upload(scope):
+            async with self._requests:
+                await self.app(scope, receive, send)
+            return
+        try:
+            await asyncio.wait_for(self._uploads.acquire(), self.upload_wait)
+        except TimeoutError:
+            busy = JSONResponse({"detail": f"busy: {self.uploads} uploads are being checked; send it again shortly"},
+                                status_code=503, headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)})
+            await busy(scope, receive, send)
+            return
+        try:
             await self.app(scope, receive, send)
+        finally:
+            self._uploads.release()
 
 
 @dataclass

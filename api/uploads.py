@@ -16,7 +16,10 @@ import multiprocessing
 import os
 import threading
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any, BinaryIO
@@ -30,6 +33,44 @@ if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api
     from fluidcore.video import VideoHeader, VideoInfo
 
 NICE = 10  # the validation processes' niceness: polling first (measured in `Validators`)
+
+
+UPLOAD_RETRY_AFTER_S = 5  # an upload's check takes about a second on the dev scene's view; a few later, a slot is free
+GONE_POLL_S = 0.25  # how often a check in progress asks whether its client is still there
+
+
+class ClientGone(Exception):
+    """The client closed the connection before its upload was stored: nothing is stored (its
+    check, if it had started, finishes in its process and is thrown away)."""
+
+
+class OwnerUploads:
+    """At most `limit` uploads of one owner inside the upload route at once, in this API process;
+    one more is a 429 with `Retry-After` before its files are checked. A key whose uploads time
+    out and are sent again cannot fill every checker (issue 36: 20 clients of one key timed out
+    on 120 of 124 uploads, each still checked and stored)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self._counts: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def enter(self, owner: str) -> Iterator[None]:
+        from service.errors import OverLimit
+
+        with self._lock:
+            if self._counts.get(owner, 0) >= self.limit:
+                raise OverLimit(f"uploads: {self.limit} of your uploads are being checked already; send the next one when "
+                                "one of them is answered", retry_after=UPLOAD_RETRY_AFTER_S)
+            self._counts[owner] = self._counts.get(owner, 0) + 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._counts[owner] -= 1
+                if not self._counts[owner]:
+                    del self._counts[owner]
 
 
 class UploadRejected(ValueError):
@@ -241,11 +282,21 @@ class Validators:
         video_sizes: dict[str, int],
         single: tuple[float, float, str] | None,
         settings: Settings,
+        gone: Callable[[], bool] = lambda: False,
     ) -> tuple[ValidatedScene, dict[str, Any]]:
-        """`check_upload` in one of the processes; its UploadRejected is raised here."""
+        """`check_upload` in one of the processes; its UploadRejected is raised here. `gone()` is
+        asked while the check runs: once the client has left, ClientGone (a check still waiting
+        for a process is cancelled)."""
         pool = self._current()
         try:
-            return pool.submit(check_upload, folder, cameras_file, video_sizes, single, settings).result()
+            future = pool.submit(check_upload, folder, cameras_file, video_sizes, single, settings)
+            while True:
+                try:
+                    return future.result(timeout=GONE_POLL_S)
+                except FutureTimeout:
+                    if gone():
+                        future.cancel()
+                        raise ClientGone() from None
         except BrokenProcessPool:
             with self._lock:
                 if self._pool is pool:

@@ -1,7 +1,7 @@
 """Load on a live `fluidnexus serve` over loopback: pollers, listers and uploads at once (issue 16).
 
     python bench/load.py [--backend sqlite|postgres] [--seconds 60] [--clients 200] [--uploads 20]
-                         [--scene dev|tiny] [--computing] [--json]
+                         [--scene phone|dev|tiny] [--computing] [--json]
 
 Starts `fluidnexus serve --no-worker` on 127.0.0.1 with a fresh data folder (`--backend
 postgres`: a fresh database on the local PostgreSQL and a key prefix of its own on the local
@@ -15,7 +15,8 @@ Redis, both removed afterwards), creates a key, a scene and one job, then for `-
   - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own;
   - with `--computing`, serve's embedded worker reconstructs the job meanwhile (issue 20).
 Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
-answers by class (2xx/4xx/5xx), timeouts and connection errors. Everything is bounded: the
+answers by class (2xx/4xx/5xx), timeouts and connection errors; and for the uploads, how many were
+answered, refused, abandoned by their client, and stored although their client had left. Everything is bounded: the
 clients stop at the deadline, the server is stopped after, and nothing but 127.0.0.1 is
 contacted. The server's threads are not limited: it gets what the machine has (2 cores here,
 shared with this client).
@@ -153,6 +154,27 @@ def dev_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
             DEV_VIEW: (path.name, path.read_bytes(), "video/mp4")}
 
 
+def phone_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
+    """What a user films: one portrait 1080x1920 phone clip, 2 s at 30 fps, a soft plume over a
+    fixed sensor pattern with a little fresh noise per frame (2.6 MB, the size of issue 36's
+    clip), and its one-camera transforms.json."""
+    import numpy as np
+
+    from fluidcore.video import write_mp4
+
+    height, width, frames = 1920, 1080, 60
+    yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+    rng = np.random.default_rng(0)
+    pattern = rng.normal(0.0, 4.0, (height, width)).astype(np.float32)
+    video = np.empty((frames, height, width, 3), np.uint8)
+    for t in range(frames):
+        plume = np.exp(-((xx - 540 - 80 * np.sin(yy / 160 + t / 10)) ** 2 / 60000 + (yy - 1600 + 16 * t) ** 2 / 64000)) * 180
+        video[t] = np.clip(40 + plume + pattern + rng.normal(0.0, 1.5, (height, width)), 0, 255).astype(np.uint8)[..., None]
+    path = write_mp4(folder / "phone.mp4", video)
+    return {"cameras": ("transforms.json", camera_json("phone", width, height), "application/json"),
+            "phone": (path.name, path.read_bytes(), "video/mp4")}
+
+
 def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     """A synthetic plume (fluidcore.synth) that reconstructs: the job `--computing` keeps the worker
     busy with (30 frames of 2 views at 48x64 outlast a 60 s load on 2 cores)."""
@@ -163,6 +185,9 @@ def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     for path in sorted((transforms.parent / "videos").glob("*.mp4")):
         parts[path.stem] = (path.name, path.read_bytes(), "video/mp4")
     return parts
+
+
+SCENES = {"phone": phone_scene, "dev": dev_scene, "tiny": tiny_scene}
 
 
 def multipart(scene: dict[str, tuple[str, bytes, str]]) -> list[tuple[str, tuple[str, bytes, str]]]:
@@ -178,9 +203,10 @@ def free_port() -> int:
 @contextmanager
 def backend_env(backend: str, data_dir: Path) -> Iterator[dict[str, str]]:
     """FLUIDNEXUS_* variables for the backend; PostgreSQL database and Redis keys removed afterwards."""
-    # Its clients stand for many users under one key: one owner's limits (service.quotas) would
-    # refuse its uploads after 200 scenes and measure those instead.
-    env = {"FLUIDNEXUS_DATA_DIR": str(data_dir), "FLUIDNEXUS_MAX_SCENES_PER_OWNER": str(10**9)}
+    # Its clients stand for many users under one key: one owner's limits (service.quotas, the
+    # uploads one owner may have checked at once) would refuse its uploads and measure those instead.
+    env = {"FLUIDNEXUS_DATA_DIR": str(data_dir), "FLUIDNEXUS_MAX_SCENES_PER_OWNER": str(10**9),
+           "FLUIDNEXUS_MAX_UPLOADS_PER_OWNER": str(10**6)}
     if backend == "sqlite":
         yield env
         return
@@ -233,7 +259,7 @@ def live_server(
         process = subprocess.Popen(serve, env=env, stdout=out, stderr=subprocess.STDOUT)
         try:
             _wait_healthy(base_url, process)
-            parts = dev_scene(Path(tmp)) if scene == "dev" else tiny_scene(Path(tmp))
+            parts = SCENES[scene](Path(tmp))
             headers = {"Authorization": f"Bearer {key}"}
             with httpx.Client(base_url=base_url, headers=headers, timeout=30) as client:
                 created = client.post("/v1/scenes", files=multipart(plume_scene(Path(tmp)) if worker else parts))
@@ -409,6 +435,32 @@ def _only_the_worker_missing(response: Any) -> bool:
     return checks.get("worker", "ok") != "ok" and all(v == "ok" for k, v in checks.items() if k != "worker")
 
 
+SETTLE_S = 60.0  # how long the uploads a client gave up on may take to finish (or not) after the load
+
+
+def _uploads_after(server: Server, uploads: dict[str, Any] | None) -> dict[str, int]:
+    """What became of the uploads: answered (2xx), refused (4xx: a limit; 5xx: busy), abandoned
+    (the client timed out), and how many scenes were stored for clients that had given up, counted
+    once the server's scene count stops changing (the first scene is live_server's own)."""
+    import httpx
+
+    answered = 0 if uploads is None else uploads["2xx"]
+    counts: list[int] = []
+    deadline = time.monotonic() + SETTLE_S
+    with httpx.Client(base_url=server.base_url, headers={"Authorization": f"Bearer {server.key}"}, timeout=30) as client:
+        while time.monotonic() < deadline and not (len(counts) >= 3 and len(set(counts[-3:])) == 1):  # 6 s unchanged
+            counts.append(client.get("/v1/scenes", params={"limit": 1}).json()["total"])
+            time.sleep(2.0)
+    previous = counts[-1] if counts else 1
+    return {
+        "answered": answered,
+        "refused_4xx": 0 if uploads is None else uploads["4xx"],
+        "busy_5xx": 0 if uploads is None else uploads["5xx"],
+        "abandoned": 0 if uploads is None else uploads["timeout"] + uploads["error"],
+        "stored_after_abandon": max(0, previous - 1 - answered),
+    }
+
+
 def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
     """The load phase against a `live_server`; returns the JSON result, with the job's state at the end
     (with `--computing`, "running" shows the worker computed through the whole load)."""
@@ -416,6 +468,7 @@ def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout
 
     result = asyncio.run(_load(server, seconds, clients, uploads, timeout))
     result["load_average"] = os.getloadavg()
+    result["uploads_after"] = _uploads_after(server, result["routes"].get("POST /v1/scenes"))
     result["cpus"] = os.cpu_count()
     job = httpx.get(f"{server.base_url}/v1/jobs/{server.job_id}", headers={"Authorization": f"Bearer {server.key}"},
                     timeout=30).json()
@@ -429,7 +482,9 @@ def command(
     clients: int = typer.Option(200, "--clients", min=2, max=1000, help="Concurrent pollers + listers."),
     uploads: int = typer.Option(20, "--uploads", min=0, max=200, help="Concurrent uploaders."),
     timeout: float = typer.Option(10.0, "--timeout", min=0.1, help="Per-request timeout, seconds."),
-    scene: str = typer.Option("dev", "--scene", help="dev (the dev scene's 150-frame view) | tiny (6-frame 32x24 clips)."),
+    scene: str = typer.Option(
+        "phone", "--scene", help="phone (a 2.6 MB 1080x1920 clip) | dev (the dev scene's 150-frame view) | tiny (6-frame 32x24 clips)."
+    ),
     server_log: Path | None = typer.Option(None, "--server-log", help="Keep the server's log here."),
     json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     computing: bool = typer.Option(
@@ -439,8 +494,8 @@ def command(
     with user_errors():
         if backend not in ("sqlite", "postgres"):
             raise UserError(f"--backend must be sqlite or postgres, got {backend!r}")
-        if scene not in ("dev", "tiny"):
-            raise UserError(f"--scene must be dev or tiny, got {scene!r}")
+        if scene not in SCENES:
+            raise UserError(f"--scene must be one of {', '.join(SCENES)}, got {scene!r}")
         with live_server(backend, server_log, worker=computing, scene=scene) as server:
             result = run_load(server, seconds, clients, uploads, timeout)
     if json_out:
@@ -456,6 +511,9 @@ def command(
               f"{r['2xx']:6d} {r['4xx']:5d} {r['5xx']:5d} {r['timeout']:4d} {r['error']:4d}")
     print(f"5xx {result['total_5xx']}, timeouts {result['total_timeouts']}, connection errors {result['total_errors']}, "
           f"slowest health answer {result['health_max_s']:.3f} s")
+    after = result["uploads_after"]
+    print(f"uploads: {after['answered']} answered, {after['refused_4xx']} refused (4xx), {after['busy_5xx']} busy (5xx), "
+          f"{after['abandoned']} abandoned by their client, {after['stored_after_abandon']} stored after their client left")
 
 
 if __name__ == "__main__":

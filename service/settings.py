@@ -71,6 +71,12 @@ class Settings(BaseSettings):
         default=8, gt=0, description="API requests inside the app at once; more wait, holding nothing"
     )
     max_concurrent_uploads: int = Field(default=4, gt=0, description="scene uploads inside the app at once")
+    upload_wait_seconds: float = Field(
+        default=5.0, gt=0, description="how long an upload waits for one of those places; then a 503 with Retry-After"
+    )
+    max_uploads_per_owner: int = Field(
+        default=2, gt=0, description="one owner's uploads being checked at once (per API process); one more is a 429"
+    )
     max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")
     max_cameras_bytes: int = Field(default=4 * 1024**2, gt=0, description="the uploaded cameras file")
     max_cameras: int = Field(default=64, gt=0, description="cameras in one cameras file")

@@ -10,17 +10,20 @@ from pathlib import Path
 from typing import Annotated
 from urllib.parse import quote
 
+import anyio
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
-from api.deps import OptionalOwnerDep, OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep
+from api.deps import (
+    OptionalOwnerDep, OwnerDep, OwnerUploadsDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep,
+)
 from api.downloads import STREAMED, download_links, signed_in, stream
 from api.errors import error_responses, strict_json
 from api.idempotency import replay
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo, SceneVideoLink, SceneVideoLinks
-from api.uploads import ValidatedScene, safe_filename, spool, store_scene
+from api.uploads import ClientGone, ValidatedScene, safe_filename, spool, store_scene
 from fluidcore.names import check_name, safe_join
 from fluidcore.spec.jobs import ReconstructParams
 from service import quotas, scenes
@@ -53,6 +56,8 @@ def create_scene(
     settings: SettingsDep,
     queue: QueueDep,
     validators: ValidatorsDep,
+    owner_uploads: OwnerUploadsDep,
+    request: Request,
     response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
     cameras: Annotated[
@@ -91,7 +96,7 @@ def create_scene(
         raise HTTPException(422, "cameras: give a cameras file or fov, not both: fov makes the cameras file of a "
                                  "video without calibration")
     params = None if reconstruct is None else parse_reconstruct(reconstruct)
-    with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
+    with owner_uploads.enter(owner), tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)
         cameras_name = None
         if cameras is not None:
@@ -113,9 +118,11 @@ def create_scene(
         if params is not None:
             quotas.check_new_job(session, owner, settings)
         single = None if fov is None else (fov, distance, up)
-        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings)
+        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings, gone=lambda: client_gone(request))
         if params is not None:
             scenes.check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
+        if client_gone(request):  # the last moment nothing is stored yet
+            raise ClientGone()
 
         scene_id = new_id()
         keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
@@ -130,6 +137,12 @@ def create_scene(
             response.headers["Idempotent-Replayed"] = "true"
             return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
     return scene_out(scene, SceneGeometry.model_validate(geometry), job)
+
+
+def client_gone(request: Request) -> bool:
+    """Whether the client has closed the connection (asked from the route's worker thread): an
+    upload its client gave up on is not stored (issue 36: 136 such scenes, 415 MB, in a minute)."""
+    return anyio.from_thread.run(request.is_disconnected)
 
 
 def parse_reconstruct(text: str) -> ReconstructParams:

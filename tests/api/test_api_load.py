@@ -67,3 +67,5 @@ def test_a_short_burst_of_200_clients_gets_no_server_error(tmp_path: Path) -> No
     assert result["total_5xx"] == 0 and result["total_timeouts"] == 0 and result["total_errors"] == 0, routes
     assert sum(r["4xx"] for r in routes.values()) == 0, routes
     assert result["health_max_s"] < 1.0, routes
+    after = result["uploads_after"]  # every upload answered, none left behind for a client that had gone
+    assert after["answered"] == routes["POST /v1/scenes"]["2xx"] and after["abandoned"] == after["stored_after_abandon"] == 0
