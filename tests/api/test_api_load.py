@@ -69,3 +69,37 @@ def test_a_short_burst_of_200_clients_gets_no_server_error(tmp_path: Path) -> No
     assert result["health_max_s"] < 1.0, routes
     after = result["uploads_after"]  # every upload answered, none left behind for a client that had gone
     assert after["answered"] == routes["POST /v1/scenes"]["2xx"] and after["abandoned"] == after["stored_after_abandon"] == 0
+
+
+def test_uploads_whose_clients_leave_are_not_stored(tmp_path: Path) -> None:
+    """Against a live server: three uploads of the dev scene's view whose client closes the
+    connection 0.3 s after sending (while the upload is checked) leave no scene; one whose client
+    waits is answered 201 and stored."""
+    import socket
+    import uuid
+
+    import httpx
+
+    from bench.load import multipart_body, prepared
+
+    with live_server("sqlite", log=tmp_path / "server.log", scene="dev") as server:
+        port = int(server.base_url.rsplit(":", 1)[1])
+        auth = {"Authorization": f"Bearer {server.key}"}
+        boundary = uuid.uuid4().hex
+        request = prepared("POST", "/v1/scenes", {**auth, "Content-Type": f"multipart/form-data; boundary={boundary}"},
+                           multipart_body(server.scene, boundary))
+
+        def total() -> int:
+            return httpx.get(f"{server.base_url}/v1/scenes", headers=auth, timeout=30).json()["total"]
+
+        before = total()
+        for _ in range(3):
+            with socket.create_connection(("127.0.0.1", port)) as connection:
+                connection.sendall(request)
+                time.sleep(0.05)
+        time.sleep(8.0)  # long enough for each check to finish, were it still wanted
+        assert total() == before
+        with socket.create_connection(("127.0.0.1", port), timeout=30) as connection:
+            connection.sendall(request)
+            assert connection.recv(64).startswith(b"HTTP/1.1 201")
+        assert total() == before + 1
