@@ -73,7 +73,7 @@ def test_a_short_burst_of_200_clients_gets_no_server_error(tmp_path: Path) -> No
 
 def test_uploads_whose_clients_leave_are_not_stored(tmp_path: Path) -> None:
     """Against a live server: three uploads of the dev scene's view whose client closes the
-    connection 0.3 s after sending (while the upload is checked) leave no scene; one whose client
+    connection just after sending (before or while the upload is checked) leave no scene; one whose client
     waits is answered 201 and stored."""
     import socket
     import uuid
