@@ -51,7 +51,8 @@ def report(run: RunRecord) -> dict[str, Any] | None:
     if run.kind is not RunKind.RECONSTRUCT:
         return None
     checks = [check for check in (_fit(run), _source_size(run), _identification(run), _buoyancy_bound(run),
-                                  *_backgrounds(run), _depth(run), _frame_rate(run), _up(run)) if check is not None]
+                                  *_backgrounds(run), _depth(run), _frame_rate(run), _up(run), _spreading(run))
+              if check is not None]
     return {
         "warnings": [c.message for c in checks if c.level == "warning"],
         "notes": [c.message for c in checks if c.level == "note"],
@@ -152,3 +153,15 @@ def _up(run: RunRecord) -> Check | None:
            else f"up was read as {axis} from the cameras' mean image up")
     return Check("world up", "note", f"{why}: the smoke rises along it and the floor faces it; if that is wrong, give "
                  "--world-up (or world_up in the reconstruct job, or `up` in the camera file)")
+
+
+def _spreading(run: RunRecord) -> Check | None:
+    """A note when the plume's spreading was asked for and the video showed none: the run
+    simulates none, which the user would otherwise take for spreading applied."""
+    if not run.settings.quality.simulation.entrainment:
+        return None
+    rate = run.scene.physics.entrainment
+    if rate > 0:
+        return Check("spreading", "ok", f"the plume spreads by {rate:.2f} per unit risen, as the video showed", rate)
+    return Check("spreading", "note", "spreading (entrainment) was asked for, but the video showed none: the identification "
+                 "picked 0, so the predictions and what-ifs simulate none", 0.0)

@@ -10,7 +10,7 @@ import pytest
 
 from fluidcore import health, scene_info
 from fluidcore.cameras import Camera, look_at
-from fluidcore.runs import (BackgroundRecord, IdentificationPrior, IdentifiedRecord, PhysicsRecord, ReconstructSettings, Run,
+from fluidcore.runs import (BackgroundRecord, CaptureRecord, IdentificationPrior, IdentifiedRecord, PhysicsRecord, ReconstructSettings, Run,
                             RunRecord, SourceEstimateRecord)
 from fluidcore.spec.physics import PBFConfig, Source
 from fluidcore.spec.reconstruct import get
@@ -27,18 +27,20 @@ def _identified(misfit: float, buoyancy: float, floor: float) -> IdentifiedRecor
 
 
 def _run(tmp_path: Path, *, psnr: float = 35.0, radius: float = 0.03, misfit: float = 0.3, buoyancy: float = 1.0,
-         floor: float = 0.5, covered: float = 0.0, depth_range=None) -> RunRecord:  # noqa: ANN001
+         floor: float = 0.5, covered: float = 0.0, depth_range=None, capture: CaptureRecord | None = None,  # noqa: ANN001
+         spreading: tuple[bool, float] = (False, 0.0)) -> RunRecord:
     like = Camera("like", 60.0, 60.0, 24.0, 32.0, 48, 64, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     camera = look_at((0.0, 0.4, 1.6), (0.0, 0.4, 0.0), (0.0, 1.0, 0.0), like, "view_02")
     estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=depth_range)
+    quality = get("preview").with_overrides(entrainment=spreading[0])
     settings = ReconstructSettings(
-        quality=get("preview"), physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor)),
+        quality=quality, capture=capture, physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor)),
         source_estimate=estimate, backgrounds={"view_02": BackgroundRecord(textured=covered > 0, covered=covered)},
     )
     run = Run.create(tmp_path / f"run{len(list(tmp_path.iterdir()))}", kind="reconstruct", cameras={"view_02": camera},
                      input_views=["view_02"], frame_range=(0, 2), fps=30.0, channels=1, background_color=[0.0],
                      settings=settings,
-                     scene=Scene(BOX[0], BOX[1], (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.0, 0.05, 0.0), radius, 1)))
+                     scene=Scene(BOX[0], BOX[1], (0.0, 1.0, 0.0), PBFConfig(h=0.05, entrainment=spreading[1]), Source((0.0, 0.05, 0.0), radius, 1)))
     frames = [{"t": t, "losses": {"input_psnr": psnr}} for t in (0, 1)]
     return RunRecord({**run.manifest, "frames": frames})
 
@@ -75,3 +77,21 @@ def test_notes_say_what_was_not_fitted(tmp_path: Path) -> None:
 def test_scene_info_carries_the_same_report(tmp_path: Path) -> None:
     run = _run(tmp_path, psnr=20.0)
     assert scene_info.from_run(run)["health"] == health.report(run)
+
+
+def test_what_the_capture_and_the_simulation_left_unsaid_is_reported(tmp_path: Path) -> None:
+    """A camera file's fps the videos do not play at warns; an up read off the cameras other than
+    +y, or assumed, is a note; a spreading asked for and identified as 0 is a note, not silence."""
+    agreeing = health.report(_run(tmp_path, capture=CaptureRecord(up_axis="+y", up_found="cameras", declared_fps=30.0)))
+    assert agreeing["warnings"] == agreeing["notes"] == []
+    report = health.report(_run(tmp_path, capture=CaptureRecord(up_axis="+z", up_found="cameras", declared_fps=25.0),
+                                spreading=(True, 0.0)))
+    (warning,) = report["warnings"]
+    assert "play at 30 fps but the camera file says 25 fps" in warning
+    notes = " | ".join(report["notes"])
+    assert "up was read as +z from the cameras" in notes and "--world-up" in notes
+    assert "spreading (entrainment) was asked for, but the video showed none" in notes
+    assumed = health.report(_run(tmp_path, capture=CaptureRecord(up_axis="+y", up_found="default"), spreading=(True, 0.06)))
+    assert any("agree on no up direction, so +y was assumed" in n for n in assumed["notes"])
+    assert not any("spreading" in n for n in assumed["notes"])
+    assert {c["name"]: c["level"] for c in assumed["checks"]}["spreading"] == "ok"

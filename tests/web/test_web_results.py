@@ -183,6 +183,8 @@ def test_the_health_report_says_what_to_do_when_the_fit_is_poor(  # type: ignore
     api = sqlite_service
     auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
     page = open_results(browser, static_web, api, auth, job_id, 700)
+    # what the simulation used, said even when it is nothing
+    sync_api.expect(page.locator("#results-summary")).to_contain_text("air: still; no spreading")
     warning = page.locator("#results-health li.warning")
     sync_api.expect(warning).to_have_count(1)
     sync_api.expect(warning).to_contain_text("Warning (this reconstruction): the reconstruction fits its own input view at only 22.2 dB")

@@ -376,6 +376,19 @@ async function factualFor(job) {
   return twin || null;
 }
 
+/** What the run's simulation used (manifest.scene): still or simulated air, and the plume's
+ * spreading, said even when the identification found none (a spreading asked for but 0). */
+function simulated(manifest) {
+  const scene = manifest.scene;
+  if (!scene) return "";
+  const cells = (scene.air || {}).cells || 0;
+  const rate = (scene.physics || {}).entrainment || 0;
+  const asked = ((((manifest.settings || {}).quality || {}).simulation) || {}).entrainment;
+  const spreading = rate > 0 ? `spreading ${rate.toFixed(2)} per unit risen (from the video)`
+    : asked ? "spreading asked for, but the video showed none: not applied" : "no spreading";
+  return `; air: ${cells ? `simulated, ${cells} cells on the box's long side` : "still"}; ${spreading}`;
+}
+
 /** The health report of the reconstruction this job stands on (GET /v1/scenes/{id}: geometry.health,
  * fluidcore.health): warnings first, then notes; nothing before the scene has a reconstruction. */
 async function showHealth(job) {
@@ -410,6 +423,7 @@ export async function showResults(jobId) {
     $("results-title").textContent = `Results of ${describeJob(job)}`;
     const range = manifest.frame_range ? `frames ${manifest.frame_range[0]}–${manifest.frame_range[1] - 1}` : "";
     $("results-summary").textContent = `${job.state}; ${range}; input views ${(manifest.input_views || []).join(", ")}`
+      + simulated(manifest)
       + (job.type !== "interact" ? "."
         : job.params.from_frame != null ? `; branched at frame ${job.params.from_frame}: the factual | what-if player shows the run without the intervention.`
           : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
