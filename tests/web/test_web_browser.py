@@ -195,7 +195,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     air.fill("8")
     page.get_by_label("Let the plume spread").check()
-    page.get_by_label("World up").select_option("+y")  # the synth's, said outright
+    page.get_by_label("World up: the axis the smoke rises along").select_option("+y")  # the synth's, said outright
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     page.get_by_label("Scene name").fill("plume")
     page.screenshot(path=screens / "upload.png", full_page=True)
@@ -324,7 +324,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
 
 def camera_files(folder: Path) -> list[Path]:
     """A transforms.json with a voxel box, the same cameras as a PINF info.json with a rotated
-    box, and ScalarFlow's real transforms.json when ../shared is there."""
+    box, one of them with a scene_box, and ScalarFlow's real transforms.json when ../shared is there."""
     import json
 
     from tests.support.service import camera_entry
@@ -339,7 +339,10 @@ def camera_files(folder: Path) -> list[Path]:
         "voxel_matrix": [[0, 0, 1, 0.1], [0, 1, 0, -0.2], [-1, 0, 0, 0.3], [0, 0, 0, 1]],
     }
     (folder / "info.json").write_text(json.dumps(pinf))
-    files = [folder / "transforms.json", folder / "info.json"]
+    # what `fluidnexus cameras single` writes: FluidNexus's own scene_box (the browser said "no box in the file")
+    single = {"frames": frames[:1], "scene_box": {"min": [-0.18, -0.32, -0.18], "max": [0.18, 0.32, 0.18]}, "up": "+y"}
+    (folder / "single.json").write_text(json.dumps(single))
+    files = [folder / "transforms.json", folder / "info.json", folder / "single.json"]
     scalarflow = ROOT.parent / "shared" / "realdata" / "scalarflow" / "transforms.json"
     return files + [scalarflow] if scalarflow.is_file() else files
 
@@ -577,3 +580,64 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     assert {k: v for k, v in sent[0]["params"].items() if k != "source"} == {k: v for k, v in sent[1]["params"].items() if k != "source"}
     assert not errors, errors
     page.close()
+
+
+def test_a_clip_without_cameras_and_a_video_named_by_hand(  # type: ignore[no-untyped-def]
+    browser, scene: dict, screens: Path, tmp_path: Path,
+) -> None:
+    """One video and a field of view make a scene without a camera file (the server writes its one
+    camera, named after the video); a video whose name matches no camera is given one from the
+    menu beside it and is sent under that camera's name. A server of its own: the journey revokes
+    its key at the end."""
+    server = Server(tmp_path / "data")
+    try:
+        upload_by_hand(server, browser, scene, screens)
+    finally:
+        server.stop()
+
+
+def upload_by_hand(server: Server, browser, scene: dict, screens: Path) -> None:  # type: ignore[no-untyped-def]
+    import shutil
+
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    page.set_default_timeout(30_000)
+    page.goto(f"http://127.0.0.1:{server.port}/")
+    page.get_by_label("API key").fill(server.client.headers["Authorization"].removeprefix("Bearer "))
+    page.keyboard.press("Enter")
+    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page.get_by_role("button", name="Upload", exact=True).click()
+    page.get_by_label("Start the reconstruction after the upload").uncheck()
+
+    clip = shutil.copy(scene["videos"][0], Path(scene["cameras"]).parent.parent / "clip.mp4")
+    page.locator("#upload-files").set_input_files([clip])
+    problems = page.locator("#upload-problems")
+    sync_api.expect(problems).to_contain_text("Add a camera file (transforms.json, info.json or a zipped COLMAP model), or give one video's field of view.")
+    page.get_by_label("Horizontal field of view").fill("200")
+    sync_api.expect(problems).to_contain_text("Field of view: give degrees between 0 and 180")
+    page.get_by_label("Horizontal field of view").fill("40")
+    sync_api.expect(problems).to_be_empty()
+    sync_api.expect(page.locator("#camera-summary")).to_contain_text("one camera with a 40° field of view")
+    page.get_by_label("Scene name").fill("phone clip")
+    page.get_by_label("Scene name").press("Enter")
+    sync_api.expect(page.locator("#upload-percent")).to_contain_text("Scene phone clip stored: 2 frames at 30 fps", timeout=SERVER_MS)
+    assert named(server, "phone clip")["cameras"] == ["clip"]
+
+    # a camera file and a video named after none of its cameras: picked by hand, sent under the camera's name
+    page.get_by_role("button", name="Upload", exact=True).click()  # the upload went on to the jobs
+    page.get_by_label("Start the reconstruction after the upload").uncheck()
+    page.locator("#upload-files").set_input_files([scene["cameras"], clip])
+    sync_api.expect(problems).to_contain_text("clip.mp4 matches no camera; pick its camera beside it")
+    page.get_by_label("Camera of clip.mp4").select_option("view_00")
+    sync_api.expect(problems).to_be_empty()
+    sync_api.expect(page.locator("#video-list")).to_contain_text("→ camera view_00")
+    page.screenshot(path=screens / "upload-camera-picked.png", full_page=True)
+    page.get_by_label("Scene name").fill("picked")
+    page.get_by_label("Scene name").press("Enter")
+    sync_api.expect(page.locator("#upload-percent")).to_contain_text("Scene picked stored: 2 frames", timeout=SERVER_MS)
+    assert list(named(server, "picked")["videos"]) == ["view_00"]
+    page.close()
+
+
+def named(server: Server, name: str) -> dict:
+    """The newest scene of that name."""
+    return next(s for s in server.client.get("/v1/scenes", params={"limit": 100}).json()["items"] if s["name"] == name)

@@ -37,6 +37,15 @@ function entryCamera(data, entry, where) {
   };
 }
 
+/** The box a camera file declares, as fluidcore.cameras.scene_box reads it: FluidNexus's own
+ * `scene_box` ({min, max}, written by `fluidnexus cameras single|colmap`) first, else PINF's voxel
+ * box; null without either. */
+function declaredBox(data) {
+  const box = data.scene_box;
+  if (box && Array.isArray(box.min) && Array.isArray(box.max)) return { lo: box.min.map(Number), hi: box.max.map(Number) };
+  return voxelBox(data);
+}
+
 /** World bounds of PINF's voxel box (fluidcore.cameras.boxes.voxel_box), or null without one. */
 function voxelBox(data) {
   if (data.voxel_matrix == null || data.voxel_scale == null) return null;
@@ -77,7 +86,7 @@ export function parseCameraFile(name, bytes) {
     });
   }
   if (!cameras.size) throw new Error(`${name}: frames is empty (no cameras)`);
-  return { format: lists[0] === "frames" ? "nerfstudio transforms.json" : "PINF info.json", cameras: [...cameras.values()], box: voxelBox(data) };
+  return { format: lists[0] === "frames" ? "nerfstudio transforms.json" : "PINF info.json", cameras: [...cameras.values()], box: declaredBox(data) };
 }
 
 /** The camera a video belongs to (fluidcore's rule: file stem = camera name or its file_path's name), or null. */

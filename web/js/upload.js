@@ -61,7 +61,15 @@ async function addFiles(files) {
 /** Everything that would make the server refuse this upload and that the browser can already see. */
 function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   const problems = [];
-  if (!camerasFile) problems.push("Add a camera file (transforms.json, info.json or a zipped COLMAP model).");
+  const fov = fieldOfView();
+  if (fov.error) problems.push(fov.error);
+  if (!camerasFile && fov.value === undefined) {
+    problems.push("Add a camera file (transforms.json, info.json or a zipped COLMAP model), or give one video's field of view.");
+  }
+  if (camerasFile && fov.value !== undefined) problems.push("Give a camera file or a field of view, not both: clear the field of view.");
+  if (!camerasFile && fov.value !== undefined && videos.length > 1) {
+    problems.push(`A field of view makes the camera of one video; ${videos.length} videos need a camera file.`);
+  }
   if (cameraError) problems.push(`Camera file: ${cameraError}`);
   if (!videos.length) problems.push("Add at least one video, named after its camera.");
   const cameras = parsed && parsed.cameras;
@@ -82,9 +90,9 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   const known = cameras.map((c) => c.name).join(", ");
   const taken = new Map();
   for (const video of videos) {
-    const camera = matchCamera(video.file.name, cameras);
+    const camera = cameraOf(video, cameras);
     if (!camera) {
-      problems.push(`${video.file.name} matches no camera; name it after one of: ${known}.`);
+      problems.push(`${video.file.name} matches no camera; pick its camera beside it, or name it after one of: ${known}.`);
       continue;
     }
     if (taken.has(camera.name)) {
@@ -130,8 +138,12 @@ function render() {
       + `(${parsed.cameras.map((c) => c.name).join(", ")}); ${boxText}.`;
   } else {
     canvas.getContext("2d").clearRect(0, 0, canvas.width, canvas.height);
+    const fov = fieldOfView().value;
     summary.textContent = parsed ? `${state.camerasFile.name}: ${parsed.format}; the server reads it.`
-      : state.camerasFile ? `${state.camerasFile.name} could not be read.` : "No camera file yet.";
+      : state.camerasFile ? `${state.camerasFile.name} could not be read.`
+        : fov !== undefined ? `No camera file: the server makes one camera with a ${fov}° field of view, 1 unit from the `
+          + "scene's centre, and a box as wide and tall as the frame there (as `fluidnexus cameras single` does)."
+          : "No camera file yet.";
   }
   const list = $("video-list");
   list.replaceChildren(...state.videos.map(videoCard));
@@ -141,10 +153,35 @@ function render() {
   if (!$("scene-name").value && state.camerasFile) $("scene-name").value = state.camerasFile.name.replace(/\.[^.]*$/, "");
 }
 
+/** The camera a video is for: the one picked beside it, else the one its file name names. */
+function cameraOf(video, cameras) {
+  return (video.camera && cameras.find((c) => c.name === video.camera)) || matchCamera(video.file.name, cameras);
+}
+
+/** The field of view typed for a video without a camera file: {} when empty, {value} or {error}. */
+function fieldOfView() {
+  const text = $("fov").value.trim();
+  if (!text) return {};
+  const value = Number(text);
+  if (!Number.isFinite(value) || value <= 0 || value >= 180) {
+    return { error: `Field of view: give degrees between 0 and 180 (a phone's main camera: 60-70), not "${text}".` };
+  }
+  return { value };
+}
+
+/** The name a video is sent under: its camera's, when it was picked by hand (the server matches a
+ * video to its camera by the file name's stem). */
+function sentName(video) {
+  if (!video.camera) return video.file.name;
+  const extension = (/\.[^.]*$/.exec(video.file.name) || [".mp4"])[0];
+  return `${video.camera}${extension}`;
+}
+
 function videoCard(video) {
   const li = document.createElement("li");
   if (video.canvas) { video.canvas.setAttribute("role", "img"); video.canvas.setAttribute("aria-label", `first frame of ${video.file.name}`); li.append(video.canvas); }
-  const camera = state.parsed && state.parsed.cameras ? matchCamera(video.file.name, state.parsed.cameras) : null;
+  const cameras = state.parsed && state.parsed.cameras;
+  const camera = cameras ? cameraOf(video, cameras) : null;
   const text = document.createElement("p");
   text.textContent = video.error ? `${video.file.name}: ${video.error}`
     : `${video.file.name}: ${video.width}x${video.height}, ${video.duration.toFixed(2)} s`
@@ -152,7 +189,22 @@ function videoCard(video) {
       + (camera ? ` → camera ${camera.name}` : "");
   if (video.error) text.className = "bad";
   li.append(text);
+  if (cameras) li.append(cameraPicker(video, cameras));
   return li;
+}
+
+/** A menu beside a video: which camera it belongs to (by its file name, or one picked). */
+function cameraPicker(video, cameras) {
+  const select = document.createElement("select");
+  select.setAttribute("aria-label", `Camera of ${video.file.name}`);
+  const byName = matchCamera(video.file.name, cameras);
+  select.append(Object.assign(document.createElement("option"), {
+    value: "", textContent: byName ? `by its name (${byName.name})` : "by its name (none matches)",
+  }));
+  for (const c of cameras) select.append(Object.assign(document.createElement("option"), { value: c.name, textContent: c.name }));
+  select.value = video.camera || "";
+  select.addEventListener("change", () => { video.camera = select.value || null; render(); });
+  return select;
 }
 
 const fmt = (v) => `(${v.map((x) => decimal(x, 2)).join(", ")})`;
@@ -161,8 +213,12 @@ async function submit(event, onDone) {
   event.preventDefault();
   if (uploadProblems(state).length) return;
   const form = new FormData();
-  form.append("cameras", state.camerasFile, state.camerasFile.name);
-  for (const video of state.videos) form.append("video", video.file, video.file.name);
+  if (state.camerasFile) form.append("cameras", state.camerasFile, state.camerasFile.name);
+  else {
+    form.append("fov", String(fieldOfView().value));
+    form.append("up", $("image-up").value);
+  }
+  for (const video of state.videos) form.append("video", video.file, sentName(video));
   form.append("name", $("scene-name").value);
   // sent with the upload, so the server checks it first and a refusal stores nothing
   if ($("auto-reconstruct").checked) form.append("reconstruct", JSON.stringify(reconstructParams()));
@@ -222,6 +278,7 @@ function reset() {
   $("source").value = "";
   $("background-frames").value = "";
   $("world-up").value = "";
+  $("fov").value = "";
   $("upload-progress").hidden = true;
   $("upload-error").textContent = "";
   render();
@@ -239,7 +296,7 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
-  for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames"]) $(id).addEventListener("input", render);
+  for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames", "fov"]) $(id).addEventListener("input", render);
   render();
   loadLimits().then((all) => { limits = all.reconstruct; showLimits(); }, (error) => { limits = { error: error.message }; })
     .finally(render);
