@@ -25,7 +25,10 @@ air is still, and zeros would blur nothing, while the particles' velocity is how
 
 One frame goes to a file of the caller's choosing (`export_frame`); a range of frames to
 numbered files in a folder (`export_sequence`: smoke_000012.vdb, ..., names from
-`export_name`), at most MAX_SEQUENCE_FRAMES of them.
+`export_name`), at most MAX_SEQUENCE_FRAMES of them; or to one zip, a bundle (`export_bundle`:
+the numbered files and a `bundle.json` saying what they hold), which is what a job offers for
+download. The grid formats take a voxel size (`voxel_size`, world units, at most the kernel
+radius h); a bundle's default, h/4, is finer than the particles' own spacing (h/2).
 
 Density follows the simulator (fluidcore.physics): each particle carries mass (h/2)^3 (world
 units^3 of unit density, 1 = 8 particles per h^3) spread over the voxels within the kernel
@@ -35,7 +38,10 @@ torch-free, so the worker can export without the simulator.
 
 from __future__ import annotations
 
+import json
 import os
+import tempfile
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cached_property
@@ -45,7 +51,7 @@ import numpy as np
 
 from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
-from fluidcore.runs import FrameState, Run
+from fluidcore.runs import FrameState, Run, RunRecord
 from fluidcore.vdb import write_vdb
 
 SH_C0 = 0.28209479177387814  # the degree-0 spherical harmonic, Y_0^0 = 1 / (2 sqrt(pi))
@@ -53,6 +59,14 @@ MAX_VOXELS = 256**3  # a density grid larger than this (64 MiB of float32) is re
 DENSITY_SPACING = 0.5  # default voxel size, in kernel radii h
 PARTICLE_CHUNK = 4096  # particles splatted at once: x 6^3 stencil voxels (spacing h/2) x 8 B = 7 MiB an array
 MAX_SEQUENCE_FRAMES = 600  # 20 s at 30 fps; a ScalarFlow-preset run measured 50 ms and 32 kB a VDB frame
+# A bundle's default voxel, in kernel radii h: finer than the particles' spacing (h/2), so the
+# smoke's edges are not blockier than its particles. 3,000 particles in a 1 x 1.5 x 1 box at
+# h = 0.04 (one core): h/2 is 55x80x55 voxels, 0.08 s to splat, 0.03 s to write as VDB, 0.5 MB;
+# h/4 is 109x159x109, 0.37 s, 0.15 s, 3.8 MB a frame.
+BUNDLE_SPACING = 0.25
+BUNDLE_FORMATS = ("vdb", "ply", "density")  # the sequences a job offers as one zip
+MAX_BUNDLE_VOXELS = MAX_SEQUENCE_FRAMES * 2_000_000  # voxels over all of a bundle's frames: 600 frames at h/4 of that box
+BUNDLE_MANIFEST = "bundle.json"
 
 
 class ExportError(InputError):
@@ -90,12 +104,8 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
     [lo, hi] plus h on every side (a particle at the box wall keeps its whole kernel). With
     `velocities` (N, 3) the grid's velocity is theirs, averaged with the same weights as the mass
     (momentum / density; zero where no particle reaches)."""
-    if not 0 < spacing <= h:
-        raise ExportError(f"spacing must be in (0, h = {h:g}] world units, got {spacing:g}")
+    shape = np.asarray(grid_shape(h, lo, hi, spacing))
     origin = np.asarray(lo, dtype=np.float64) - h
-    shape = np.ceil((np.asarray(hi, dtype=np.float64) + h - origin) / spacing).astype(int) + 1
-    if int(np.prod(shape)) > MAX_VOXELS:
-        raise ExportError(f"a {'x'.join(map(str, shape))} density grid exceeds {MAX_VOXELS} voxels; choose a larger spacing")
     mass = (h / 2) ** 3
     points = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     reach = np.arange(-int(np.ceil(h / spacing)), int(np.ceil(h / spacing)) + 2)  # voxels a kernel can touch
@@ -124,6 +134,38 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
         velocity = velocity.reshape(*shape, 3).astype(np.float32)
     return DensityGrid(grid.reshape(shape).astype(np.float32), origin, float(spacing), mass, velocity,
                        None if velocity is None else "particles")
+
+
+def _shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[int, int, int]:
+    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 2 * h
+    return tuple(int(n) for n in np.ceil(extent / spacing).astype(int) + 1)  # type: ignore[return-value]
+
+
+def _smallest_fitting(h: float, lo: np.ndarray, hi: np.ndarray, too_small: float) -> float:
+    """The smallest voxel size whose grid holds at most MAX_VOXELS, rounded up to 3 digits:
+    bisection, the voxel count falling as the size grows."""
+    fits = 2 * too_small
+    while int(np.prod(_shape(h, lo, hi, fits))) > MAX_VOXELS:
+        fits *= 2
+    for _ in range(40):
+        middle = (too_small + fits) / 2
+        too_small, fits = (too_small, middle) if int(np.prod(_shape(h, lo, hi, middle))) <= MAX_VOXELS else (middle, fits)
+    scale = 10.0 ** (2 - int(np.floor(np.log10(fits))))
+    return float(np.ceil(fits * scale) / scale)
+
+
+def grid_shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[int, int, int]:
+    """The voxels of the grid `density_grid` splats the box [lo, hi] onto at `spacing` (world
+    units); an ExportError naming the option when the spacing is not in (0, h] or the grid would
+    hold more than MAX_VOXELS, with the smallest voxel size that fits this box."""
+    if not 0 < spacing <= h:
+        raise ExportError(f"voxel size must be in (0, {h:g}] world units (the kernel radius h), got {spacing:g}")
+    shape = _shape(h, lo, hi, spacing)
+    if int(np.prod(shape)) <= MAX_VOXELS:
+        return shape
+    fits = _smallest_fitting(h, lo, hi, spacing)
+    hint = f"the smallest that fits this box is {fits:g}" if fits <= h else "even the kernel radius does not fit this box"
+    raise ExportError(f"voxel size {spacing:g}: a {'x'.join(map(str, shape))} grid exceeds {MAX_VOXELS} voxels (256^3); {hint}")
 
 
 def frame_density(run: Run, state: FrameState, spacing: float | None = None) -> DensityGrid:
@@ -170,10 +212,11 @@ class ExportFrame:
 
     run: Run
     state: FrameState
+    spacing: float | None = None  # the grid's voxel size; None: DENSITY_SPACING x h
 
     @cached_property
     def grid(self) -> DensityGrid:
-        return frame_density(self.run, self.state)
+        return frame_density(self.run, self.state, self.spacing)
 
 
 def _write_npz(frame: ExportFrame, path: Path) -> None:
@@ -249,27 +292,50 @@ class Exporter:
     media_type: str
     stem: str  # what the file holds, the start of its numbered name (export_name)
     every_frame: bool = False  # a job publishes every frame (a sequence), not only the last
+    gridded: bool = False  # written from the density grid: takes a voxel size
 
 
 EXPORTERS: dict[str, Exporter] = {
     "npz": Exporter(".npz", _write_npz, "application/octet-stream", "state"),
     "ply": Exporter(".ply", _write_ply, "application/octet-stream", "splats"),
-    "density": Exporter(".npz", _write_density, "application/octet-stream", "density"),
-    "nrrd": Exporter(".nrrd", _write_nrrd, "application/octet-stream", "density"),
-    "velocity": Exporter(".nrrd", _write_velocity, "application/octet-stream", "velocity"),
-    "vdb": Exporter(".vdb", _write_vdb, "application/octet-stream", "smoke", every_frame=True),
+    "density": Exporter(".npz", _write_density, "application/octet-stream", "density", gridded=True),
+    "nrrd": Exporter(".nrrd", _write_nrrd, "application/octet-stream", "density", gridded=True),
+    "velocity": Exporter(".nrrd", _write_velocity, "application/octet-stream", "velocity", gridded=True),
+    "vdb": Exporter(".vdb", _write_vdb, "application/octet-stream", "smoke", every_frame=True, gridded=True),
 }
 
 
-def _open(run_dir: str | os.PathLike[str], fmt: str) -> Run:
-    if fmt not in EXPORTERS:
-        raise ExportError(f"format must be one of {', '.join(EXPORTERS)}, got {fmt!r}")
-    return Run.open(run_dir)
+def _check_format(fmt: str, voxel_size: float | None, formats: tuple[str, ...] = tuple(EXPORTERS)) -> None:
+    if fmt not in formats:
+        raise ExportError(f"format must be one of {', '.join(formats)}, got {fmt!r}")
+    if voxel_size is not None and not EXPORTERS[fmt].gridded:
+        gridded = ", ".join(name for name in formats if EXPORTERS[name].gridded)
+        raise ExportError(f"voxel size: {fmt} holds particles, not a grid; a voxel size applies to {gridded}")
 
 
-def _held(run: Run, run_dir: str | os.PathLike[str]) -> str:
+def _open(run_dir: str | os.PathLike[str], fmt: str, voxel_size: float | None = None) -> Run:
+    _check_format(fmt, voxel_size)
+    run = Run.open(run_dir)
+    if voxel_size is not None:
+        grid_shape(run.scene.physics.h, np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi), voxel_size)
+    return run
+
+
+def _held(run: RunRecord, label: str) -> str:
     frames = run.frames()
-    return f"{run_dir} (frames {f'{frames[0]}..{frames[-1]}' if frames else 'none yet'})"
+    return f"{label} (frames {f'{frames[0]}..{frames[-1]}' if frames else 'none yet'})"
+
+
+def _check_frames(run: RunRecord, frames: tuple[int, int], label: str) -> None:
+    """[start, end) is a range of at most MAX_SEQUENCE_FRAMES finished frames of the run."""
+    start, end = frames
+    if not 0 <= start < end:
+        raise ExportError(f"frames must satisfy 0 <= START < END, got {start}:{end}")
+    if end - start > MAX_SEQUENCE_FRAMES:
+        raise ExportError(f"frames {start}:{end} is {end - start} frames; a sequence holds at most {MAX_SEQUENCE_FRAMES}")
+    missing = sorted(set(range(start, end)) - set(run.frames()))
+    if missing:
+        raise ExportError(f"frames {start}:{end}: frame {missing[0]} is not a finished frame of {_held(run, label)}")
 
 
 def _write(frame: ExportFrame, fmt: str, out: Path) -> Path:
@@ -287,12 +353,14 @@ def last_frame(run_dir: str | os.PathLike[str]) -> int:
     return frames[-1]
 
 
-def export_frame(run_dir: str | os.PathLike[str], frame: int, fmt: str, out: str | os.PathLike[str]) -> Path:
-    """Write `frame` of the run in `run_dir` as `fmt` (a key of EXPORTERS) to `out`, atomically."""
-    run = _open(run_dir, fmt)
+def export_frame(run_dir: str | os.PathLike[str], frame: int, fmt: str, out: str | os.PathLike[str],
+                 voxel_size: float | None = None) -> Path:
+    """Write `frame` of the run in `run_dir` as `fmt` (a key of EXPORTERS) to `out`, atomically;
+    a grid format at `voxel_size` (world units; default DENSITY_SPACING x h)."""
+    run = _open(run_dir, fmt, voxel_size)
     if frame not in run.frames():
-        raise ExportError(f"frame {frame} is not a finished frame of {_held(run, run_dir)}")
-    return _write(ExportFrame(run, run.read_frame(frame)), fmt, Path(out))
+        raise ExportError(f"frame {frame} is not a finished frame of {_held(run, str(run_dir))}")
+    return _write(ExportFrame(run, run.read_frame(frame), voxel_size), fmt, Path(out))
 
 
 def export_name(frame: int, fmt: str) -> str:
@@ -302,22 +370,94 @@ def export_name(frame: int, fmt: str) -> str:
 
 
 def export_sequence(
-    run_dir: str | os.PathLike[str], frames: tuple[int, int], fmt: str, out_dir: str | os.PathLike[str]
+    run_dir: str | os.PathLike[str], frames: tuple[int, int], fmt: str, out_dir: str | os.PathLike[str],
+    voxel_size: float | None = None,
 ) -> list[Path]:
     """Write the frames [start, end) of the run as `fmt` into `out_dir`, one numbered file each
-    (export_name). Every frame of the range must be finished; at most MAX_SEQUENCE_FRAMES."""
-    start, end = frames
-    if not 0 <= start < end:
-        raise ExportError(f"frames must satisfy 0 <= START < END, got {start}:{end}")
-    if end - start > MAX_SEQUENCE_FRAMES:
-        raise ExportError(f"frames {start}:{end} is {end - start} frames; a sequence holds at most {MAX_SEQUENCE_FRAMES}")
-    run = _open(run_dir, fmt)
-    missing = sorted(set(range(start, end)) - set(run.frames()))
-    if missing:
-        raise ExportError(f"frames {start}:{end}: frame {missing[0]} is not a finished frame of {_held(run, run_dir)}")
+    (export_name), a grid format at `voxel_size`. Every frame of the range must be finished; at
+    most MAX_SEQUENCE_FRAMES."""
+    run = _open(run_dir, fmt, voxel_size)
+    _check_frames(run, frames, str(run_dir))
     if Path(out_dir).exists() and not Path(out_dir).is_dir():
         raise ExportError(f"out: {out_dir} is a file; a sequence goes into a folder")
-    return [_write(ExportFrame(run, run.read_frame(t)), fmt, Path(out_dir) / export_name(t, fmt)) for t in range(start, end)]
+    return [_write(ExportFrame(run, run.read_frame(t), voxel_size), fmt, Path(out_dir) / export_name(t, fmt))
+            for t in range(*frames)]
+
+
+OnFrame = Callable[[int, int], None]  # (frames written, frames in all): a bundle's progress
+
+
+@dataclass(frozen=True)
+class BundlePlan:
+    """A bundle checked against its run, before anything is written: the format, the frames
+    [start, end), and the voxel size (world units; None for ply) with its grid's shape."""
+
+    fmt: str
+    frames: tuple[int, int]
+    voxel_size: float | None
+    shape: tuple[int, int, int] | None
+
+    @property
+    def name(self) -> str:
+        """The zip's file name, which says what it holds: vdb_f000000-000030_v0.01.zip (frames
+        [0, 30), voxel 0.01); the service stores a bundle under it, so asking again finds it."""
+        voxel = "" if self.voxel_size is None else f"_v{self.voxel_size:.4g}"
+        return f"{self.fmt}_f{self.frames[0]:06d}-{self.frames[1]:06d}{voxel}.zip"
+
+
+def default_frames(run: RunRecord) -> tuple[int, int]:
+    """A bundle's frames when none are asked for: the run's, the last MAX_SEQUENCE_FRAMES of them."""
+    done = run.frames()
+    if not done:
+        raise ExportError("the run has no finished frames to export")
+    return max(done[0], done[-1] + 1 - MAX_SEQUENCE_FRAMES), done[-1] + 1
+
+
+def plan_bundle(run: RunRecord, fmt: str, frames: tuple[int, int] | None = None, voxel_size: float | None = None,
+                label: str = "the run") -> BundlePlan:
+    """Check a bundle against the run's manifest alone (torch-free and reading no frame, so the
+    API refuses a bad request before queueing it): a format of BUNDLE_FORMATS, finished frames,
+    a voxel size for the grid formats (default BUNDLE_SPACING x h) whose grid fits MAX_VOXELS a
+    frame and MAX_BUNDLE_VOXELS over the frames."""
+    _check_format(fmt, voxel_size, BUNDLE_FORMATS)
+    frames = default_frames(run) if frames is None else (int(frames[0]), int(frames[1]))
+    _check_frames(run, frames, label)
+    if not EXPORTERS[fmt].gridded:
+        return BundlePlan(fmt, frames, None, None)
+    scene = run.scene
+    h = scene.physics.h
+    spacing = BUNDLE_SPACING * h if voxel_size is None else float(voxel_size)
+    shape = grid_shape(h, np.asarray(scene.box_lo), np.asarray(scene.box_hi), spacing)
+    voxels = int(np.prod(shape)) * (frames[1] - frames[0])
+    if voxels > MAX_BUNDLE_VOXELS:
+        raise ExportError(f"{frames[1] - frames[0]} frames of {'x'.join(map(str, shape))} voxels exceed a bundle's "
+                          f"{MAX_BUNDLE_VOXELS:.3g} voxels; choose fewer frames or a larger voxel size")
+    return BundlePlan(fmt, frames, spacing, shape)
+
+
+def export_bundle(run_dir: str | os.PathLike[str], plan: BundlePlan, out: str | os.PathLike[str],
+                  on_frame: OnFrame | None = None) -> Path:
+    """Write the plan's frames as one zip at `out` (atomically): the numbered files (export_name)
+    and BUNDLE_MANIFEST (format, frames, fps, voxel size, up, kernel radius, files). Stored, not
+    deflated: VDB and PLY barely compress, and storing keeps memory to one frame at a time."""
+    run = Run.open(run_dir)
+    plan = plan_bundle(run, plan.fmt, plan.frames, plan.voxel_size, str(run_dir))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    names = [export_name(t, plan.fmt) for t in range(*plan.frames)]
+    with (atomic_output(out, suffix=".zip") as temporary, tempfile.TemporaryDirectory(dir=out.parent) as scratch,
+          zipfile.ZipFile(temporary, "w", zipfile.ZIP_STORED) as bundle):
+        for done, (t, name) in enumerate(zip(range(*plan.frames), names, strict=True), start=1):
+            bundle.write(_write(ExportFrame(run, run.read_frame(t), plan.voxel_size), plan.fmt, Path(scratch) / name), name)
+            (Path(scratch) / name).unlink()
+            if on_frame is not None:
+                on_frame(done, len(names))
+        scene = run.scene
+        about = {"format": plan.fmt, "frames": list(plan.frames), "fps": run.fps, "voxel_size": plan.voxel_size,
+                 "grid_shape": None if plan.shape is None else list(plan.shape), "up": list(scene.up),
+                 "kernel_radius": scene.physics.h, "files": names}
+        bundle.writestr(BUNDLE_MANIFEST, json.dumps(about, indent=1))
+    return out
 
 
 def export_artifacts(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str]) -> list[Path]:

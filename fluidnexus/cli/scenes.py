@@ -193,25 +193,39 @@ def export(
     run: Path = RUN_ARG,
     frame: int | None = typer.Option(None, "--frame", help="Frame number (as in the run's manifest); default: the last."),
     frames: str | None = typer.Option(
-        None, "--frames", help="START:END (end excluded): a numbered sequence of these frames into the folder --out."
+        None, "--frames", help="START:END (end excluded): a numbered sequence of these frames into the folder --out "
+        "(with --bundle: into the zip; default: every frame)."
     ),
     fmt: str = typer.Option("npz", "--format", help="npz | ply | density | nrrd | velocity | vdb (docs/exports.md)."),
-    out: Path = typer.Option(..., "--out", help="File to write; with --frames, the folder for the sequence."),
+    out: Path = typer.Option(..., "--out", help="File to write; with --frames, the folder for the sequence; with --bundle, the zip."),
+    voxel_size: float | None = typer.Option(
+        None, "--voxel-size", help="Voxel size of the grid formats (density, nrrd, velocity, vdb), world units, at most "
+        "the kernel radius h; default h/2, a bundle's h/4. Halving it costs 8x the voxels (docs/exports.md)."
+    ),
+    bundle: bool = typer.Option(False, "--bundle", help="One zip of a vdb, ply or density sequence, with bundle.json."),
     as_json: bool = JSON_OPT,
 ) -> None:
     """Write a frame or a sequence: particles (npz), 3D Gaussian splats (ply), a density volume (density, nrrd, vdb) or its velocity (velocity)."""
-    from fluidcore.exports import export_frame, export_sequence, last_frame
+    from fluidcore.exports import export_bundle, export_frame, export_sequence, last_frame, plan_bundle
     from fluidcore.jobs import parse_frames
+    from fluidcore.runs import Run
 
     with user_errors():
         if frame is not None and frames is not None:
             raise UserError("give --frame (one file) or --frames START:END (a sequence), not both")
+        if frame is not None and bundle:
+            raise UserError("a bundle holds a sequence: give --frames START:END (or nothing: every frame), not --frame")
         wanted = parse_frames(frames)
-        if wanted is None:
+        if bundle:
+            plan = plan_bundle(Run.open(run), fmt, wanted, voxel_size, str(run))
+            path = export_bundle(run, plan, out)
+            emit(as_json, str(path), run=str(run), frames=list(plan.frames), format=fmt, voxel_size=plan.voxel_size,
+                 out=str(path), bytes=path.stat().st_size)
+        elif wanted is None:
             frame = last_frame(run) if frame is None else frame
-            path = export_frame(run, frame, fmt, out)
+            path = export_frame(run, frame, fmt, out, voxel_size)
             emit(as_json, str(path), run=str(run), frame=frame, format=fmt, out=str(path))
         else:
-            paths = export_sequence(run, wanted, fmt, out)
+            paths = export_sequence(run, wanted, fmt, out, voxel_size)
             emit(as_json, "\n".join(map(str, paths)), run=str(run), frames=list(wanted), format=fmt, out=str(out),
                  files=[p.name for p in paths])

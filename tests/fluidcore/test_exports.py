@@ -95,7 +95,7 @@ def test_density_grid_is_mass_conserving_anywhere_in_a_voxel(monkeypatch):
     assert grid.total_mass() == pytest.approx(200 * 0.05**3, rel=1e-9)
     monkeypatch.setattr("fluidcore.exports.PARTICLE_CHUNK", 7)  # splatted 7 particles at a time: the same grid
     np.testing.assert_allclose(density_grid(points, 0.1, np.zeros(3), np.ones(3), 0.05).density, grid.density, rtol=1e-6)
-    with pytest.raises(ExportError, match="spacing"):
+    with pytest.raises(ExportError, match="voxel size must be in"):
         density_grid(points, h=0.1, lo=np.zeros(3), hi=np.ones(3), spacing=0.2)
 
 
@@ -216,3 +216,95 @@ def test_a_sequence_into_a_file_is_refused(run_dir, tmp_path):
     result = runner.invoke(app, ["export", str(run_dir), "--frames", "0:1", "--format", "ply", "--out", str(tmp_path / "taken")])
     assert result.exit_code == 2 and "is a file; a sequence goes into a folder" in result.output
     assert (tmp_path / "taken").read_text() == "mine"
+
+
+def test_a_finer_voxel_size_keeps_the_mass_on_more_voxels(run_dir, tmp_path):
+    h = Run.open(run_dir).scene.physics.h
+    coarse, fine = tmp_path / "coarse.npz", tmp_path / "fine.npz"
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--out", str(coarse)])
+    _ok(["export", str(run_dir), "--frame", "1", "--format", "density", "--voxel-size", str(h / 4), "--out", str(fine)])
+    with np.load(coarse) as a, np.load(fine) as b:
+        assert float(a["spacing"]) == pytest.approx(h / 2) and float(b["spacing"]) == pytest.approx(h / 4)
+        assert all(nb >= 2 * na - 2 for na, nb in zip(a["density"].shape, b["density"].shape, strict=True))
+        mass = lambda d: float(d["density"].sum(dtype=np.float64) * float(d["spacing"]) ** 3)  # noqa: E731
+        assert mass(b) == pytest.approx(mass(a), rel=1e-4) and mass(a) > 0
+
+
+@pytest.mark.parametrize(("fmt", "voxel", "message"), [
+    ("ply", "0.01", "voxel size: ply holds particles, not a grid; a voxel size applies to density, nrrd, velocity, vdb"),
+    ("vdb", "0", "voxel size must be in (0, "),
+    ("vdb", "5", "voxel size must be in (0, "),
+])
+def test_a_voxel_size_that_cannot_be_used_is_refused(run_dir, tmp_path, fmt, voxel, message):
+    result = runner.invoke(app, ["export", str(run_dir), "--format", fmt, "--voxel-size", voxel, "--out", str(tmp_path / "x")])
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_grid_over_the_voxel_cap_names_the_smallest_voxel_that_fits():
+    from fluidcore.exports import MAX_VOXELS, grid_shape
+
+    lo, hi, h = np.zeros(3), np.ones(3), 0.04
+    with pytest.raises(ExportError, match=r"exceeds 16777216 voxels \(256\^3\); the smallest that fits this box is ") as caught:
+        grid_shape(h, lo, hi, 0.002)
+    fits = float(str(caught.value).rsplit(" ", 1)[-1])
+    assert np.prod(grid_shape(h, lo, hi, fits)) <= MAX_VOXELS
+    with pytest.raises(ExportError, match="exceeds"):  # and it is the smallest, to its 3 digits
+        grid_shape(h, lo, hi, fits * 0.98)
+
+
+def _bundle(run_dir, out, *args):
+    return json.loads(_ok(["export", str(run_dir), "--bundle", "--out", str(out), "--json", *args]))
+
+
+def test_a_vdb_bundle_holds_every_frame_and_says_what_it_holds(run_dir, tmp_path):
+    import zipfile
+
+    from fluidcore.exports import BUNDLE_MANIFEST, BUNDLE_SPACING
+
+    run = Run.open(run_dir)
+    report = _bundle(run_dir, tmp_path / "b.zip", "--format", "vdb")
+    assert report["frames"] == [0, 2] and report["bytes"] == (tmp_path / "b.zip").stat().st_size
+    with zipfile.ZipFile(tmp_path / "b.zip") as bundle:
+        assert bundle.namelist() == ["smoke_000000.vdb", "smoke_000001.vdb", BUNDLE_MANIFEST]
+        about = json.loads(bundle.read(BUNDLE_MANIFEST))
+        single = tmp_path / "one.vdb"
+        _ok(["export", str(run_dir), "--frame", "1", "--format", "vdb", "--voxel-size", repr(about["voxel_size"]),
+             "--out", str(single)])
+        zipped, alone = bundle.read("smoke_000001.vdb"), single.read_bytes()
+        uuid_at = 8 + 4 + 4 + 4 + 1  # magic, file version, library version, offsets flag; then a 36-character uuid
+        assert len(zipped) == len(alone) and zipped[:uuid_at] == alone[:uuid_at]
+        assert zipped[uuid_at + 36 :] == alone[uuid_at + 36 :]  # frame 1 at the bundle's voxel size
+    assert about["voxel_size"] == pytest.approx(BUNDLE_SPACING * run.scene.physics.h)
+    assert about["fps"] == run.fps and about["up"] == list(run.scene.up) and about["format"] == "vdb"
+    assert about["files"] == ["smoke_000000.vdb", "smoke_000001.vdb"] and about["frames"] == [0, 2]
+
+
+def test_a_ply_bundle_of_chosen_frames_has_no_voxel_size(run_dir, tmp_path):
+    import zipfile
+
+    report = _bundle(run_dir, tmp_path / "p.zip", "--format", "ply", "--frames", "1:2")
+    assert report["voxel_size"] is None and report["frames"] == [1, 2]
+    with zipfile.ZipFile(tmp_path / "p.zip") as bundle:
+        assert bundle.namelist() == ["splats_000001.ply", "bundle.json"]
+        assert bundle.read("splats_000001.ply")[:3] == b"ply"
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (["--format", "nrrd"], "format must be one of vdb, ply, density, got 'nrrd'"),
+    (["--format", "vdb", "--frames", "0:3"], "frames 0:3: frame 2 is not a finished frame"),
+    (["--format", "vdb", "--frame", "1"], "a bundle holds a sequence"),
+])
+def test_a_bundle_that_cannot_be_made_is_refused_before_writing(run_dir, tmp_path, args, message):
+    result = runner.invoke(app, ["export", str(run_dir), "--bundle", "--out", str(tmp_path / "b.zip"), *args])
+    assert result.exit_code == 2 and message in result.output, result.output
+    assert not (tmp_path / "b.zip").exists()
+
+
+def test_a_bundle_over_the_voxel_budget_is_refused_from_the_manifest_alone(run_dir, monkeypatch):
+    from fluidcore import exports
+
+    monkeypatch.setattr(exports, "MAX_BUNDLE_VOXELS", 1000)
+    with pytest.raises(ExportError, match="exceed a bundle's 1e[+]03 voxels; choose fewer frames or a larger voxel size"):
+        exports.plan_bundle(Run.open(run_dir), "density")
+    assert exports.plan_bundle(Run.open(run_dir), "ply").name == "ply_f000000-000002.zip"
