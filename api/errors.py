@@ -146,7 +146,7 @@ def _explained(error: dict[str, Any]) -> dict[str, Any]:
 
     at_body = tuple(error.get("loc", ())) == ("body",)
     if error.get("type") == "union_tag_not_found" and at_body:
-        kinds = ", ".join(member.value for member in JobType)
+        kinds = ", ".join(member.value for member in JobType if member.writes_run)  # what POST /v1/jobs creates
         return {**error, "msg": f'the job needs its "type": one of {kinds}'}
     if error.get("type") == "model_attributes_type" and at_body and isinstance(error.get("input"), (str, bytes)):
         return {**error, "msg": "the body must be a JSON object, sent with the header Content-Type: application/json "

@@ -1,7 +1,8 @@
 """Request and response bodies. Job requests are derived from `service.job_types.JobType`: one
 model per type that writes a run, `{"type", "scene_id" | "parent_job_id", "params"}`, with the
 type's own parameter model, so a bad request is a 422 naming the field before anything is queued
-(a `render` job is asked for at `POST /v1/jobs/{id}/videos/{name}`, api.routers.videos)."""
+(a `render` job is asked for at `POST /v1/jobs/{id}/videos/{name}`, api.routers.videos, a
+`bundle` job at `POST /v1/jobs/{id}/bundles`, api.routers.bundles)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, crea
 from fluidcore.health import Level as HealthLevel
 from fluidcore.spec.controls import WindParams
 from service.job_types import JobType
-from service.models import JobState
+from service.models import ARTIFACT_KINDS, JobState
 
 T = TypeVar("T")
 
@@ -181,9 +182,12 @@ class JobOut(BaseModel):
     links: JobLinks
 
 
+ArtifactKind = Literal[ARTIFACT_KINDS]  # type: ignore[valid-type]  # the order a job lists them in
+
+
 class ArtifactOut(BaseModel):
     name: str = Field(description="path inside the job's results, e.g. 'videos/cam02.mp4'")
-    kind: Literal["video", "orbit", "side_by_side", "export", "state", "manifest", "file"]
+    kind: ArtifactKind
     camera: str | None
     size: int
     content_type: str
@@ -214,6 +218,28 @@ class VideoOut(BaseModel):
 class VideoList(BaseModel):
     job_id: str
     items: list[VideoOut]
+
+
+class BundleOut(BaseModel):
+    """One bundle of a job's run: stored (`artifact`, with its size), or being made (`bundle_job`)."""
+
+    name: str = Field(description="the artifact's name, which says what it holds, e.g. 'bundles/vdb_f000000-000030_v0.01.zip'")
+    format: str
+    frames: tuple[int, int] = Field(description="[start, end) of the run's frames")
+    voxel_size: float | None = Field(description="world units; null for ply")
+    artifact: ArtifactOut | None = Field(description="the stored zip; null until it is made")
+    bundle_job: JobOut | None = Field(description="the latest job that makes it (poll it for progress); null when none")
+
+
+class BundleList(BaseModel):
+    """A job's bundles, and what a new one may ask for (`POST .../bundles` with BundleParams)."""
+
+    job_id: str
+    formats: list[str]
+    frames: tuple[int, int] | None = Field(description="the frames a bundle holds when it names none; null before success")
+    kernel_radius: float | None = Field(description="h, world units: a voxel size is at most this")
+    default_voxel_size: float | None = Field(description="the grid formats' voxel size when none is asked for")
+    items: list[BundleOut]
 
 
 class Health(BaseModel):

@@ -87,6 +87,7 @@ def command(
                 "load_average": list(os.getloadavg()),
                 "seconds_total": seconds,
                 "seconds_per_frame": seconds / (frame_range[1] - frame_range[0]),
+                "peak_rss_mib": _peak_rss_mib(),
                 "run_dir": str(run_dir),
             }
         )
@@ -94,6 +95,13 @@ def command(
         echo_json(result)
     else:
         _print_table(result)
+
+
+def _peak_rss_mib() -> float:
+    """The process's peak resident memory so far (the reconstruction's, scoring reads little more)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux reports KiB
 
 
 def _score(run_dir: Path, cameras: dict, scored: dict[str, Path], inputs: dict[str, Path], frame_range: tuple[int, int]) -> dict:
@@ -172,7 +180,8 @@ def _print_table(result: dict) -> None:
         print(f"{'anchor':<10} {method:<9} {v['psnr']:7.2f} {v['ssim']:7.4f}")
     print(
         f"{result['seconds_per_frame']:.2f} s/frame ({result['fit_seconds_per_frame']:.2f} s fitting), "
-        f"{result['seconds_total']:.1f} s total, {result['threads']} threads, load {result['load_average'][0]:.2f}"
+        f"{result['seconds_total']:.1f} s total, peak memory {result['peak_rss_mib']:.0f} MiB, {result['threads']} threads, "
+        f"load {result['load_average'][0]:.2f}"
     )
 
 

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 import zipfile
 from collections.abc import Callable
@@ -52,6 +53,7 @@ import numpy as np
 from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.runs import FrameState, Run, RunRecord
+from fluidcore.spec.jobs import BUNDLE_FORMATS
 from fluidcore.vdb import write_vdb
 
 SH_C0 = 0.28209479177387814  # the degree-0 spherical harmonic, Y_0^0 = 1 / (2 sqrt(pi))
@@ -64,9 +66,9 @@ MAX_SEQUENCE_FRAMES = 600  # 20 s at 30 fps; a ScalarFlow-preset run measured 50
 # h = 0.04 (one core): h/2 is 55x80x55 voxels, 0.08 s to splat, 0.03 s to write as VDB, 0.5 MB;
 # h/4 is 109x159x109, 0.37 s, 0.15 s, 3.8 MB a frame.
 BUNDLE_SPACING = 0.25
-BUNDLE_FORMATS = ("vdb", "ply", "density")  # the sequences a job offers as one zip
 MAX_BUNDLE_VOXELS = MAX_SEQUENCE_FRAMES * 2_000_000  # voxels over all of a bundle's frames: 600 frames at h/4 of that box
 BUNDLE_MANIFEST = "bundle.json"
+BUNDLE_NAME = re.compile(r"(?P<fmt>[a-z]+)_f(?P<start>\d{6,})-(?P<end>\d{6,})(?:_v(?P<voxel>[0-9.e+-]+))?\.zip")
 
 
 class ExportError(InputError):
@@ -404,6 +406,15 @@ class BundlePlan:
         voxel = "" if self.voxel_size is None else f"_v{self.voxel_size:.4g}"
         return f"{self.fmt}_f{self.frames[0]:06d}-{self.frames[1]:06d}{voxel}.zip"
 
+    @classmethod
+    def from_name(cls, name: str) -> BundlePlan:
+        """The plan a bundle's file name states (`name`'s inverse; the grid's shape is not in it)."""
+        found = BUNDLE_NAME.fullmatch(name)
+        if found is None or found["fmt"] not in BUNDLE_FORMATS:
+            raise ExportError(f"{name!r} is not a bundle's name")
+        voxel = None if found["voxel"] is None else float(found["voxel"])
+        return cls(found["fmt"], (int(found["start"]), int(found["end"])), voxel, None)
+
 
 def default_frames(run: RunRecord) -> tuple[int, int]:
     """A bundle's frames when none are asked for: the run's, the last MAX_SEQUENCE_FRAMES of them."""
@@ -413,12 +424,17 @@ def default_frames(run: RunRecord) -> tuple[int, int]:
     return max(done[0], done[-1] + 1 - MAX_SEQUENCE_FRAMES), done[-1] + 1
 
 
+def bundle_voxel_size(h: float, asked: float | None = None) -> float:
+    """A bundle's voxel size: `asked`, or BUNDLE_SPACING x h, to the 4 digits its name states."""
+    return float(f"{BUNDLE_SPACING * h if asked is None else asked:.4g}")
+
+
 def plan_bundle(run: RunRecord, fmt: str, frames: tuple[int, int] | None = None, voxel_size: float | None = None,
                 label: str = "the run") -> BundlePlan:
     """Check a bundle against the run's manifest alone (torch-free and reading no frame, so the
     API refuses a bad request before queueing it): a format of BUNDLE_FORMATS, finished frames,
-    a voxel size for the grid formats (default BUNDLE_SPACING x h) whose grid fits MAX_VOXELS a
-    frame and MAX_BUNDLE_VOXELS over the frames."""
+    a voxel size for the grid formats (`bundle_voxel_size`) whose grid fits MAX_VOXELS a frame and
+    MAX_BUNDLE_VOXELS over the frames."""
     _check_format(fmt, voxel_size, BUNDLE_FORMATS)
     frames = default_frames(run) if frames is None else (int(frames[0]), int(frames[1]))
     _check_frames(run, frames, label)
@@ -426,7 +442,7 @@ def plan_bundle(run: RunRecord, fmt: str, frames: tuple[int, int] | None = None,
         return BundlePlan(fmt, frames, None, None)
     scene = run.scene
     h = scene.physics.h
-    spacing = BUNDLE_SPACING * h if voxel_size is None else float(voxel_size)
+    spacing = bundle_voxel_size(h, voxel_size)
     shape = grid_shape(h, np.asarray(scene.box_lo), np.asarray(scene.box_hi), spacing)
     voxels = int(np.prod(shape)) * (frames[1] - frames[0])
     if voxels > MAX_BUNDLE_VOXELS:

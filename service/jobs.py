@@ -22,7 +22,7 @@ from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
 from service.job_states import QUEUED_STAGE, Actor, cancel, waiting_stage
 from service.job_types import JobType
-from service.models import SENDING, Artifact, Job, JobState, Scene
+from service.models import ARTIFACT_KINDS, SENDING, Artifact, Job, JobState, Scene
 from service.queue import JobQueue, send
 from service.runs import read_manifest
 from service.settings import Settings
@@ -101,7 +101,8 @@ def check_references(
     # Any job that writes a run can be continued: every such type leaves the same run-folder format.
     parent = owned(session, source_id, owner)
     if not JobType(parent.type).writes_run:
-        raise RefusedParams(f"parent_job_id: job {parent.id} renders a video; it has no run to continue")
+        raise RefusedParams(f"parent_job_id: job {parent.id} makes a {parent.type} of job {parent.parent_job_id}; "
+                            "it has no run to continue")
     if parent.state in (JobState.FAILED, JobState.CANCELLED):
         raise Conflict(f"parent job {parent.id} is {parent.state}; it cannot be continued")
     frames = getattr(params, "frames", None)
@@ -194,8 +195,9 @@ def request_cancel(session: Session, queue: JobQueue, settings: Settings, job_id
 
 
 def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
-    """Delete a finished job, its run folder and its artifacts (the records of its videos'
-    renders with it); Conflict while it runs, has continuations, or renders a video."""
+    """Delete a finished job, its run folder and its artifacts (the records of the render and
+    bundle jobs that made files of it with it); Conflict while it runs, has continuations, or
+    has such a file being made."""
     job = owned(session, job_id, owner, for_update=True)
     if not JobState(job.state).finished:
         raise Conflict(f"job {job_id} is {job.state}; cancel it first")
@@ -205,11 +207,11 @@ def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
         raise Conflict(f"job {job_id} is continued by jobs {', '.join(continued)}; delete them first")
     rendering = [child.id for child in below if not JobState(child.state).finished]
     if rendering:
-        raise Conflict(f"job {job_id} has videos rendering in jobs {', '.join(rendering)}; cancel them first")
+        raise Conflict(f"job {job_id} has videos or bundles being made in jobs {', '.join(rendering)}; cancel them first")
     session.execute(delete_rows(Artifact).where(Artifact.job_id == job.id))
     for child in below:
         session.delete(child)
-    session.flush()  # the renders before the job they name
+    session.flush()  # the renders and bundles before the job they name
     session.delete(job)
     # rows first: a failed file removal leaves garbage, never a dangling row
     commit_or_conflict(session, f"job {job_id} was named by a new job while it was being deleted; nothing was deleted")
@@ -225,8 +227,10 @@ def log_lines(storage: Storage, job_id: str) -> list[str]:
 
 
 def artifacts(session: Session, job_id: str) -> list[Artifact]:
-    """The job's artifacts, by name."""
-    return list(session.scalars(select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.name)).all())
+    """The job's artifacts grouped by kind in ARTIFACT_KINDS' order (videos first, then bundles,
+    exports, states), by name within a kind."""
+    rows = session.scalars(select(Artifact).where(Artifact.job_id == job_id)).all()
+    return sorted(rows, key=lambda row: (ARTIFACT_KINDS.index(row.kind), row.name))
 
 
 def artifact(session: Session, job_id: str, name: str) -> Artifact | None:

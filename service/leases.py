@@ -149,10 +149,10 @@ def publish_artifacts(session: Session, job: Job, rows: list[Artifact]) -> None:
     session.add_all(rows)
 
 
-def publish_videos(session: Session, shown: str, rows: list[Artifact]) -> None:
-    """A render job's videos, added to the artifacts of the job `shown` they show, replacing only
-    its rows of the same names: its other artifacts stay. The caller holds the render job's
-    lease (`held`) in this session."""
+def publish_shown(session: Session, shown: str, rows: list[Artifact]) -> None:
+    """A render or bundle job's files, added to the artifacts of the job `shown` they show,
+    replacing only its rows of the same names: its other artifacts stay. The caller holds the
+    render or bundle job's lease (`held`) in this session."""
     session.execute(delete(Artifact).where(Artifact.job_id == shown, Artifact.name.in_([r.name for r in rows])))
     session.add_all(rows)
 

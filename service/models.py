@@ -154,8 +154,15 @@ class WorkerBeat(Base):
     idle_since: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)  # None while it runs a job
 
 
+# What an artifact is, in the order a job lists them (service.jobs.artifacts): what a user watches
+# first, then the downloads for other tools (a sequence as one zip before its single files), then
+# what a continuation reads. api.schemas derives the listing's schema from it.
+ARTIFACT_KINDS = ("video", "orbit", "side_by_side", "bundle", "export", "state", "manifest", "file")
+
+
 class Artifact(Base):
-    """A downloadable result of a job: an MP4 per camera, the orbit video, particle states, the manifest."""
+    """A downloadable result of a job: an MP4 per camera, the orbit video, bundles, exports,
+    particle states, the manifest."""
 
     __tablename__ = "artifacts"
     __table_args__ = (UniqueConstraint("job_id", "name", name="uq_artifacts_job_name"),)
@@ -163,7 +170,7 @@ class Artifact(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
     job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
     name: Mapped[str] = mapped_column(String(512))
-    kind: Mapped[str] = mapped_column(String(16))  # video | orbit | side_by_side | export | state | manifest | file
+    kind: Mapped[str] = mapped_column(String(16))  # one of ARTIFACT_KINDS
     camera: Mapped[str | None] = mapped_column(String(128), default=None)
     key: Mapped[str] = mapped_column(String(1024))
     size: Mapped[int] = mapped_column(BigInteger)

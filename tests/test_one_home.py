@@ -144,7 +144,7 @@ def test_every_job_type_writes_the_run_kind_of_its_name() -> None:
     writers = [job for job in JobType if job.writes_run]
     assert {job.run_kind for job in writers} == set(RunKind)
     assert all(job.run_kind.value == job.value for job in writers)
-    assert [job.run_kind for job in JobType if not job.writes_run] == [None]  # a render writes no run
+    assert [job.run_kind for job in JobType if not job.writes_run] == [None, None]  # a render and a bundle write none
 
 
 def test_the_smoke_mask_has_one_home() -> None:

@@ -31,6 +31,7 @@ from service.models import Artifact, Job, JobState
 from service.queue import JobQueue, send_turns
 from service.settings import Settings
 from service.storage import ObjectNotFound, Storage, StorageError, job_prefix, log_key, run_prefix
+from service.bundles import BUNDLE_FOLDER, BUNDLE_TYPE
 from service.videos import VIDEO_FOLDER, VIDEO_TYPE, video_kind
 from worker.runners import Runner, RunInputs
 from fluidcore.runs import MANIFEST, STATES_DIR
@@ -222,8 +223,9 @@ class JobExecutor:
 
     def _publish(self, claim: Claim, files: list[Path], reporter: ProgressReporter) -> None:
         """Upload the rendered videos and exports and record every artifact (videos, exports,
-        manifest, states). A render job publishes its video with its parent's artifacts, under
-        the parent's keys (`service.videos`), where clients look for it and find it the next time."""
+        manifest, states). A render or bundle job publishes its file with its parent's artifacts,
+        under the parent's keys (`service.videos`, `service.bundles`), where clients look for it
+        and find it the next time."""
         reporter.report(RUN_SHARE, "publish")
         renders = not JobType(claim.job_type).writes_run
         owner = claim.ancestors[0] if renders else claim.job_id
@@ -248,7 +250,7 @@ class JobExecutor:
         if renders:
             with session_scope(self.sessions) as session:
                 reporter.owned(session)
-                leases.publish_videos(session, owner, rows)
+                leases.publish_shown(session, owner, rows)
             return
         prefix = run_prefix(claim.job_id)
         for info in self.storage.list(f"{prefix}/"):
@@ -457,7 +459,9 @@ TRANSIENT_ERRORS = _transient_errors()
 
 def _published_as(path: Path) -> tuple[str, str, str | None, str]:
     """(folder, kind, camera, content type) of a file a runner returned: a video
-    (service.videos) or an export (fluidcore.exports)."""
-    if path.suffix != ".mp4":
-        return "exports", "export", None, "application/octet-stream"
-    return (VIDEO_FOLDER, *video_kind(path.stem), VIDEO_TYPE)
+    (service.videos), a bundle (service.bundles) or an export (fluidcore.exports)."""
+    if path.suffix == ".mp4":
+        return (VIDEO_FOLDER, *video_kind(path.stem), VIDEO_TYPE)
+    if path.suffix == ".zip":
+        return BUNDLE_FOLDER, "bundle", None, BUNDLE_TYPE
+    return "exports", "export", None, "application/octet-stream"

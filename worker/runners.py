@@ -5,7 +5,8 @@ Celery app, the API and the tests of the service logic load without them; only t
 
 A runner gets a `RunInputs` (folders, parameters, callbacks) and returns the rendered
 files to publish besides the run folder itself (a reconstruction's input-view MP4s, the last frame in
-every `fluidcore.exports` format, every frame as VDB; a render job: the one video asked for).
+every `fluidcore.exports` format, every frame as VDB; a render job: the one video asked for; a
+bundle job: the one zip).
 Each reads its parameters through its type's model in `service.job_types`, so defaults live
 there only.
 """
@@ -19,7 +20,8 @@ from pathlib import Path
 from typing import Any
 
 from fluidcore.jobs import JobContext, Progress, ShouldCancel
-from fluidcore.spec.jobs import InteractParams, PredictParams, ReconstructParams, RenderParams
+from fluidcore.spec.jobs import BundleParams, InteractParams, PredictParams, ReconstructParams, RenderParams
+from service.bundles import params_plan
 from service.job_types import JobType
 
 
@@ -77,6 +79,20 @@ def render(inputs: RunInputs) -> list[Path]:
     assert inputs.parent_run is not None
     return render_artifacts(inputs.parent_run, inputs.render_dir, [video], inputs.progress, fit_long_side(inputs.parent_run),
                             inputs.device)
+
+
+def bundle(inputs: RunInputs) -> list[Path]:
+    """A sequence of the parent job's run as one zip (`JobType.BUNDLE`), progress per frame;
+    named after what it holds, so the parent's artifacts list it under that name."""
+    from fluidcore.exports import export_bundle
+
+    plan = params_plan(BundleParams.model_validate(inputs.params))
+    assert inputs.parent_run is not None
+
+    def progress(done: int, total: int) -> None:
+        inputs.progress(done / total, "bundle")
+
+    return [export_bundle(inputs.parent_run, plan, inputs.render_dir / plan.name, progress)]
 
 
 def _rendered(run: Callable[[RunInputs], None]) -> Runner:
@@ -152,6 +168,7 @@ FLUIDCORE_RUNNERS: dict[JobType, Runner] = {
     JobType.INTERACT: interact,
     JobType.RESIMULATE: resimulate,
     JobType.RENDER: render,
+    JobType.BUNDLE: bundle,
 }
 
 

@@ -104,6 +104,22 @@ class RenderParams(BaseModel):
         return check_name(value, "video")
 
 
+BUNDLE_FORMATS = ("vdb", "ply", "density")  # the sequences a job offers as one zip (fluidcore.exports)
+BundleFormat = Literal[BUNDLE_FORMATS]  # type: ignore[valid-type]
+
+
+class BundleParams(BaseModel):
+    """A sequence of the parent job's run as one zip (`fluidcore.exports.export_bundle`):
+    `format` one of BUNDLE_FORMATS, `frames` = [start, end) (default: every finished frame, the
+    last 600 at most), `voxel_size` for the grid formats (world units, at most the kernel radius;
+    default a quarter of it). Checked against the run's manifest where it is asked for."""
+
+    model_config = _STRICT
+    format: BundleFormat
+    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
+    voxel_size: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+
+
 class JobParamsError(InputError):
     """Job parameters that cannot be used; the message names each field."""
 

@@ -216,7 +216,7 @@ def test_common_mistakes_get_messages_that_say_what_to_do(service: Service, scen
     alice = service.key("alice")
     untyped = service.client.post("/v1/jobs", json={"scene_id": "x"}, headers=alice)
     assert untyped.status_code == 422
-    assert untyped.json()["detail"][0]["msg"] == 'the job needs its "type": one of reconstruct, predict, interact, resimulate, render'
+    assert untyped.json()["detail"][0]["msg"] == 'the job needs its "type": one of reconstruct, predict, interact, resimulate'
     plain = service.client.post("/v1/jobs", content=b'{"type": "reconstruct", "scene_id": "x"}', headers=alice)
     assert plain.status_code == 422 and "Content-Type: application/json" in plain.json()["detail"][0]["msg"]
     for response, kind in (

@@ -27,19 +27,11 @@ BALL = {"center": [0.0, 0.2, 0.0], "radius": 0.05}
 @pytest.fixture
 def what_if(service: Service, tmp_path: Path) -> str:
     """A succeeded what-if of alice's, run by the worker on a 4-frame plume reconstruction."""
-    parent = _job(service, "reconstruct", state=JobState.SUCCEEDED)
+    parent = service.add_job("reconstruct", state=JobState.SUCCEEDED)
     FolderMirror(service.storage, plume_run(tmp_path / "plume", frames=4), run_prefix(parent)).push()
-    job = _job(service, "interact", parent_job_id=parent, params={"frames": 2, "ball": BALL})
+    job = service.add_job("interact", parent_job_id=parent, params={"frames": 2, "ball": BALL})
     assert _worker(service, tmp_path).run(job) == "succeeded"
     return job
-
-
-def _job(service: Service, job_type: str, **fields: object) -> str:
-    with service.sessions() as session:
-        job = Job(owner="alice", type=job_type, params=fields.pop("params", {}), **fields)
-        session.add(job)
-        session.commit()
-        return job.id
 
 
 def _worker(service: Service, tmp_path: Path):  # type: ignore[no-untyped-def]
@@ -112,7 +104,7 @@ def test_video_requests_are_checked(service: Service, what_if: str) -> None:
     assert service.client.post("/v1/jobs/nosuchjob/videos/orbit", headers=alice).status_code == 404
     assert service.client.post(f"/v1/jobs/{what_if}/videos/orbit").status_code == 401
 
-    running = _job(service, "predict", parent_job_id=what_if, state=JobState.RUNNING)
+    running = service.add_job("predict", parent_job_id=what_if, state=JobState.RUNNING)
     early = service.client.post(f"/v1/jobs/{running}/videos/orbit", headers=alice)
     assert early.status_code == 409 and "once it has succeeded" in early.json()["detail"]
     render = service.client.post(f"/v1/jobs/{what_if}/videos/side_by_side", headers=alice).json()["render_job"]["id"]

@@ -275,7 +275,7 @@ def test_a_vdb_bundle_holds_every_frame_and_says_what_it_holds(run_dir, tmp_path
         uuid_at = 8 + 4 + 4 + 4 + 1  # magic, file version, library version, offsets flag; then a 36-character uuid
         assert len(zipped) == len(alone) and zipped[:uuid_at] == alone[:uuid_at]
         assert zipped[uuid_at + 36 :] == alone[uuid_at + 36 :]  # frame 1 at the bundle's voxel size
-    assert about["voxel_size"] == pytest.approx(BUNDLE_SPACING * run.scene.physics.h)
+    assert about["voxel_size"] == pytest.approx(BUNDLE_SPACING * run.scene.physics.h, rel=1e-3)  # to the 4 digits its name states
     assert about["fps"] == run.fps and about["up"] == list(run.scene.up) and about["format"] == "vdb"
     assert about["files"] == ["smoke_000000.vdb", "smoke_000001.vdb"] and about["frames"] == [0, 2]
 
@@ -308,3 +308,13 @@ def test_a_bundle_over_the_voxel_budget_is_refused_from_the_manifest_alone(run_d
     with pytest.raises(ExportError, match="exceed a bundle's 1e[+]03 voxels; choose fewer frames or a larger voxel size"):
         exports.plan_bundle(Run.open(run_dir), "density")
     assert exports.plan_bundle(Run.open(run_dir), "ply").name == "ply_f000000-000002.zip"
+
+
+@pytest.mark.parametrize("plan", [("vdb", (0, 30), 0.01), ("ply", (12, 600), None), ("density", (0, 1), 1.25e-05)])
+def test_a_bundles_name_states_its_plan(plan):
+    from fluidcore.exports import BundlePlan
+
+    made = BundlePlan(*plan, None)
+    assert BundlePlan.from_name(made.name) == made
+    with pytest.raises(ExportError, match="is not a bundle's name"):
+        BundlePlan.from_name(made.name.replace(".zip", ".tar"))

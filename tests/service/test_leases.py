@@ -177,7 +177,7 @@ def test_publishing_replaces_the_whole_set_and_a_render_only_its_names(sessions:
         leases.publish_artifacts(session, leases.held(session, parent, 1), [artifact(parent, "b", 2), artifact(parent, "c", 2)])
     assert stored(sessions, parent) == {"b": 2, "c": 2}
     with session_scope(sessions) as session:
-        leases.publish_videos(session, parent, [artifact(parent, "c", 3), artifact(parent, "d", 3)])
+        leases.publish_shown(session, parent, [artifact(parent, "c", 3), artifact(parent, "d", 3)])
     assert stored(sessions, parent) == {"b": 2, "c": 3, "d": 3}
 
 

@@ -85,9 +85,10 @@ def test_a_package_never_loads_what_it_must_not(package: str, forbidden: tuple[s
 def test_job_types_are_the_same_in_schema_tasks_and_runners(tmp_path: Path) -> None:
     derived = fresh_python(DERIVED, tmp_path)
     names = [t.value for t in JobType]
-    assert derived["job_types"] == names == ["reconstruct", "predict", "interact", "resimulate", "render"]
-    # a render is asked for at POST /v1/jobs/{id}/videos/{name}, not created like a job that writes a run
-    assert derived["schema"] == sorted(t.value for t in JobType if t.writes_run) == sorted(set(names) - {"render"})
+    assert derived["job_types"] == names == ["reconstruct", "predict", "interact", "resimulate", "render", "bundle"]
+    # a render is asked for at POST /v1/jobs/{id}/videos/{name}, a bundle at POST /v1/jobs/{id}/bundles,
+    # not created like a job that writes a run
+    assert derived["schema"] == sorted(t.value for t in JobType if t.writes_run) == sorted(set(names) - {"render", "bundle"})
     assert derived["tasks"] == sorted(task_name(t) for t in JobType)
     assert derived["runner_error"] is None
 

@@ -39,6 +39,14 @@ class Service:
         with session_scope(self.sessions) as session:
             return session.query(model).count()
 
+    def add_job(self, job_type: str, owner: str = "alice", **fields: object) -> str:
+        """A job row written directly (no queue, no checks), with `fields` as given; its id."""
+        with session_scope(self.sessions) as session:
+            job = Job(owner=owner, type=job_type, params=fields.pop("params", {}), **fields)
+            session.add(job)
+            session.flush()
+            return job.id
+
     def set_job(self, job_id: str, **fields: object) -> None:
         with session_scope(self.sessions) as session:
             job = session.get(Job, job_id)

@@ -321,7 +321,33 @@ def fake_render(inputs):  # type: ignore[no-untyped-def]
     return [write_mp4(video, np.zeros((2, 16, 16, 3), dtype=np.uint8))]
 
 
-FAKE_RUNNERS = {**{job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")}, "render": fake_render}
+def fake_bundle(inputs):  # type: ignore[no-untyped-def]
+    """The test double of a bundle job's runner: the zip its parameters name (holding only its
+    bundle.json), progress per frame, should_cancel between frames."""
+    import zipfile
+
+    from fluidcore.jobs import Cancelled
+    from fluidcore.spec.jobs import BundleParams
+    from service.bundles import params_plan
+
+    plan = params_plan(BundleParams.model_validate(inputs.params))
+    frames = range(*plan.frames)
+    for done, t in enumerate(frames, start=1):
+        if inputs.should_cancel():
+            raise Cancelled(f"cancelled before frame {t}")
+        inputs.progress(done / len(frames), "bundle")
+    path = inputs.render_dir / plan.name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with zipfile.ZipFile(path, "w") as bundle:
+        bundle.writestr("bundle.json", json.dumps({"format": plan.fmt, "frames": list(plan.frames)}))
+    return [path]
+
+
+FAKE_RUNNERS = {
+    **{job_type: fake_job for job_type in ("reconstruct", "predict", "interact", "resimulate")},
+    "render": fake_render,
+    "bundle": fake_bundle,
+}
 
 
 def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = None, source_estimate=None,  # noqa: ANN001 - Storage

@@ -245,6 +245,14 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#downloads a", has_text="manifest.json")).to_have_count(1)
     sync_api.expect(page.locator("#downloads a", has_text="orbit.mp4")).to_have_count(1)
     sync_api.expect(page.locator("#downloads a", has_text=".mp4")).to_have_count(len(scene["videos"]) + 1)
+    # downloads grouped, videos first; every frame as one zip, made by a job, listed under Bundles
+    sync_api.expect(page.locator("#downloads h4").first).to_have_text("Videos")
+    page.locator("#bundle-format").select_option("vdb")
+    page.get_by_role("button", name="Make zip").click()
+    sync_api.expect(page.locator("#bundle-status")).to_contain_text("Ready: bundles/vdb_f000000-000002_v", timeout=SERVER_MS)
+    bundles = page.locator("#downloads section", has_text="Bundles").locator("a")
+    sync_api.expect(bundles).to_have_count(1)
+    assert bundles.get_attribute("download").startswith("vdb_f000000-000002_v")
     page.screenshot(path=screens / "results.png", full_page=True)
 
     # what-if: the ball outside the box is refused with the box's limits; wind, then ball, are sent

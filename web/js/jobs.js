@@ -136,7 +136,8 @@ function renderTable(items) {
 
 async function poll() {
   try {
-    renderTable((await refreshJobs()).filter((job) => job.type !== "render")); // a video's render shows in its player
+    // a video's render shows in its player, a bundle's job beside the bundle form
+    renderTable((await refreshJobs()).filter((job) => !["render", "bundle"].includes(job.type)));
     $("jobs-error").textContent = "";
   } catch (error) {
     $("jobs-error").textContent = `Could not update the job list: ${error.message}`;

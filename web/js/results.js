@@ -2,7 +2,8 @@
 // what-if, next to the factual prediction from the same frame; for a reconstruction, the uploaded
 // footage of its input view beside the render of it, side by side, overlaid or as their
 // difference), per-frame plots from the run manifest, and downloads of everything the job
-// published (videos, exports, states, manifest).
+// published, grouped (videos, bundles, single exports, the run's own files), with a form that
+// makes a bundle: every frame as one zip (POST /v1/jobs/{id}/bundles), progress while it is made.
 // A reconstruction publishes its input views, a prediction or what-if no video; any other video
 // (a camera, the orbit, a what-if's side-by-side) is rendered when a player or a download asks for
 // it (POST /v1/jobs/{id}/videos/{name}):
@@ -14,7 +15,7 @@ import { decimal } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
 const SYNC_TOLERANCE_S = 0.08;
-const RENDER_POLL_MS = 1000;
+const JOB_POLL_MS = 1000;
 let syncLoop = null;
 let plots = [];
 const renders = new Map(); // "job/name" -> {done: Promise<url>, listeners}: one request per video, however many players ask
@@ -30,13 +31,7 @@ function requestVideo(jobId, name, onProgress) {
       for (;;) {
         const video = await api(`/v1/jobs/${jobId}/videos/${encodeURIComponent(name)}`, { method: "POST" });
         if (video.artifact) return video.artifact.presigned_url;
-        let job = video.render_job;
-        while (!["succeeded", "failed", "cancelled"].includes(job.state)) {
-          entry.listeners.forEach((listener) => listener(job.progress));
-          await new Promise((resolve) => setTimeout(resolve, RENDER_POLL_MS));
-          job = await api(`/v1/jobs/${job.id}`);
-        }
-        if (job.state !== "succeeded") throw new Error(job.error || `the render was ${job.state}`);
+        await finished(video.render_job, (fraction) => entry.listeners.forEach((listener) => listener(fraction)), "render");
       }
     })();
     entry.done.finally(() => renders.delete(key)).catch(() => {}); // once stored, the video list names it
@@ -44,6 +39,16 @@ function requestVideo(jobId, name, onProgress) {
   }
   if (onProgress) entry.listeners.add(onProgress);
   return entry.done;
+}
+
+/** Poll a render or bundle job until it ends; `onProgress(fraction)` meanwhile; throws unless it succeeded. */
+async function finished(job, onProgress, what) {
+  while (!["succeeded", "failed", "cancelled"].includes(job.state)) {
+    onProgress(job.progress);
+    await new Promise((resolve) => setTimeout(resolve, JOB_POLL_MS));
+    job = await api(`/v1/jobs/${job.id}`);
+  }
+  if (job.state !== "succeeded") throw new Error(job.error || `the ${what} was ${job.state}`);
 }
 
 const videoLabel = (v) => (v.kind === "video" ? `camera ${v.camera}` : v.kind.replaceAll("_", " "));
@@ -331,16 +336,26 @@ function drawPlots(manifest) {
   if (keys.includes("particles")) plot("Particles", t, [["particles", column("particles")], ["gaussians", column("gaussians")]], "count");
 }
 
-/** Every file the artifacts API lists, in its order: videos, exports, states, the manifest; then
- * the videos not rendered yet, each a button that renders it and lists it with the rest. */
+// The artifact kinds (api.schemas.ArtifactKind, listed in this order) under the headings they go under.
+const DOWNLOAD_GROUPS = [
+  ["Videos", ["video", "orbit", "side_by_side"]],
+  ["Bundles (every frame in one zip)", ["bundle"]],
+  ["Single files (the last frame in each format, every frame as VDB)", ["export"]],
+  ["The run itself (particle states, manifest)", ["state", "manifest", "file"]],
+];
+
+const size = (bytes) => (bytes >= 1048576 ? `${(bytes / 1048576).toFixed(1)} MiB` : `${(bytes / 1024).toFixed(1)} KiB`);
+
+/** Every file the artifacts API lists, grouped under DOWNLOAD_GROUPS in the API's order; the
+ * videos not rendered yet close the videos, each a button that renders it and lists it with the rest. */
 function downloads(jobId, artifacts, videos) {
-  const items = artifacts.map((a) => {
+  const item = (a) => {
     const li = document.createElement("li");
     const link = Object.assign(document.createElement("a"), { href: a.presigned_url, textContent: a.name });
     link.download = a.name.split("/").pop();
-    li.append(link, ` (${(a.size / 1024).toFixed(1)} KiB)`);
+    li.append(link, ` (${size(a.size)})`);
     return li;
-  });
+  };
   const missing = videos.filter((v) => !v.artifact).map((v) => {
     const li = document.createElement("li");
     const button = Object.assign(document.createElement("button"), { type: "button", className: "secondary",
@@ -358,7 +373,61 @@ function downloads(jobId, artifacts, videos) {
     li.append(button);
     return li;
   });
-  $("downloads").replaceChildren(...items, ...missing);
+  const groups = DOWNLOAD_GROUPS.map(([title, kinds], i) => {
+    const items = artifacts.filter((a) => kinds.includes(a.kind)).map(item);
+    if (i === 0) items.push(...missing);
+    if (!items.length) return null;
+    const list = Object.assign(document.createElement("ul"), { className: "download-list" });
+    list.append(...items);
+    const section = document.createElement("section");
+    section.append(Object.assign(document.createElement("h4"), { textContent: title }), list);
+    return section;
+  });
+  $("downloads").replaceChildren(...groups.filter(Boolean));
+}
+
+/** The bundle form for a succeeded job that has a run (GET /v1/jobs/{id}/bundles): its voxel
+ * size defaults to the API's (a quarter of the kernel radius, at most the radius); hidden otherwise. */
+async function offerBundles(job) {
+  const form = $("bundle-form");
+  form.hidden = true;
+  $("bundle-status").textContent = "";
+  if (job.state !== "succeeded" || ["render", "bundle"].includes(job.type)) return;
+  const offer = await api(`/v1/jobs/${job.id}/bundles`);
+  if (!offer.frames) return;
+  const voxel = $("bundle-voxel");
+  Object.assign(voxel, { value: "", max: String(offer.kernel_radius), placeholder: `${decimal(offer.default_voxel_size, 4)} (default)` });
+  form.dataset.jobId = job.id;
+  form.dataset.frames = `frames ${offer.frames[0]}–${offer.frames[1] - 1}`;
+  $("bundle-frames").textContent = `${form.dataset.frames}, `;
+  form.hidden = false;
+}
+
+async function makeBundle(event) {
+  event.preventDefault();
+  const form = $("bundle-form");
+  const jobId = form.dataset.jobId;
+  const format = $("bundle-format").value;
+  const voxel = $("bundle-voxel").value;
+  const status = $("bundle-status");
+  const button = form.querySelector("button[type=submit]");
+  button.disabled = true;
+  status.className = "";
+  try {
+    const body = { format, ...(voxel !== "" && format !== "ply" ? { voxel_size: Number(voxel) } : {}) };
+    let bundle = await api(`/v1/jobs/${jobId}/bundles`, { method: "POST", body });
+    if (!bundle.artifact) {
+      await finished(bundle.bundle_job, (fraction) => { status.textContent = `Making ${bundle.name}… ${Math.round(fraction * 100)} %`; }, "bundle");
+      bundle = await api(`/v1/jobs/${jobId}/bundles`, { method: "POST", body });
+    }
+    status.textContent = `Ready: ${bundle.name} (${size(bundle.artifact.size)}), listed under Bundles.`;
+    await refreshDownloads(jobId);
+  } catch (error) {
+    status.className = "error";
+    status.textContent = `Could not make the zip: ${error.message}`;
+  } finally {
+    button.disabled = false;
+  }
 }
 
 async function refreshDownloads(jobId) {
@@ -432,6 +501,7 @@ export async function showResults(jobId) {
     $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual, footage).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
     downloads(jobId, own.items, videos.items);
+    offerBundles(job).catch((error) => { $("bundle-status").textContent = `Bundles unavailable: ${error.message}`; });
     showHealth(job).catch(() => {}); // the results stand without it
     startSync();
   } catch (error) {
@@ -440,6 +510,8 @@ export async function showResults(jobId) {
 }
 
 export function initResults() {
+  $("bundle-form").addEventListener("submit", makeBundle);
+  $("bundle-format").addEventListener("change", (event) => { $("bundle-voxel").disabled = event.target.value === "ply"; });
   $("play-all").addEventListener("click", () => {
     const [leader] = videos();
     if (!leader) return;
