@@ -34,8 +34,10 @@ def is_upload(scope: Scope) -> bool:
 class AdmissionLimit:
     """At most `requests` requests (`uploads` of them scene uploads, counted apart so slow uploads
     cannot starve polling) inside `app` at once. An upload waits at most `upload_wait` seconds
-    for its place, then gets a 503 with `Retry-After`: a client that would have timed out learns
-    when to come back, and no upload is checked for a client that has long given up (issue 36)."""
+    for its place, then gets a 429 with `Retry-After`: a client that would have timed out learns
+    when to come back, and no upload is checked for a client that has long given up (issue 36).
+    A 429, not a 503: the server is shedding load it chose to refuse, not failing (Stripe's API
+    answers its load shedding the same way), and clients retry either after `Retry-After`."""
 
     app: ASGIApp
     requests: int
@@ -57,8 +59,9 @@ class AdmissionLimit:
         try:
             await asyncio.wait_for(self._uploads.acquire(), self.upload_wait)
         except TimeoutError:
-            busy = JSONResponse({"detail": f"busy: {self.uploads} uploads are being checked; send it again shortly"},
-                                status_code=503, headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)})
+            busy = JSONResponse({"detail": f"busy: {self.uploads} uploads are being checked; send it again in "
+                                           f"{UPLOAD_RETRY_AFTER_S} s"},
+                                status_code=429, headers={"Retry-After": str(UPLOAD_RETRY_AFTER_S)})
             await busy(scope, receive, send)
             return
         try:

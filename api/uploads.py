@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import mimetypes
 import multiprocessing
-import os
 import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -31,9 +30,6 @@ from service.storage import Storage
 if TYPE_CHECKING:  # fluidcore is imported where it is used, keeping `import api` light
     from fluidcore.cameras import Camera
     from fluidcore.video import VideoHeader, VideoInfo
-
-NICE = 10  # the validation processes' niceness: polling first (measured in `Validators`)
-
 
 UPLOAD_RETRY_AFTER_S = 5  # an upload's check takes about a second on the dev scene's view; a few later, a slot is free
 GONE_POLL_S = 0.25  # how often a check in progress asks whether its client is still there
@@ -253,12 +249,15 @@ def check_upload(
 
 
 class Validators:
-    """`check_upload` in a pool of processes at nice 10, so the API's event loop and request
-    threads never wait for an upload's parsing and decoding. bench/load.py, 200 pollers + 20
-    uploaders of the dev scene's view, 20 s on 2 busy cores: polling made 450 GET/s without
-    uploads; with them, 90 GET/s (p99 3.6 s) when uploads were checked on the API's threads
-    (each poll queued for the GIL), 172 (p99 2.9 s) in processes, 280 (p99 1.8 s) in processes
-    at nice 10, uploads still at 8.8/s. Forked from a fork server (the API has threads; the
+    """`check_upload` in a pool of processes, so the API's event loop and request threads never
+    wait for an upload's parsing and decoding. bench/load.py, 200 pollers + 20 uploaders of the
+    dev scene's view, 20 s on 2 busy cores: polling made 450 GET/s without uploads; with them,
+    90 GET/s (p99 3.6 s) when uploads were checked on the API's threads (each poll queued for the
+    GIL), 172 (p99 2.9 s) in processes, 280 (p99 1.8 s) in processes at nice 10. They run at the
+    API's own priority since issue 36's realistic clips: 100 pollers + 20 uploaders of a 2.6 MB
+    1080x1920 clip for 60 s while the embedded worker (nice 19) reconstructs, 2 places, 3 s wait:
+    at nice 10, 10 uploads answered and 10 timed out at 10 s (GET p99 0.4 s); at the API's
+    priority, 66 answered, none timed out (GET p99 1.1 s; docs/reliability.md). Forked from a fork server (the API has threads; the
     server has the readers imported, so a process starts in milliseconds), started on first
     use, at most `workers` at once; a pool whose process died (a crashing decoder) is replaced."""
 
@@ -272,7 +271,7 @@ class Validators:
             if self._pool is None:
                 context = multiprocessing.get_context("forkserver")
                 context.set_forkserver_preload([__name__, "fluidcore.video", "fluidcore.cameras", "fluidcore.scene_info"])
-                self._pool = ProcessPoolExecutor(self.workers, mp_context=context, initializer=os.nice, initargs=(NICE,))
+                self._pool = ProcessPoolExecutor(self.workers, mp_context=context)
             return self._pool
 
     def check(

@@ -52,6 +52,7 @@ HOST = "127.0.0.1"  # loopback only: this benchmark never targets another addres
 PG_ADMIN_URL = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 REDIS_URL = "redis://127.0.0.1:6379/0"
 HEALTH_PERIOD_S = 0.25
+BUSY = 429  # the answer to an upload that found no checking place in time (with Retry-After)
 NO_WORKER = "503_no_worker"  # /readyz of a server run --no-worker: every check ok but the worker's
 STARTUP_TIMEOUT_S = 60.0
 DEV_SCENE = Path(__file__).resolve().parents[2] / "shared" / "devdata" / "phiflow_D" / "D"
@@ -74,9 +75,11 @@ class RouteStats:
     latencies: list[float] = field(default_factory=list)
     classes: dict[str, int] = field(default_factory=lambda: defaultdict(int))
     examples: list[str] = field(default_factory=list)  # the first few failures, for diagnosis
+    busy: int = 0  # the 4xx that were BUSY
 
-    def record(self, outcome: str, seconds: float, failure: str | None = None) -> None:
+    def record(self, outcome: str, seconds: float, failure: str | None = None, status: int | None = None) -> None:
         self.classes[outcome] += 1
+        self.busy += status == BUSY
         if outcome in ("2xx", "4xx", "5xx", NO_WORKER):
             self.latencies.append(seconds)
         if failure is not None and len(self.examples) < 3:
@@ -95,6 +98,7 @@ class RouteStats:
             "p99_s": quantile(0.99),
             "max_s": ordered[-1] if ordered else None,
             **{name: self.classes.get(name, 0) for name in ("2xx", "4xx", "5xx", "timeout", "error", NO_WORKER)},
+            "busy_429": self.busy,
             "failures": self.examples,
         }
 
@@ -177,10 +181,10 @@ def phone_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
 
 def plume_scene(folder: Path) -> dict[str, tuple[str, bytes, str]]:
     """A synthetic plume (fluidcore.synth) that reconstructs: the job `--computing` keeps the worker
-    busy with (30 frames of 2 views at 48x64 outlast a 60 s load on 2 cores)."""
+    busy with (120 frames of 2 views at 48x64: 30 finished within a 60 s load on a quiet 2-core machine)."""
     from fluidcore import synth
 
-    transforms = synth.write(synth.generate(synth.SynthSpec(frames=30, width=48, height=64, views=2)), folder / "plume")
+    transforms = synth.write(synth.generate(synth.SynthSpec(frames=120, width=48, height=64, views=2)), folder / "plume")
     parts = {"cameras": ("transforms.json", transforms.read_bytes(), "application/json")}
     for path in sorted((transforms.parent / "videos").glob("*.mp4")):
         parts[path.stem] = (path.name, path.read_bytes(), "video/mp4")
@@ -348,7 +352,7 @@ def multipart_body(scene: dict[str, tuple[str, bytes, str]], boundary: str) -> b
 async def _timed(connection: Connection, stats: RouteStats, request: bytes, timeout: float) -> None:
     """One request with a total `timeout`; a timed-out or broken connection is replaced."""
     start = time.perf_counter()
-    failure = None
+    failure, status = None, None
     try:
         status, body = await asyncio.wait_for(connection.send(request), timeout)
         outcome = f"{status // 100}xx"
@@ -360,7 +364,7 @@ async def _timed(connection: Connection, stats: RouteStats, request: bytes, time
     except (OSError, asyncio.IncompleteReadError, ValueError, IndexError) as exc:
         outcome, failure = "error", repr(exc)
         connection.close()
-    stats.record(outcome, time.perf_counter() - start, failure)
+    stats.record(outcome, time.perf_counter() - start, failure, status)
 
 
 async def _load(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
@@ -439,7 +443,8 @@ SETTLE_S = 60.0  # how long the uploads a client gave up on may take to finish (
 
 
 def _uploads_after(server: Server, uploads: dict[str, Any] | None) -> dict[str, int]:
-    """What became of the uploads: answered (2xx), refused (4xx: a limit; 5xx: busy), abandoned
+    """What became of the uploads: answered (2xx), told busy (429 with Retry-After: no checking
+    place free in time), refused (another 4xx: a limit), failed (5xx), abandoned
     (the client timed out), and how many scenes were stored for clients that had given up, counted
     once the server's scene count stops changing (the first scene is live_server's own)."""
     import httpx
@@ -454,8 +459,9 @@ def _uploads_after(server: Server, uploads: dict[str, Any] | None) -> dict[str, 
     previous = counts[-1] if counts else 1
     return {
         "answered": answered,
-        "refused_4xx": 0 if uploads is None else uploads["4xx"],
-        "busy_5xx": 0 if uploads is None else uploads["5xx"],
+        "busy_429": 0 if uploads is None else uploads["busy_429"],
+        "refused_4xx": 0 if uploads is None else uploads["4xx"] - uploads["busy_429"],
+        "failed_5xx": 0 if uploads is None else uploads["5xx"],
         "abandoned": 0 if uploads is None else uploads["timeout"] + uploads["error"],
         "stored_after_abandon": max(0, previous - 1 - answered),
     }
@@ -512,7 +518,8 @@ def command(
     print(f"5xx {result['total_5xx']}, timeouts {result['total_timeouts']}, connection errors {result['total_errors']}, "
           f"slowest health answer {result['health_max_s']:.3f} s")
     after = result["uploads_after"]
-    print(f"uploads: {after['answered']} answered, {after['refused_4xx']} refused (4xx), {after['busy_5xx']} busy (5xx), "
+    print(f"uploads: {after['answered']} answered, {after['busy_429']} told busy (429), {after['refused_4xx']} refused "
+          f"(other 4xx), {after['failed_5xx']} failed (5xx), "
           f"{after['abandoned']} abandoned by their client, {after['stored_after_abandon']} stored after their client left")
 
 

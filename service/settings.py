@@ -70,9 +70,14 @@ class Settings(BaseSettings):
     max_concurrent_requests: int = Field(
         default=8, gt=0, description="API requests inside the app at once; more wait, holding nothing"
     )
-    max_concurrent_uploads: int = Field(default=4, gt=0, description="scene uploads inside the app at once")
+    # One checking place per core, at most 4: on 2 cores 4 checks at once each took longer than a
+    # client's 10 s under load (issue 36; docs/reliability.md), 2 answered every admitted upload.
+    max_concurrent_uploads: int = Field(
+        default_factory=lambda: min(4, os.cpu_count() or 1), gt=0,
+        description="scene uploads inside the app at once (default: one per core, at most 4)",
+    )
     upload_wait_seconds: float = Field(
-        default=5.0, gt=0, description="how long an upload waits for one of those places; then a 503 with Retry-After"
+        default=3.0, gt=0, description="how long an upload waits for one of those places; then a 429 with Retry-After"
     )
     max_uploads_per_owner: int = Field(
         default=2, gt=0, description="one owner's uploads being checked at once (per API process); one more is a 429"

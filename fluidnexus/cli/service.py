@@ -38,7 +38,8 @@ DataDir = Annotated[
 WORKER_STOP_TIMEOUT_S = 30
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 RESTART_DELAYS_S = (1.0, 30.0)  # first restart after 1 s, doubling up to 30 s while it keeps dying at boot
-WORKER_NICE = 10  # the embedded worker yields the CPU to the API (pool children inherit it)
+WORKER_NICE = 19  # the embedded worker yields the CPU to the API and its upload checks (pool children inherit it;
+# at 10, beside checks at 10, a realistic upload under load timed out: docs/reliability.md, issue 36)
 # Longer than clients keep an idle connection (httpx and browsers: 5 s or more), so the server
 # never closes one just as a client reuses it (a "server disconnected" error under load).
 KEEP_ALIVE_S = 20
