@@ -45,6 +45,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
         reaper.cancel()
         app.state.validators.close()
         app.state.engine.dispose()
+        app.state.probe_engine.dispose()
 
     # FastAPIOffline: /docs loads Swagger UI from the installed package, not a CDN, so the reference
     # renders on a machine without internet; /redoc likewise, with its logo made local (api.docs_pages).
@@ -59,6 +60,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     add_redoc(app, app.title)
     app.state.settings = settings
     app.state.engine = make_engine(url, pool_size=admitted + 1)  # + the reaper's
+    app.state.probe_engine = health.probe_engine(app.state.engine)  # /readyz's own connections
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
