@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, str] = {
     "generalise": "Novel views, input-view fit, future, velocity, what-ifs and rise on one scene, with baselines.",
     "source": "The source's radius and centre as estimated from one view, against the truth.",
     "metrics": "Time SSIM/PSNR (loss and scoring) and video decode/encode.",
+    "frame_rate": "One plume simulated at several frame rates: its rise, substeps and the speed limit's hold.",
     "physics": "Benchmark the PBF simulator: steps/s and density error vs particles and iterations.",
     "render": "Time fluidcore.render forward + backward on a smoke plume.",
     "generative": "Seconds per frame and peak memory of novel-view generation and video refinement.",

@@ -16,7 +16,7 @@ from fluidcore.physics.forces import ForceField
 from fluidcore.physics.neighbours import neighbour_pairs
 from fluidcore.physics.solver import residual
 from fluidcore.physics.sph import poly6
-from fluidcore.physics.step import advance, neighbour_list, use_fused
+from fluidcore.physics.step import advance, neighbour_list, substeps, use_fused
 from fluidcore.physics.verlet import NeighbourCache
 from fluidcore.spec.physics import PBFConfig, PhysicsInputError
 
@@ -24,7 +24,8 @@ from fluidcore.spec.physics import PBFConfig, PhysicsInputError
 def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: ForceField | None = None,
              time: float = 0.0, backend: str = "auto",
              neighbour_cache: NeighbourCache | None = None) -> tuple[Tensor, Tensor]:
-    """One PBF step of the given particles (no source, no box, no spheres): new (positions, velocities).
+    """One frame (config.dt) of the given particles (no source, no box, no spheres), in the
+    substeps the CFL bound asks for (`fluidcore.physics.step.substeps`): new (positions, velocities).
 
     Differentiable w.r.t. positions and velocities; with backend="auto" the fused CPU kernel
     is used only when no gradient is needed. An optimiser calling this many times on slowly
@@ -35,9 +36,14 @@ def sim_step(positions: Tensor, velocities: Tensor, config: PBFConfig, force: Fo
     _check_config(config)
     positions = checks.points(positions, "positions")
     velocities = checks.points(velocities, "velocities", positions.shape[0])
-    out = advance(positions, velocities, config, time=float(time), force=force,
-                  fast=use_fused(backend, positions, velocities), cache=neighbour_cache)
-    return checks.finite_result(out.positions, "sim_step positions"), checks.finite_result(out.velocities, "sim_step velocities")
+    count = substeps(velocities, config)
+    part = config.substep(count)
+    fast = use_fused(backend, positions, velocities)
+    for k in range(count):
+        out = advance(positions, velocities, part, time=float(time) + k * part.dt, force=force, fast=fast,
+                      cache=neighbour_cache)
+        positions, velocities = out.positions, out.velocities
+    return checks.finite_result(positions, "sim_step positions"), checks.finite_result(velocities, "sim_step velocities")
 
 
 def density(positions: Tensor, h: float) -> Tensor:

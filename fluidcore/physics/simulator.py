@@ -13,7 +13,7 @@ from fluidcore.physics.air import AirGrid, AirState, floor_face
 from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
 from fluidcore.physics.state import ParticleState
-from fluidcore.physics.step import BACKENDS, advance, use_fused
+from fluidcore.physics.step import BACKENDS, Advanced, advance, substeps, use_fused
 from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
 
 
@@ -28,6 +28,7 @@ class StepStats:
     n_alive: int
     seeded: int
     retired: int
+    substeps: int = 1  # parts the frame was stepped in (fluidcore.physics.step.substeps)
 
 
 class Simulator:
@@ -72,14 +73,44 @@ class Simulator:
         return ParticleState.empty(device=self.device)
 
     def step(self, state: ParticleState) -> StepStats:
-        """Seed, advance one dt and retire particles outside the box, in place."""
-        seeded = self._seed(state)
+        """Advance one frame (config.dt) in place: in `substeps` parts, each seeding its share of
+        the frame's particles, advancing and retiring particles outside the box."""
+        start, alive = state.time, torch.nonzero(state.alive).flatten()
+        count = substeps(torch.cat([state.velocities[alive], self._inflow()]), self.config)
+        config = self.config.substep(count)
+        births = self._births(state, count)
+        iterations, seeded, retired = 0, 0, 0
+        density = torch.zeros(0, device=self.device)
+        for part in range(count):
+            if births[part].shape[0]:
+                state.add(births[part], births[count + part])
+                seeded += births[part].shape[0]
+            out, inside = self._advance(state, config)
+            iterations += out.iterations
+            retired += int((~inside).sum())
+            density = out.density[inside]
+        state.time, state.step = start + self.config.dt, state.step + 1
+        error = residual(density, self.config.rho0)
+        n_alive = int(density.shape[0])
+        return StepStats(
+            iterations=iterations,
+            mean_density_error=float(error.mean()) if n_alive else 0.0,
+            max_density_error=float(error.max()) if n_alive else 0.0,
+            n_alive=n_alive,
+            seeded=seeded,
+            retired=retired,
+            substeps=count,
+        )
+
+    def _advance(self, state: ParticleState, config: PBFConfig) -> tuple[Advanced, torch.Tensor]:
+        """One part of a frame (config.dt is the part's): advance the live particles, retire those
+        that left the box; returns the step's result and which of them stayed inside."""
         slots = torch.nonzero(state.alive).flatten()
         x = checks.points(state.positions[slots], "state.positions")
         v = checks.points(state.velocities[slots], "state.velocities")
         with torch.no_grad():
-            air = self._advance_air(state, x) if isinstance(self.air, AirGrid) else self.air
-            out = advance(x, v, self.config, time=state.time, force=self.force, air=air, spheres=self.spheres,
+            air = self._advance_air(state, x, config) if isinstance(self.air, AirGrid) else self.air
+            out = advance(x, v, config, time=state.time, force=self.force, air=air, spheres=self.spheres,
                           fast=use_fused(self.backend, x))
         checks.finite_result(out.positions, "particle positions")
         checks.finite_result(out.velocities, "particle velocities")
@@ -87,18 +118,8 @@ class Simulator:
         state.velocities[slots] = out.velocities
         inside = self._inside(out.positions)
         state.alive[slots[~inside]] = False
-        state.time += self.config.dt
-        state.step += 1
-        error = residual(out.density[inside], self.config.rho0)
-        n_alive = int(inside.sum())
-        return StepStats(
-            iterations=out.iterations,
-            mean_density_error=float(error.mean()) if n_alive else 0.0,
-            max_density_error=float(error.max()) if n_alive else 0.0,
-            n_alive=n_alive,
-            seeded=seeded,
-            retired=slots.shape[0] - n_alive,
-        )
+        state.time += config.dt
+        return out, inside
 
     def adopt_air(self, state: ParticleState) -> None:
         """Put the air `state` carries onto this simulator's air grid (`AirGrid.resample`), so a
@@ -116,7 +137,7 @@ class Simulator:
             self.step(state)
         state.time = 0.0
 
-    def _advance_air(self, state: ParticleState, smoke: torch.Tensor) -> AirField:
+    def _advance_air(self, state: ParticleState, smoke: torch.Tensor, config: PBFConfig) -> AirField:
         """Step the state's air grid from the smoke (N, 3) at state.time (still air if it has none
         yet); the particles then drag towards it: its velocity at their positions."""
         grid = self.air
@@ -124,15 +145,23 @@ class Simulator:
         if state.air is None:
             state.air = grid.still(state.device)
         air: AirState = state.air
-        grid.step(air, smoke, self.config, state.time, self.spheres)
+        grid.step(air, smoke, config, state.time, self.spheres)
         return lambda positions, _time: grid.velocity_at(air, positions)
 
-    def _seed(self, state: ParticleState) -> int:
+    def _births(self, state: ParticleState, count: int) -> tuple[torch.Tensor, ...]:
+        """The frame's new particles (the source's draw for this frame, `seeding.emit`) in `count`
+        equal shares, one per part of the frame: positions (count of them), then velocities."""
         if self.source is None or self.source.rate == 0:
-            return 0
+            empty = torch.zeros(0, 3, device=self.device)
+            return (empty,) * (2 * count)
         positions, velocities = seeding.emit(self.source, state.step, self.device, self._up())
-        state.add(positions, velocities)
-        return self.source.rate
+        return (*torch.tensor_split(positions, count), *torch.tensor_split(velocities, count))
+
+    def _inflow(self) -> torch.Tensor:
+        """(1, 3) the velocity the source gives its particles ((0, 3) without a source)."""
+        if self.source is None or self.source.rate == 0:
+            return torch.zeros(0, 3, device=self.device)
+        return torch.tensor([self.source.velocity], device=self.device)
 
     def _up(self) -> Vec3:
         """The scene's up: against gravity, +y where there is none."""

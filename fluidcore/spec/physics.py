@@ -20,7 +20,7 @@ density the official release computes, so its rest densities (rho0 = 2 for Scala
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from fluidcore.errors import InputError
 
@@ -70,7 +70,7 @@ class PBFConfig:
     length_scale: float = 100.0  # simulation length units per world unit (gravity only)
     drag: float = 3.0  # k in f = -k (v - v_env) max(0, 1 - rho/rho0), 1/s
     env_velocity: Vec3 = (0.0, 0.0, 0.0)  # world units / s
-    dt: float = 1.0 / 30.0
+    dt: float = 1.0 / 30.0  # s, one frame of the clip; each step runs substeps of it (fluidcore.physics.step.substeps)
     h: float = 0.02  # kernel radius, world units
     iterations: int = 10  # fixed solver iterations (used when tolerance is None)
     tolerance: float | None = None  # stop when the mean residual is below this
@@ -132,6 +132,11 @@ class PBFConfig:
     def speed_limit(self) -> float:
         """Largest particle speed (world units / s): a particle never moves more than this * dt per step."""
         return self.max_speed if self.max_speed is not None else self.h / self.dt
+
+    def substep(self, count: int) -> PBFConfig:
+        """This physics stepped `count` times per frame: dt / count, and with it the speed limit
+        h / (dt / count) (`fluidcore.physics.step.substeps` chooses the count)."""
+        return self if count == 1 else replace(self, dt=self.dt / count)
 
     @property
     def iteration_cap(self) -> int:
