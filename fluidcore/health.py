@@ -50,7 +50,7 @@ def report(run: RunRecord) -> dict[str, Any] | None:
 
     if run.kind is not RunKind.RECONSTRUCT:
         return None
-    checks = [check for check in (_fit(run), _source_size(run), _identification(run), _buoyancy_bound(run),
+    checks = [check for check in (_fit(run), _source_size(run), _identification(run), _on_bounds(run),
                                   *_backgrounds(run), _depth(run), _frame_rate(run), _up(run), _spreading(run))
               if check is not None]
     return {
@@ -99,13 +99,53 @@ def _identification(run: RunRecord) -> Check | None:
                  "background plate (--background-frames)", identified.misfit)
 
 
-def _buoyancy_bound(run: RunRecord) -> Check | None:
+# How each identified parameter reads in a note, and its value in a run record.
+BOUND_NAMES = {"buoyancy": "buoyancy", "source_radius": "source radius", "source_height": "source height",
+               "entrainment": "spreading rate", "age": "plume age (frames)"}
+# Ends that are the physics' own, not the search's: a plume that starts in the first frame (age 0),
+# one that does not spread (rate 0). A value there is an answer, not a limit of the search.
+PHYSICAL_ENDS = {("age", "lowest"), ("entrainment", "lowest")}
+
+
+def _on_bounds(run: RunRecord) -> Check | None:
+    """The identified parameters that sit on an end of the range the identification searched
+    (`IdentifiedRecord.tried`): there the search's limits, not the video, decided them. A run
+    written before the ranges were recorded gets the buoyancy floor's note alone."""
     identified = run.settings.physics.identified
-    if identified is None or not math.isclose(identified.buoyancy, identified.floor, rel_tol=1e-6):
+    if identified is None:
         return None
-    return Check("buoyancy bound", "note",
-                 f"the identified buoyancy ({identified.buoyancy:.3g}) sits on its floor, set from the observed rise speed "
-                 f"({identified.rise_speed:.3g}/s) and the drag: the video's rise, not the fit, decided it", identified.buoyancy)
+    floor = math.isclose(identified.buoyancy, identified.floor, rel_tol=1e-6)
+    ends = [_end(name, value, identified.tried[name]) for name, value in _identified_values(run).items()
+            if identified.tried is not None and name in identified.tried]
+    ends = [end for end in ends if end is not None]
+    if floor and identified.tried is None:
+        ends = [f"buoyancy {identified.buoyancy:.3g}"]
+    if not ends:
+        return None
+    why = (f"; the buoyancy sits on its floor, set from the observed rise speed ({identified.rise_speed:.3g}/s) and the "
+           "drag: the video's rise, not the fit, decided it" if floor else "")
+    return Check("identification bounds", "note",
+                 f"identified on an end of the range searched: {'; '.join(ends)}{why}. A source you know "
+                 "(--source X,Y,Z,R) is kept as given", float(len(ends)))
+
+
+def _identified_values(run: RunRecord) -> dict[str, float]:
+    identified = run.settings.physics.identified
+    assert identified is not None
+    up = run.scene.up
+    return {"buoyancy": identified.buoyancy, "source_radius": identified.source_radius,
+            "source_height": sum(c * u for c, u in zip(identified.source_center, up, strict=True)),
+            "entrainment": identified.entrainment, "age": float(identified.age)}
+
+
+def _end(name: str, value: float, tried: tuple[float, float]) -> str | None:
+    """"NAME VALUE (the lowest tried of LO-HI)" when value is at an end of `tried`, else None."""
+    lo, hi = tried
+    scale = max(abs(lo), abs(hi), 1e-12)
+    for end, word in ((lo, "lowest"), (hi, "highest")):
+        if (name, word) not in PHYSICAL_ENDS and math.isclose(value, end, rel_tol=1e-6, abs_tol=1e-9 * scale):
+            return f"{BOUND_NAMES[name]} {value:.3g} (the {word} tried of {lo:.3g}-{hi:.3g})"
+    return None
 
 
 def _backgrounds(run: RunRecord) -> list[Check]:

@@ -190,6 +190,9 @@ class IdentifiedRecord(BaseModel):
     source_radius: float
     prior: IdentificationPrior
     entrainment: float = 0.0  # the plume's spreading rate db/dz (fluidcore.physics.entrainment); before it: none
+    # Per parameter the search varied, the least and greatest value its candidates tried (`_Search.tried`:
+    # buoyancy, source_radius, source_height along up, entrainment, age in frames); None before it
+    tried: dict[str, tuple[float, float]] | None = None
 
 
 class PhysicsRecord(BaseModel):

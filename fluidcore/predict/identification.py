@@ -15,7 +15,7 @@ from fluidcore.runs import FrameState, Run
 from fluidcore.smoke import SmokeState
 from fluidcore.spec.scene import Scene
 
-CALIBRATION_FRAMES = 10  # last reconstructed frames the buoyancy is identified on
+CALIBRATION_SECONDS = 1 / 3  # the last reconstructed stretch the buoyancy is identified on (10 frames at 30 fps)
 # candidate multiples of the preset buoyancy; never 0: smoke the video showed rising keeps rising
 BUOYANCY_SCALES = (0.25, 0.5, 0.75, 1.0, 1.5, 2.0)
 
@@ -24,7 +24,7 @@ def calibrate_buoyancy(
     parent: Run, scene: Scene, start_frame: int, device: str, scales: Sequence[float] = BUOYANCY_SCALES
 ) -> tuple[float, dict[str, float]]:
     """The multiple of the scene's buoyancy under which physics best replays the reconstruction's
-    last `CALIBRATION_FRAMES` frames (system identification on the observed window only).
+    `CALIBRATION_SECONDS` (system identification on the observed window only).
 
     The preset alpha is a property of a dataset, not of this plume: a reconstruction whose column
     is denser than rest density feels no drag inside it (drag scales with 1 - rho/rho0), so with
@@ -34,7 +34,8 @@ def calibrate_buoyancy(
     is scored by the mean squared distance, over every frame of the window, between simulated and
     reconstructed positions of the particles alive in both. Returns (scale, error per scale).
     """
-    frames = [t for t in parent.frames() if start_frame - CALIBRATION_FRAMES <= t <= start_frame]
+    window = calibration_frames(scene.physics.dt)
+    frames = [t for t in parent.frames() if start_frame - window <= t <= start_frame]
     if len(frames) < 2 or frames != list(range(frames[0], start_frame + 1)):
         return 1.0, {}
     targets = [parent.read_frame(t) for t in frames[1:]]
@@ -50,6 +51,11 @@ def calibrate_buoyancy(
         errors[f"{scale:g}"] = total / len(targets)
     best = min(scales, key=lambda scale: errors[f"{scale:g}"])
     return float(best), errors
+
+
+def calibration_frames(dt: float) -> int:
+    """Frames in CALIBRATION_SECONDS of a clip whose frames are `dt` s apart (at least 1)."""
+    return max(1, round(CALIBRATION_SECONDS / dt))
 
 
 def _tracking_error(state: ParticleState, tracked: torch.Tensor, target: FrameState) -> float:

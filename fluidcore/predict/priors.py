@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
 
 PROFILE_BANDS = 12  # height bands of the appearance profile newborn and rising smoke is held to
-HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per frame
+HOLD_RATE = 0.25  # fraction of a band's departure from the profile undone per 1/30 s (a frame at 30 fps)
 # Held attributes are shifted in the space they are drawn in and kept valid there: a mean of
 # opacity logits is dominated by the few (nearly) opaque Gaussians of a band.
 HELD_RANGE = {"colors": (0.0, 1.0), "opacities": (1e-4, 1.0 - 1e-4)}
@@ -40,7 +40,7 @@ class HeightProfile(AppearanceProfile):
     Smoke thins as it rises, and the reconstruction's image fit keeps each height looking the way
     the video does: Gaussians born dark and large at the source were lightened and shrunk by the
     fit as they climbed. A simulation alone carries them up unchanged, so the plume darkens and
-    widens above the source frame after frame. `hold`, once per frame, undoes HOLD_RATE of each
+    widens above the source frame after frame. `hold`, once per frame, undoes HOLD_RATE per 1/30 s of each
     band's departure from the profile's mean colour and opacity (a stationarity prior over the
     short horizons a prediction covers, relaxed so the handover is gradual), keeping each
     Gaussian's difference from its band's mean. Scales are left to the Gaussians: holding them
@@ -67,8 +67,10 @@ class HeightProfile(AppearanceProfile):
         """The profile a run recorded (a chained prediction holds its parent's)."""
         return cls(**dict(recorded))
 
-    def hold(self, visual: SmokeState) -> SmokeState:
-        """`visual` with each band's mean appearance moved HOLD_RATE of the way to the profile's."""
+    def hold(self, visual: SmokeState, dt: float) -> SmokeState:
+        """`visual` a frame of `dt` s later, each band's mean appearance moved towards the profile's:
+        HOLD_RATE of the way per 1/30 s, compounded over the frame (the same hold in seconds at any
+        frame rate)."""
         if len(visual.means) == 0:
             return visual
         bands = len(self.edges) - 1
@@ -77,11 +79,16 @@ class HeightProfile(AppearanceProfile):
         held = {}
         for name, value in _profiled(visual.appearance).items():
             target = value.new_tensor(self.means[name])
-            shift = HOLD_RATE * (target - _band_means(value, band, bands))[band]
+            shift = hold_fraction(dt) * (target - _band_means(value, band, bands))[band]
             held[name] = (value + torch.where(present[:, None], shift, torch.zeros_like(shift))).clamp(*HELD_RANGE[name])
         a = visual.appearance
         opacity_logits = torch.logit(held["opacities"][:, 0])
         return visual.with_visual(visual.means, Appearance(a.log_scales, a.quats, opacity_logits, held["colors"]))
+
+
+def hold_fraction(dt: float) -> float:
+    """The fraction of a band's departure undone over a frame of `dt` seconds."""
+    return 1.0 - (1.0 - HOLD_RATE) ** (30.0 * dt)
 
 
 def _profiled(appearance: Appearance) -> dict[str, torch.Tensor]:

@@ -93,7 +93,7 @@ class Rollout:
             then = concentration(smoke.means, before.positions[before.alive], radius, sim.config)
             appearance = appearance.diluted(then, concentration(means[:n], p, radius, sim.config))
         moved = SmokeState(state, means, appearance.cat(born)).cropped(sim.box.lo, sim.box.hi)
-        return moved if self.profile is None else self.profile.hold(moved)
+        return moved if self.profile is None else self.profile.hold(moved, dt)
 
     def _spheres(self, index: int) -> tuple[Sphere, ...]:
         if self.ball is None or index < self.ball.first_frame:

@@ -24,10 +24,10 @@ is. The search is coarse to fine (five buoyancies in log steps around one read o
 rise speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
 widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
 image estimate of `fluidcore.reconstruct.source_estimate.estimate_source`, resting on the same bottom
-edge, and its height half a radius either way, since a smoke edge biases both; then two finer
-buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
+edge, and its height half a radius either way, since a smoke edge biases both (a source the user
+gave stays as given: `SourceKept`); then two finer buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
 choice unless one of its own candidates beats it. The rise is scored over the whole observed
-window (MAX_FRAMES), the source over its first SOURCE_FRAMES frames, before the plume's head
+window (MAX_SECONDS), the source over its first SOURCE_SECONDS, before the plume's head
 spreads. The radius range stays narrow: given half to twice, the silhouette misfit chose 0.57x
 the true radius on dev scene D and 0.69x the rig's on ScalarFlow, and with the spreading rate
 searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F), where the image estimate is
@@ -62,19 +62,21 @@ from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.physics import Vec3
 from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES
+from fluidcore.spec.source_hint import SourceKept
 
-MAX_AGE = 45  # steps the source may have been emitting before the first observed frame
+# Windows in seconds, counted in frames at the clip's rate (`frames_in`); measured at 30 fps.
+MAX_AGE_SECONDS = 1.5  # how long the source may have been emitting before the first observed frame
 # Observed frames the misfit is measured over (the first ones): the whole window of a clip up to
 # 4 s. Over the first 45 only, ScalarFlow's misfit told buoyancy 0.5x from 0.7x drag x rise speed
 # by 0.011-0.014 (seeds 0-2), less than one seeding differs from another (0.03); over its 90
 # frames by 0.04-0.06, and 0.5x wins on D and F too (docs/bench_generalise.md, "Identification
 # from the whole window"; i22_ident_misfit_scans.json).
-MAX_FRAMES = 120
+MAX_SECONDS = 4.0
 # ... but the source's size and height are judged on the first 45 (1.5 s at 30 fps): later frames
 # show the truth's head spreading, which a column can only match with a wider inlet. Over 90
 # frames the silhouettes of F preferred its image radius to 0.8x of it (0.364 against 0.371,
 # mean of 6 seedings), over the first 45 0.8x by 0.289 against 0.336 (D: 0.343 against 0.357).
-SOURCE_FRAMES = 45
+SOURCE_SECONDS = 1.5
 MAX_EVALUATIONS = 20  # candidates rolled out per identification (ROLLOUT_SEEDS times each), all stages together
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
@@ -87,6 +89,10 @@ SOURCE_LIFTS = (-0.5, 0.5)  # then the centre moves along up from there, in radi
 SPREADING_RATES = (0.0, 0.06, 0.12)
 ROLLOUT_SEEDS = 3  # seedings of the source each candidate's misfit is averaged over (see _Search.misfit)
 REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
+
+
+# What of a given source (`fluidcore.spec.source_hint.SourceKept`) the record's `held_from_prior` names.
+KEPT_SOURCE: dict[str, tuple[str, ...]] = {"nothing": (), "center": ("source center",), "place": ("source center", "source radius")}
 
 
 class IdentificationError(InputError):
@@ -132,6 +138,11 @@ class Observation:
     def tops(self, cells: np.ndarray) -> np.ndarray:
         """(T,) height of the highest smoke cell of each frame (pixels; 0 for an empty frame)."""
         return np.where(cells.any(axis=(1, 2)), np.where(cells, self.height, 0.0).max(axis=(1, 2)), 0.0)
+
+
+def frames_in(seconds: float, fps: float) -> int:
+    """Frames of a clip at `fps` in `seconds` (at least 1)."""
+    return max(1, round(seconds * fps))
 
 
 def buoyancy_floor(rise_speed: float, drag: float) -> float:
@@ -208,8 +219,11 @@ class _Search:
                  device: torch.device | str) -> None:
         self.observation, self.prior = observation, prior
         self.up, self.budget, self.device = up, budget, device
-        self.frames = min(len(observation.cells), MAX_FRAMES)
-        self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (MAX_AGE + frames, gh, gw) bool
+        fps = 1.0 / prior.physics.dt
+        self.frames = min(len(observation.cells), frames_in(MAX_SECONDS, fps))
+        self.source_frames = frames_in(SOURCE_SECONDS, fps)
+        self.max_age = frames_in(MAX_AGE_SECONDS, fps)
+        self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (max_age + frames, gh, gw) bool
         self.scores: dict[tuple[Candidate, int], tuple[float, int]] = {}
 
     def has_room(self, candidate: Candidate) -> bool:
@@ -218,7 +232,7 @@ class _Search:
 
     def misfit(self, candidate: Candidate, frames: int | None = None) -> tuple[float, int]:
         """(least misfit over the plume ages, that age) of one candidate over the first `frames`
-        observed frames (default: all of them, up to MAX_FRAMES). The misfit of each age is
+        observed frames (default: all of them, up to MAX_SECONDS). The misfit of each age is
         averaged over ROLLOUT_SEEDS seedings of the source: one seeding's misfit has a spread of
         0.005-0.016 over seeds (six seedings of three source sizes on D and F), more than the 0.004
         by which ScalarFlow's seed 0 once preferred buoyancy 0.27 to 0.19 (docs/bench_generalise.md,
@@ -234,6 +248,21 @@ class _Search:
             self.scores[(key, frames)] = (float(scores[age]), age)
         return self.scores[(key, frames)]
 
+    def tried(self) -> dict[str, tuple[float, float]]:
+        """The least and greatest value of each parameter the rolled-out candidates tried, for the
+        parameters the search varied: whether the choice sits on an end of what was searched
+        (fluidcore.health). Buoyancy in world units / s^2, the source's radius and its centre's
+        height along up in world units, the spreading rate db/dz, the plume's age in frames."""
+        place, up = self.prior.place, self.up
+        values = {
+            "buoyancy": [c[0] for c in self.rollouts],
+            "source_radius": [place.radius * c[2] for c in self.rollouts],
+            "source_height": [float(np.dot(place.center, up)) + c[1] * place.radius for c in self.rollouts],
+            "entrainment": [c[3] for c in self.rollouts],
+        }
+        ranges = {name: (min(v), max(v)) for name, v in values.items() if v and max(v) > min(v)}
+        return {**ranges, "age": (0.0, float(self.max_age))}
+
     def scene(self, candidate: Candidate) -> Scene:
         """The scene a candidate simulates (inflow at its terminal speed)."""
         buoyancy, lift, radius_factor, spreading = candidate
@@ -246,23 +275,23 @@ class _Search:
         return self.prior.scene(config, SourcePlace(tuple(float(c) for c in center), radius), rate, speed * self.up)
 
     def _simulate(self, scene: Scene) -> np.ndarray:
-        """(MAX_AGE + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
+        """(max_age + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
         after each step (index k = after k + 1 steps)."""
         simulator = build_simulator(scene, device=self.device)
         state = simulator.new_state()
         projected = []
-        for _ in range(MAX_AGE + self.frames):
+        for _ in range(self.max_age + self.frames):
             simulator.step(state)
             projected.append(self.observation.project(state.positions[state.alive].cpu().numpy().astype(np.float64)))
         return np.stack(projected)
 
     def _age_scores(self, simulated: np.ndarray, frames: int) -> np.ndarray:
-        """(MAX_AGE + 1,) misfit of one rollout over the first `frames` observed frames, per plume age."""
+        """(max_age + 1,) misfit of one rollout over the first `frames` observed frames, per plume age."""
         observed = self.observation.cells[:frames]
         simulated_tops, observed_tops = self.observation.tops(simulated), self.observation.tops(observed)
         extent = max(float(self.observation.height.max()), 1.0)
-        scores = np.empty(MAX_AGE + 1)
-        for age in range(MAX_AGE + 1):
+        scores = np.empty(self.max_age + 1)
+        for age in range(self.max_age + 1):
             window = simulated[age : age + frames]
             union = (window | observed).sum(axis=(1, 2))
             inter = (window & observed).sum(axis=(1, 2))
@@ -287,6 +316,7 @@ def identify(
     budget: int,
     device: torch.device | str = "cpu",
     spreading_rates: Sequence[float] = SPREADING_RATES,
+    keep: SourceKept = "nothing",
 ) -> IdentifiedRecord:
     """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
 
@@ -295,7 +325,8 @@ def identify(
     buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
     not pin it down. `prior` is the scene to start from (the preset in this scene's units, the estimated
     source's place); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
-    spreading rates tried, the first one before the others (`(0.0,)`: no entrainment).
+    spreading rates tried, the first one before the others (`(0.0,)`: no entrainment). `keep`:
+    what of the prior's source the user gave and the search leaves as it is (`SourceKept`).
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
@@ -312,21 +343,25 @@ def identify(
     spreading = best[3]
     # A resized source keeps resting on the smoke's bottom edge (source_estimate.source_in_view): its centre
     # moves up by (size - 1) radii; only then is the height searched on its own. Both over the
-    # first SOURCE_FRAMES frames only (see there).
-    best = _best(search, best, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor, SOURCE_FRAMES)
-    a, lift, size, _ = best
-    best = _best(search, best, [(a, lift + step, size, spreading) for step in SOURCE_LIFTS], floor, SOURCE_FRAMES)
+    # first SOURCE_SECONDS only (see there).
+    if keep == "nothing":
+        best = _best(search, best, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor, search.source_frames)
+        a, lift, size, _ = best
+        best = _best(search, best, [(a, lift + step, size, spreading) for step in SOURCE_LIFTS], floor, search.source_frames)
+    elif keep == "center":  # a radius measured around the given centre, which stays
+        best = _best(search, best, [(a, 0.0, size, spreading) for size in SOURCE_SIZES], floor, search.source_frames)
     for step in REFINE:
         a, lift, size, spreading = best
         best = _best(search, best, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
     misfit, age = search.misfit(best)
     fitted = search.scene(best).source
+    held = ("drag", "rho0", *KEPT_SOURCE[keep])
     record = IdentificationPrior(preset=prior.preset, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
-                                 held_from_prior=("drag", "rho0"), inflow_speed="buoyancy / drag", budget=budget,
-                                 source=place)
+                                 held_from_prior=held, inflow_speed="buoyancy / drag", budget=budget, source=place)
     return IdentifiedRecord(buoyancy=max(best[0], floor), inflow_speed=float(np.dot(fitted.velocity, up_v)), rate=fitted.rate,
                             age=age, misfit=misfit, rise_speed=speed_obs, floor=floor, evaluations=len(search.rollouts),
-                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=record)
+                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=record,
+                            tried=search.tried())
 
 
 def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], floor: float,

@@ -244,7 +244,7 @@ def prepare(
     first = targets[0]
     prior = scene_prior(physics, sim_box, up_v, fps, place, Air(quality.simulation.air_cells, quality.simulation.air_vorticity), quality.seed)
     chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
-                           device=device)
+                           keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device)
     center = np.asarray(chosen.scene.source.center)
     pseudo, symmetry = [], None
     priors = quality.priors
@@ -272,7 +272,7 @@ def prepare(
         stabilization_steps=chosen.stabilization_steps,
         symmetry=symmetry,
         flow=flow,
-        source_hint=None if source is None else SourceHint(center=source.center, radius=source.radius),
+        source_hint=source if isinstance(source, SourceHint) or source is None else SourceHint(center=source.center, radius=source.radius),
         source_estimate=estimate_record,
     )
 

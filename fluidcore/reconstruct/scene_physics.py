@@ -17,16 +17,22 @@ import torch
 
 from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box
-from fluidcore.reconstruct.identify import SPREADING_RATES, Observation, ScenePrior, identify, inlet_rate, with_buoyancy
+from fluidcore.reconstruct.identify import (SPREADING_RATES, Observation, ScenePrior, frames_in, identify, inlet_rate,
+                                            with_buoyancy)
 from fluidcore.reconstruct.views import ViewTarget
 from fluidcore.runs import PhysicsRecord
 from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES
+from fluidcore.spec.source_hint import SourceKept
 
 KERNEL_RADII_PER_BOX = 37.5  # resolution: the scene box's height spans this many kernel radii
 KERNEL_RADIUS_SIM = 2.0  # h in the presets' simulation units (the release: 0.02 world = 2 units), so
 # length_scale = 2 / h converts a preset's alpha; an identified buoyancy is in world units already
-PRESET_STABILIZATION_STEPS = 20  # the paper's N_stable, used when the physics is not identified
+PRESET_STABILIZATION_SECONDS = 20 / 30  # the paper's N_stable of 20 steps at 30 fps, used when the physics is not identified
+# The quality's particle budget (`FitConfig.particles_per_frame`) is per frame of a 30 fps clip: the
+# inflow's cap is that many particles per 1/30 s at any frame rate, so a 25 or 60 fps clip of the
+# same smoke seeds the same particles per second (and the fit the same particles per second of video).
+BUDGET_FPS = 30.0
 
 
 def inflow_rate_speed(terminal_speed: float, rise_speed: float) -> float:
@@ -46,6 +52,11 @@ def inflow_rate_speed(terminal_speed: float, rise_speed: float) -> float:
     if not math.isfinite(rise_speed):
         return terminal_speed
     return max(terminal_speed, rise_speed)
+
+
+def frame_budget(particles_per_frame: int, fps: float) -> int:
+    """The inflow's cap per frame of a clip at `fps`: the quality's budget per 1/BUDGET_FPS s."""
+    return max(1, round(particles_per_frame * BUDGET_FPS / fps))
 
 
 class PhysicsChoiceError(InputError):
@@ -89,6 +100,7 @@ def scene_physics(
     *,
     budget: int,
     entrainment: bool,
+    keep_source: SourceKept = "nothing",
     device: torch.device | str = "cpu",
 ) -> ScenePhysics:
     """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
@@ -98,13 +110,15 @@ def scene_physics(
     units, so no length scale of another dataset enters them; a preset name keeps that preset's
     buoyancy (the paper's setting for its datasets). `entrainment`: whether the
     identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's
-    column. The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
-    carries at rest density (`inlet_rate`, capped by `budget`) at the faster of that speed and
+    column. `keep_source`: what of the prior's source the user gave and the identification keeps.
+    The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
+    carries at rest density (`inlet_rate`, capped by `budget` per 1/30 s: `frame_budget`) at the faster of that speed and
     the rise speed of the observed smoke (`inflow_rate_speed`).
     """
     from fluidcore.reconstruct.images import smoke_mask
 
     up, h, place = np.asarray(prior.up), prior.physics.h, prior.place
+    budget = frame_budget(budget, 1.0 / prior.physics.dt)
     found = None
     observed_rise = 0.0  # a preset's inlet is filled at its own terminal speed
     if prior.mode == "auto":
@@ -114,13 +128,13 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, budget, device, SPREADING_RATES if entrainment else (0.0,))
+        found = identify(observation, prior, budget, device, SPREADING_RATES if entrainment else (0.0,), keep_source)
         config = replace(with_buoyancy(prior.physics, found.buoyancy, up), entrainment=found.entrainment)
         place = SourcePlace(tuple(found.source_center), found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps
         observed_rise = found.rise_speed
     else:
-        config, steps = prior.physics, PRESET_STABILIZATION_STEPS
+        config, steps = prior.physics, frames_in(PRESET_STABILIZATION_SECONDS, 1.0 / prior.physics.dt)
     buoyancy = float(np.dot(config.body_acceleration, up))
     speed = config.terminal_speed
     carried = inflow_rate_speed(speed, observed_rise)

@@ -81,7 +81,7 @@ class FitBudget(BaseModel):
     appearance_iterations: Int = Field(ge=1)
     first_frame_factor: Int = Field(ge=1)  # frame 0 starts from a simulated blob: give it this many times more
     coarse_to_fine: tuple[Annotated[float, Strict(), Field(gt=0.0, le=1.0)], ...] = Field(min_length=1)
-    particles_per_frame: Int = Field(ge=1)  # physical particles the source seeds per step
+    particles_per_frame: Int = Field(ge=1)  # most particles the source seeds per 1/30 s (per frame at 30 fps; scene_physics.frame_budget)
 
     @model_validator(mode="after")
     def _coarse_first(self) -> FitBudget:

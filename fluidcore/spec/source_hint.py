@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -19,6 +20,11 @@ from fluidcore.errors import InputError
 from fluidcore.spec.scene import SourcePlace
 
 Vec3 = tuple[float, float, float]
+# What of a source the user gave the identification keeps as given (issue 33: D's true radius 0.035,
+# given, became 0.028): "place" a whole source, "center" a centre whose radius the input view
+# measured (the size is still chosen, around that centre), "nothing" an estimated source or a hint
+# the user asked to refine (`SourceHint.refine`).
+SourceKept = Literal["nothing", "center", "place"]
 
 
 class SourceHintError(InputError):
@@ -27,13 +33,21 @@ class SourceHintError(InputError):
 
 class SourceHint(BaseModel):
     """The source's centre (world units, the cameras' frame) and, optionally, its radius; without
-    a radius it is measured from the input view at that centre's depth. Identification still
-    refines the height and size around it (`fluidcore.reconstruct.identify`)."""
+    a radius it is measured from the input view at that centre's depth. The identification keeps
+    what the user gave as given (`fluidcore.reconstruct.identify.SourceKept`), and chooses a
+    measured radius around the centre; `refine` lets it move the centre and resize the source
+    too, as it does an estimated one."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     center: Vec3
     radius: float | None = Field(default=None, gt=0.0)
+    refine: bool = False
+
+    @property
+    def kept(self) -> SourceKept:
+        """What of it the identification keeps (`SourceKept`)."""
+        return "nothing" if self.refine else ("center" if self.radius is None else "place")
 
     @property
     def place(self) -> SourcePlace | None:
@@ -50,8 +64,8 @@ class SourceHint(BaseModel):
             raise SourceHintError(f"source.radius {self.radius} is larger than the scene box")
 
 
-def parse_source(text: str) -> SourceHint:
-    """`X,Y,Z` or `X,Y,Z,R` (world units) from the command line."""
+def parse_source(text: str, refine: bool = False) -> SourceHint:
+    """`X,Y,Z` or `X,Y,Z,R` (world units) from the command line; `refine`: --refine-source."""
     try:
         values = [float(part) for part in text.split(",")]
     except ValueError:
@@ -59,6 +73,6 @@ def parse_source(text: str) -> SourceHint:
     if len(values) not in (3, 4) or not all(math.isfinite(v) for v in values):
         raise SourceHintError(f"--source: expected X,Y,Z or X,Y,Z,R in world units, got {text!r}")
     try:
-        return SourceHint(center=tuple(values[:3]), radius=values[3] if len(values) == 4 else None)
+        return SourceHint(center=tuple(values[:3]), radius=values[3] if len(values) == 4 else None, refine=refine)
     except ValueError as exc:
         raise SourceHintError(f"--source {text}: the radius must be positive") from exc

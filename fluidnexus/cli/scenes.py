@@ -77,7 +77,11 @@ def reconstruct(
     quality: str = typer.Option(DEFAULT_QUALITY, "--quality", help=QUALITY_HELP),
     physics: str = typer.Option(DEFAULT_PHYSICS, "--physics", help=" | ".join(PHYSICS_MODES) + ": identified from the video, or a preset"),
     source: str | None = typer.Option(
-        None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view cannot tell its depth."
+        None, "--source", help="X,Y,Z[,R]: the smoke source's centre (and radius) in world units, when known; one view "
+        "cannot tell its depth. Kept as given (a radius left out is measured around the centre).",
+    ),
+    refine_source: bool = typer.Option(
+        False, "--refine-source", help="Let the identification move and resize the --source, as it does an estimated one."
     ),
     background_frames: str | None = typer.Option(
         None, "--background-frames",
@@ -108,9 +112,11 @@ def reconstruct(
     from fluidcore.spec.jobs import job_params
 
     with user_errors():
+        if refine_source and source is None:
+            raise UserError("--refine-source refines a --source: give one")
         params = job_params(  # the API's reconstruct params: one check, one message naming the field
             ReconstructParams, quality=quality, physics=physics, frames=parse_frames(frames),
-            source=None if source is None else parse_source(source), air_cells=air_cells, air_vorticity=air_vorticity,
+            source=None if source is None else parse_source(source, refine_source), air_cells=air_cells, air_vorticity=air_vorticity,
             entrainment=entrainment, background_frames=parse_frames(background_frames, "--background-frames"),
             world_up=world_up,
         )

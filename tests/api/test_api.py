@@ -227,7 +227,9 @@ def test_a_source_hint_is_checked_against_the_capture_box(service: Service, tmp_
     assert service.queue.sent == []
     created = reconstruct(service, alice, scene_id, source={"center": inside, "radius": 0.05})
     assert created.status_code == 202, created.text
-    assert created.json()["params"]["source"] == {"center": inside, "radius": 0.05}
+    assert created.json()["params"]["source"] == {"center": inside, "radius": 0.05, "refine": False}  # kept as given
+    refined = reconstruct(service, alice, scene_id, source={"center": inside, "refine": True})
+    assert refined.status_code == 202 and refined.json()["params"]["source"]["refine"] is True
 
 
 def test_reconstruct_takes_the_simulated_air_and_the_spreading(service: Service, scene_id: str) -> None:

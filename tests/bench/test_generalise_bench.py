@@ -307,7 +307,7 @@ def test_bench_source_identifies_once_per_seed_and_refuses_bad_seeds(synth_dir: 
 
 def test_bench_gives_the_reconstruction_a_source_when_asked_and_refuses_what_it_cannot_use(synth_dir: Path, tmp_path: Path) -> None:
     """`--source X,Y,Z,R` (the issue's "with the true source given" diagnostic): the reconstruction
-    starts from that source (the identification keeps its centre across the up axis), and the JSON
+    starts from that source, kept as given, and the JSON
     says what was given; a malformed source, or one with --reconstruction (which has its own), is
     a usage error (exit code 2)."""
     from typer.testing import CliRunner
@@ -321,9 +321,8 @@ def test_bench_gives_the_reconstruction_a_source_when_asked_and_refuses_what_it_
     result = runner.invoke(app, [*base, "--source", ",".join(map(str, (*center, 0.05))), "--out", str(tmp_path / "runs"), "--json"])
     assert result.exit_code == 0, result.output
     out = json.loads(result.stdout)
-    assert out["source_given"] == {"center": list(center), "radius": 0.05}
-    used = out["source"]["center"]
-    assert used[0] == pytest.approx(center[0]) and used[2] == pytest.approx(center[2])
+    assert out["source_given"] == {"center": list(center), "radius": 0.05, "refine": False}
+    assert out["source"]["center"] == pytest.approx(list(center)) and out["source"]["radius"] == pytest.approx(0.05)
     for bad in (["--source", "1,2"], ["--source", "0,0,0,-1"], ["--source", "0,0,0", "--reconstruction", str(tmp_path / "runs" / "reconstruct")]):
         refused = runner.invoke(app, [*base, *bad])
         assert refused.exit_code == 2 and "source" in refused.output, (bad, refused.output)

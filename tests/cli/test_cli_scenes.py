@@ -96,6 +96,7 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--quality", "ultra", "--out", str(tmp_path / "r")], "quality")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--source", "0,1", "--out", str(tmp_path / "r")], "--source")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--source", "9,9,9", "--out", str(tmp_path / "r")], "outside the scene box")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--refine-source", "--out", str(tmp_path / "r")], "give one")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "4", "--out", str(tmp_path / "r")], "air_cells must be 0")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-vorticity", "0.5", "--out", str(tmp_path / "r")], "needs the simulated air")
     assert not (tmp_path / "r").exists()

@@ -176,6 +176,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Smoke source: expected x, y, z")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
     source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
+    page.get_by_label("Let the fit move and resize this source").check()  # ... roughly
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     plate = page.get_by_label("Background plate")
     plate.fill("5:2")  # a plate's frames the wrong way round: refused before anything is sent
@@ -205,7 +206,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sync_api.expect(page.locator("#notice")).to_contain_text("uploaded; reconstruction", timeout=SERVER_MS)
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
-    assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05} and sent["physics"] == "auto"
+    assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05, "refine": True} and sent["physics"] == "auto"
     assert (sent["air_cells"], sent["entrainment"], sent["world_up"]) == (8, True, "+y")
     sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction

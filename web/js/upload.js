@@ -260,7 +260,7 @@ function reconstructParams() {
   if (air > 0) params.air_cells = air;
   if ($("entrainment").checked) params.entrainment = true;
   const source = parseSource($("source").value).value;
-  if (source) params.source = source;
+  if (source) params.source = $("source-refine").checked ? { ...source, refine: true } : source;
   const plate = parseFrameSpan($("background-frames").value).value;
   if (plate) params.background_frames = plate;
   if ($("world-up").value) params.world_up = $("world-up").value;
@@ -276,6 +276,7 @@ function reset() {
   $("upload-files").value = "";
   $("scene-name").value = "";
   $("source").value = "";
+  $("source-refine").checked = false;
   $("background-frames").value = "";
   $("world-up").value = "";
   $("fov").value = "";

@@ -93,7 +93,7 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
     reconstruction = Run.open(parent)
     identification.calibrate_buoyancy(reconstruction, reconstruction.scene, reconstruction.frames()[-1], "cpu")
     once = calls["step"]  # the one-off identification of the buoyancy, not a per-frame cost
-    assert 0 < once <= len(identification.BUOYANCY_SCALES) * identification.CALIBRATION_FRAMES
+    assert 0 < once <= len(identification.BUOYANCY_SCALES) * identification.calibration_frames(reconstruction.scene.physics.dt)
     calls["step"] = 0
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert calls == {"step": once + FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts
@@ -333,7 +333,7 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
     profile = priors.HeightProfile.observe(observed, (0.0, 1.0, 0.0), bands=4)
     # The simulation carried dark smoke up: every Gaussian 0.1 darker than its height's colour.
     risen = _visual(heights, 0.1 + 0.6 * heights + 0.01 * torch.randn(400, generator=generator))
-    held = profile.hold(risen)
+    held = profile.hold(risen, 1 / 30)
     band = torch.bucketize(heights, torch.tensor(profile.edges[1:-1], dtype=heights.dtype))
     for b in range(4):
         inside = band == b
@@ -343,7 +343,10 @@ def test_the_height_profile_pulls_each_bands_mean_colour_back_and_keeps_the_spre
         spread = held.appearance.colors[inside, 0] - risen.appearance.colors[inside, 0]
         assert torch.allclose(spread, spread[0].expand_as(spread), atol=1e-6)  # one shift per band
     for _ in range(60):  # held frame after frame, the band means converge to the profile's
-        held = profile.hold(held)
+        held = profile.hold(held, 1 / 30)
+    # in seconds: two frames at 60 fps hold as much as one at 30
+    twice = profile.hold(profile.hold(risen, 1 / 60), 1 / 60)
+    torch.testing.assert_close(twice.appearance.colors, profile.hold(risen, 1 / 30).appearance.colors, atol=1e-5, rtol=0)
     for b in range(4):
         inside = band == b
         assert torch.isclose(held.appearance.colors[inside].mean(), observed.appearance.colors[inside].mean(), atol=1e-4)

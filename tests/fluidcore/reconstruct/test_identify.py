@@ -21,13 +21,14 @@ from typer.testing import CliRunner
 from fluidcore import synth
 from fluidcore.reconstruct import prepare, read_inputs
 from fluidcore.reconstruct import scene_physics
-from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_FRAMES, Observation, ScenePrior, _Search,
-                                           buoyancy_floor, identify, inlet_rate, rise_speed)
+from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_SECONDS, Observation, ScenePrior, _Search,
+                                           buoyancy_floor, frames_in, identify, inlet_rate, rise_speed)
 from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
 from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import Air, SourcePlace
+from fluidcore.spec.source_hint import SourceHint
 
 INPUT = "view_00"
 
@@ -224,12 +225,13 @@ def test_misfit_is_averaged_over_source_seedings(rising: synth.SynthScene) -> No
 
 
 def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.SynthScene) -> None:
-    """Widening the smoke of the frames after SOURCE_FRAMES (as a spreading head does) moves the
+    """Widening the smoke of the frames after SOURCE_SECONDS (as a spreading head does) moves the
     identified buoyancy, which reads the whole window, but not the source's size or height."""
     spec = rising.spec
     observation, source = _silhouettes(rising, 0.12, frames=90)
     widened = replace(observation, cells=observation.cells.copy())
-    widened.cells[SOURCE_FRAMES:] = ndimage.binary_dilation(widened.cells[SOURCE_FRAMES:], iterations=2)
+    first = frames_in(SOURCE_SECONDS, spec.fps)
+    widened.cells[first:] = ndimage.binary_dilation(widened.cells[first:], iterations=2)
     found = [identify(o, _prior(spec, source), spec.particles_per_step, spreading_rates=(0.0,))
              for o in (observation, widened)]
     assert found[0].buoyancy != found[1].buoyancy
@@ -261,3 +263,26 @@ def test_the_inlet_seeds_the_smoke_volume_the_video_shows(rising: synth.SynthSce
     assert rec.scene.source.rate > 2 * inlet_rate(source.radius, speed, rec.scene.physics, budget)  # three times the speed, so three times the count
     preset = _prepare(rising, "scalarflow", particles_per_frame=budget)
     assert preset.settings().physics.inflow_rate_speed == preset.scene.physics.terminal_speed
+
+
+def test_a_source_the_user_gave_is_kept_as_given(rising: synth.SynthScene) -> None:
+    """A whole source the user gave stays where and as large as they said; a centre alone stays
+    where they said, its measured radius still chosen; asked to refine it (or estimated) the
+    identification moves and resizes it. The record names what it kept."""
+    spec = rising.spec
+    observation, source = _silhouettes(rising, 0.0)
+    given = SourcePlace((source.center[0], source.center[1] + 0.02, source.center[2]), 0.6 * source.radius)  # off the truth
+    prior = replace(_prior(spec, source), place=given)
+    found = {keep: identify(observation, prior, spec.particles_per_step, spreading_rates=(0.0,), keep=keep)
+             for keep in ("place", "center", "nothing")}
+    assert found["place"].source_center == given.center and found["place"].source_radius == given.radius
+    assert found["place"].prior.held_from_prior == ("drag", "rho0", "source center", "source radius")
+    assert found["center"].source_center == given.center and found["center"].source_radius != given.radius
+    assert found["center"].prior.held_from_prior == ("drag", "rho0", "source center")
+    assert found["nothing"].source_center != given.center and found["nothing"].prior.held_from_prior == ("drag", "rho0")
+    # the ranges searched are recorded (fluidcore.health names a value on their ends): only what varied
+    assert {"source_radius", "source_height"} <= set(found["nothing"].tried) and "source_radius" not in found["place"].tried
+    lo, hi = found["nothing"].tried["buoyancy"]
+    assert lo <= found["nothing"].buoyancy <= hi and lo < hi
+    assert (SourceHint(center=(0, 0, 0), radius=0.1).kept, SourceHint(center=(0, 0, 0)).kept,
+            SourceHint(center=(0, 0, 0), radius=0.1, refine=True).kept) == ("place", "center", "nothing")
