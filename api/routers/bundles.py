@@ -16,7 +16,7 @@ from fastapi import APIRouter, HTTPException, Response, status
 from sqlalchemy.orm import Session
 
 from api.deps import OwnerDep, QueueDep, SessionDep, SettingsDep, StorageDep
-from api.errors import error_responses
+from api.errors import StrictJSONRoute, error_responses
 from api.schemas import BundleList, BundleOut
 from api.views import artifact_out, job_out
 from fluidcore.exports import BundlePlan, bundle_voxel_size, default_frames, plan_bundle
@@ -29,7 +29,7 @@ from service.runs import stored_run
 from service.settings import Settings
 from service.storage import Storage
 
-router = APIRouter(prefix="/v1/jobs", tags=["bundles"], responses=error_responses(401, 422, 503))
+router = APIRouter(prefix="/v1/jobs", tags=["bundles"], route_class=StrictJSONRoute, responses=error_responses(401, 422, 503))
 
 
 @router.get("/{job_id}/bundles", response_model=BundleList, responses=error_responses(404, 409))

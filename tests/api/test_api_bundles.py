@@ -144,3 +144,14 @@ def test_bundles_belong_to_their_job_and_come_once_it_succeeded(service: Service
     assert created.status_code == 422  # asked for at /bundles, where a stored bundle is served without one
     deleted = service.client.delete(f"/v1/jobs/{job}", headers=alice)
     assert deleted.status_code == 409 and "being made" in deleted.json()["detail"]
+
+
+def test_a_bundle_body_that_is_not_json_is_a_422(service: Service, plume: tuple[str, Run]) -> None:
+    """As every JSON route (api.errors.StrictJSONRoute): a body that does not parse is a 422, not an
+    undocumented 400 (the schema fuzzer's case: one byte 0xff)."""
+    job, _ = plume
+    alice = {**service.key("alice"), "Content-Type": "application/json"}
+    for body in (b"\xff", b'{"format": NaN}'):
+        refused = service.client.post(f"/v1/jobs/{job}/bundles", content=body, headers=alice)
+        assert refused.status_code == 422, refused.text
+    assert _bundle_jobs(service, job) == []
