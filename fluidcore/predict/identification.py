@@ -34,7 +34,7 @@ def calibrate_buoyancy(
     is scored by the mean squared distance, over every frame of the window, between simulated and
     reconstructed positions of the particles alive in both. Returns (scale, error per scale).
     """
-    window = calibration_frames(scene.physics.dt)
+    window = scene.physics.frames_in(CALIBRATION_SECONDS)
     frames = [t for t in parent.frames() if start_frame - window <= t <= start_frame]
     if len(frames) < 2 or frames != list(range(frames[0], start_frame + 1)):
         return 1.0, {}
@@ -51,11 +51,6 @@ def calibrate_buoyancy(
         errors[f"{scale:g}"] = total / len(targets)
     best = min(scales, key=lambda scale: errors[f"{scale:g}"])
     return float(best), errors
-
-
-def calibration_frames(dt: float) -> int:
-    """Frames in CALIBRATION_SECONDS of a clip whose frames are `dt` s apart (at least 1)."""
-    return max(1, round(CALIBRATION_SECONDS / dt))
 
 
 def _tracking_error(state: ParticleState, tracked: torch.Tensor, target: FrameState) -> float:

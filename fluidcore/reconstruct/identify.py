@@ -64,7 +64,7 @@ from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES
 from fluidcore.spec.source_hint import SourceKept
 
-# Windows in seconds, counted in frames at the clip's rate (`frames_in`); measured at 30 fps.
+# Windows in seconds, counted in frames at the clip's rate (`PBFConfig.frames_in`); measured at 30 fps.
 MAX_AGE_SECONDS = 1.5  # how long the source may have been emitting before the first observed frame
 # Observed frames the misfit is measured over (the first ones): the whole window of a clip up to
 # 4 s. Over the first 45 only, ScalarFlow's misfit told buoyancy 0.5x from 0.7x drag x rise speed
@@ -138,11 +138,6 @@ class Observation:
     def tops(self, cells: np.ndarray) -> np.ndarray:
         """(T,) height of the highest smoke cell of each frame (pixels; 0 for an empty frame)."""
         return np.where(cells.any(axis=(1, 2)), np.where(cells, self.height, 0.0).max(axis=(1, 2)), 0.0)
-
-
-def frames_in(seconds: float, fps: float) -> int:
-    """Frames of a clip at `fps` in `seconds` (at least 1)."""
-    return max(1, round(seconds * fps))
 
 
 def buoyancy_floor(rise_speed: float, drag: float) -> float:
@@ -219,10 +214,9 @@ class _Search:
                  device: torch.device | str) -> None:
         self.observation, self.prior = observation, prior
         self.up, self.budget, self.device = up, budget, device
-        fps = 1.0 / prior.physics.dt
-        self.frames = min(len(observation.cells), frames_in(MAX_SECONDS, fps))
-        self.source_frames = frames_in(SOURCE_SECONDS, fps)
-        self.max_age = frames_in(MAX_AGE_SECONDS, fps)
+        self.frames = min(len(observation.cells), prior.physics.frames_in(MAX_SECONDS))
+        self.source_frames = prior.physics.frames_in(SOURCE_SECONDS)
+        self.max_age = prior.physics.frames_in(MAX_AGE_SECONDS)
         self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (max_age + frames, gh, gw) bool
         self.scores: dict[tuple[Candidate, int], tuple[float, int]] = {}
 

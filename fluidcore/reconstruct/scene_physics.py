@@ -17,8 +17,7 @@ import torch
 
 from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box
-from fluidcore.reconstruct.identify import (SPREADING_RATES, Observation, ScenePrior, frames_in, identify, inlet_rate,
-                                            with_buoyancy)
+from fluidcore.reconstruct.identify import SPREADING_RATES, Observation, ScenePrior, identify, inlet_rate, with_buoyancy
 from fluidcore.reconstruct.views import ViewTarget
 from fluidcore.runs import PhysicsRecord
 from fluidcore.spec.scene import Air, Scene, SourcePlace
@@ -134,7 +133,7 @@ def scene_physics(
         steps = found.age + 1  # identified frame t = after age + t + 1 steps
         observed_rise = found.rise_speed
     else:
-        config, steps = prior.physics, frames_in(PRESET_STABILIZATION_SECONDS, 1.0 / prior.physics.dt)
+        config, steps = prior.physics, prior.physics.frames_in(PRESET_STABILIZATION_SECONDS)
     buoyancy = float(np.dot(config.body_acceleration, up))
     speed = config.terminal_speed
     carried = inflow_rate_speed(speed, observed_rise)

@@ -133,6 +133,10 @@ class PBFConfig:
         """Largest particle speed (world units / s): a particle never moves more than this * dt per step."""
         return self.max_speed if self.max_speed is not None else self.h / self.dt
 
+    def frames_in(self, seconds: float) -> int:
+        """Frames of dt in `seconds` (at least 1): a window stated in seconds, at this clip's rate."""
+        return max(1, round(seconds / self.dt))
+
     def substep(self, count: int) -> PBFConfig:
         """This physics stepped `count` times per frame: dt / count, and with it the speed limit
         h / (dt / count) (`fluidcore.physics.step.substeps` chooses the count)."""

@@ -93,7 +93,7 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
     reconstruction = Run.open(parent)
     identification.calibrate_buoyancy(reconstruction, reconstruction.scene, reconstruction.frames()[-1], "cpu")
     once = calls["step"]  # the one-off identification of the buoyancy, not a per-frame cost
-    assert 0 < once <= len(identification.BUOYANCY_SCALES) * identification.calibration_frames(reconstruction.scene.physics.dt)
+    assert 0 < once <= len(identification.BUOYANCY_SCALES) * reconstruction.scene.physics.frames_in(identification.CALIBRATION_SECONDS)
     calls["step"] = 0
     run = Run.open(job.run_predict(parent, tmp_path / "pred", frames=FRAMES))
     assert calls == {"step": once + FRAMES, "render": 0}  # refinement is off: rendering is left to render_artifacts

@@ -22,7 +22,7 @@ from fluidcore import synth
 from fluidcore.reconstruct import prepare, read_inputs
 from fluidcore.reconstruct import scene_physics
 from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, SOURCE_SECONDS, Observation, ScenePrior, _Search,
-                                           buoyancy_floor, frames_in, identify, inlet_rate, rise_speed)
+                                           buoyancy_floor, identify, inlet_rate, rise_speed)
 from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
 from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord
@@ -230,7 +230,7 @@ def test_the_source_is_judged_on_the_first_frames_the_rise_on_all(rising: synth.
     spec = rising.spec
     observation, source = _silhouettes(rising, 0.12, frames=90)
     widened = replace(observation, cells=observation.cells.copy())
-    first = frames_in(SOURCE_SECONDS, spec.fps)
+    first = spec.config().frames_in(SOURCE_SECONDS)
     widened.cells[first:] = ndimage.binary_dilation(widened.cells[first:], iterations=2)
     found = [identify(o, _prior(spec, source), spec.particles_per_step, spreading_rates=(0.0,))
              for o in (observation, widened)]
