@@ -91,8 +91,8 @@ def _identification(run: RunRecord) -> Check | None:
     if identified is None:
         return None
     if identified.misfit <= MAX_MISFIT:
-        return Check("identification", "ok", f"the identified plume matches the video's silhouettes (misfit {identified.misfit:.2f})",
-                     identified.misfit)
+        return Check("identification", "ok", f"the identified plume matches the video's silhouettes (misfit {identified.misfit:.2f})"
+                     f"{_searched(run)}", identified.misfit)
     return Check("identification", "warning",
                  f"the identified physics matches the video's smoke poorly (misfit {identified.misfit:.2f}, healthy runs "
                  f"below {MAX_MISFIT:g}): predictions and what-ifs inherit it; give the source (--source X,Y,Z,R) or a "
@@ -109,16 +109,17 @@ PHYSICAL_ENDS = {("age", "lowest"), ("entrainment", "lowest")}
 
 def _on_bounds(run: RunRecord) -> Check | None:
     """The identified parameters that sit on an end of the range the identification searched
-    (`IdentifiedRecord.tried`): there the search's limits, not the video, decided them. A run
-    written before the ranges were recorded gets the buoyancy floor's note alone."""
+    (`IdentifiedRecord.bounds`; a run written before them: the range its grid tried,
+    `IdentifiedRecord.tried`): there the search's limits, not the video, decided them. A run
+    written before either gets the buoyancy floor's note alone."""
     identified = run.settings.physics.identified
     if identified is None:
         return None
     floor = math.isclose(identified.buoyancy, identified.floor, rel_tol=1e-6)
-    ends = [_end(name, value, identified.tried[name]) for name, value in _identified_values(run).items()
-            if identified.tried is not None and name in identified.tried]
+    limits = _limits(run)
+    ends = [_end(name, value, limits[name]) for name, value in _identified_values(run).items() if name in limits]
     ends = [end for end in ends if end is not None]
-    if floor and identified.tried is None:
+    if floor and not limits:
         ends = [f"buoyancy {identified.buoyancy:.3g}"]
     if not ends:
         return None
@@ -127,6 +128,24 @@ def _on_bounds(run: RunRecord) -> Check | None:
     return Check("identification bounds", "note",
                  f"identified on an end of the range searched: {'; '.join(ends)}{why}. A source you know "
                  "(--source X,Y,Z,R) is kept as given", float(len(ends)))
+
+
+def _limits(run: RunRecord) -> dict[str, tuple[float, float]]:
+    """Per identified parameter, the range searched (see `_on_bounds`); empty for the oldest runs."""
+    identified = run.settings.physics.identified
+    assert identified is not None
+    return identified.bounds or identified.tried or {}
+
+
+def _searched(run: RunRecord) -> str:
+    """": buoyancy 0.29 (searched 0.035-14), ..." for a run that recorded its search's bounds."""
+    identified = run.settings.physics.identified
+    assert identified is not None
+    if identified.bounds is None:
+        return ""
+    values = _identified_values(run)
+    return ": " + ", ".join(f"{BOUND_NAMES[name]} {values[name]:.3g} (searched {lo:.3g}-{hi:.3g})"
+                            for name, (lo, hi) in identified.bounds.items() if name in values)
 
 
 def _identified_values(run: RunRecord) -> dict[str, float]:
@@ -139,12 +158,12 @@ def _identified_values(run: RunRecord) -> dict[str, float]:
 
 
 def _end(name: str, value: float, tried: tuple[float, float]) -> str | None:
-    """"NAME VALUE (the lowest tried of LO-HI)" when value is at an end of `tried`, else None."""
+    """"NAME VALUE (the lowest searched of LO-HI)" when value is at an end of `tried` (the range searched), else None."""
     lo, hi = tried
     scale = max(abs(lo), abs(hi), 1e-12)
     for end, word in ((lo, "lowest"), (hi, "highest")):
         if (name, word) not in PHYSICAL_ENDS and math.isclose(value, end, rel_tol=1e-6, abs_tol=1e-9 * scale):
-            return f"{BOUND_NAMES[name]} {value:.3g} (the {word} tried of {lo:.3g}-{hi:.3g})"
+            return f"{BOUND_NAMES[name]} {value:.3g} (the {word} searched of {lo:.3g}-{hi:.3g})"
     return None
 
 

@@ -193,6 +193,8 @@ class IdentifiedRecord(BaseModel):
     # Per parameter the search varied, the least and greatest value its candidates tried (`_Search.tried`:
     # buoyancy, source_radius, source_height along up, entrainment, age in frames); None before it
     tried: dict[str, tuple[float, float]] | None = None
+    # Per parameter searched, the bounds of the search (`identify.search_space`, and the plume's age in frames); None before them
+    bounds: dict[str, tuple[float, float]] | None = None
 
 
 class PhysicsRecord(BaseModel):

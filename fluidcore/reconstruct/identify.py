@@ -2,15 +2,16 @@
 
 The dataset presets (`fluidcore.physics.PRESETS`) hold constants tuned on one capture: their
 buoyancy, in particular, sets how fast a plume rises, and a plume from another source, in
-other units or another gas rises at its own rate. Here the buoyancy (an acceleration along
-up, world units / s^2) and the age of the plume at the first frame are chosen so that the simulated plume, rendered into the input camera, covers
+other units or another gas rises at its own rate. Here the buoyancy (an acceleration along up,
+world units / s^2), the source's radius and height and the age of the plume at the first frame
+are chosen so that the simulated plume, rendered into the input camera, covers
 what the video shows frame after frame:
 
     observed    the smoke mask of every observed frame (|frame - background| above the noise),
                 pooled onto cells about one kernel radius wide;
-    simulated   the physics of this scene (box, source, kernel radius, drag and rest density of
-                the prior preset) run from an empty box; each step's particles projected into
-                the same camera mark their cells;
+    simulated   the physics of this scene (box, source, kernel radius, rest density of the prior
+                preset) run from an empty box; each step's particles projected into the same
+                camera mark their cells;
     misfit      mean over the frames of 1 - IoU(simulated cells, observed cells), plus the mean
                 distance between the simulated and observed tops of the plume (the rise, which
                 the IoU of a thin column barely sees) as a fraction of the image, averaged over
@@ -20,39 +21,43 @@ what the video shows frame after frame:
 
 Rendering by cell occupancy instead of splatting Gaussians keeps a candidate at one simulation
 per seeding (a second or two) and compares what the image fit cannot change later: where smoke
-is. The search is coarse to fine (five buoyancies in log steps around one read off the video's
-rise speed; then the plume's spreading rate, `SPREADING_RATES`: how fast the air it entrains
-widens it, `fluidcore.physics.entrainment`; then the source's radius within 0.8-1.25x of the
-image estimate of `fluidcore.reconstruct.source_estimate.estimate_source`, resting on the same bottom
-edge, and its height half a radius either way, since a smoke edge biases both (a source the user
-gave stays as given: `SourceKept`); then two finer buoyancy steps), bounded by MAX_EVALUATIONS candidates. Each stage keeps the previous stages'
-choice unless one of its own candidates beats it. The rise is scored over the whole observed
-window (MAX_SECONDS), the source over its first SOURCE_SECONDS, before the plume's head
-spreads. The radius range stays narrow: given half to twice, the silhouette misfit chose 0.57x
-the true radius on dev scene D and 0.69x the rig's on ScalarFlow, and with the spreading rate
-searched too still 0.62x on D and 0.49x on ScalarFlow (0.86x on F), where the image estimate is
-within 24% on both dev scenes.
+is. The parameters are continuous, each within wide physical bounds (`search_space`: the
+buoyancy from 0.05x to 20x drag x the video's rise speed, the source's radius half to twice the image estimate of
+`fluidcore.reconstruct.source_estimate.estimate_source` and its height a radius and a half below
+to two above it, the plume's spreading rate `fluidcore.physics.entrainment` where asked), and one
+Nelder-Mead search over the whole observed window (MAX_SECONDS) minimises the misfit within
+MAX_EVALUATIONS rollouts. The seedings are the same for every candidate, so the misfit is a
+deterministic function of the parameters. A source the user gave stays as given (`SourceKept`).
 
-The inflow speed is the terminal speed of the identified buoyancy (`identify` says why it is
-not searched on its own). The candidates' rollouts seed what their inlet carries at that speed at
-rest density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3); the reconstruction seeds the smoke volume the
-video shows leaving the inlet, at the observed rise speed where that is faster
-(`fluidcore.reconstruct.scene_physics.inflow_rate_speed` says why the two differ). Both are capped by the quality's particle budget. Drag and
-rest density stay the prior's (a silhouette says little about them); they are recorded as
-such. Smoke that rises in the video never gets zero buoyancy: candidates are positive by
-construction and `buoyancy_floor` bounds them below by the acceleration needed to hold the
-observed rise speed against drag.
+The search replaced a coarse-to-fine grid (five buoyancies, three radii, two heights, two
+refinements) whose buoyancy sat on its floor (0.5 x drag x rise speed) and whose radius sat on
+its lowest factor (0.8) on every dev scene and ScalarFlow: the grid's ends, not the video,
+chose them. Scanned without the floor, the misfit's minimum over the buoyancy lies inside the
+new bounds on D and ScalarFlow (docs/bench_generalise.md, "Continuous identification").
+
+The drag is the prior's: silhouettes fix the plume's terminal speed buoyancy / drag, not how it
+splits. Searched too (a tenth to ten times the prior's), on the synthetic plume of the tests it
+came out 1.42x the truth and the buoyancy 1.56x, their ratio within 10% of the truth's.
+
+The inflow speed is the terminal speed of the identified buoyancy (`identify` says why
+it is not searched on its own). The candidates' rollouts seed what their inlet carries at that
+speed at rest density (n0 pi r^2 v dt, n0 = 8 rho0 / h^3); the reconstruction seeds the smoke
+volume the video shows leaving the inlet, at the observed rise speed where that is faster
+(`fluidcore.reconstruct.scene_physics.inflow_rate_speed` says why the two differ). Both are
+capped by the quality's particle budget. The rest density stays the prior's (a silhouette says
+nothing of it); the record says so. Smoke that rises in the video never gets zero buoyancy: the
+buoyancy's lower bound (`buoyancy_floor`) is positive whenever the video's smoke climbs.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import torch
-from scipy import ndimage
+from scipy import ndimage, optimize
 
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
@@ -69,26 +74,21 @@ MAX_AGE_SECONDS = 1.5  # how long the source may have been emitting before the f
 # Observed frames the misfit is measured over (the first ones): the whole window of a clip up to
 # 4 s. Over the first 45 only, ScalarFlow's misfit told buoyancy 0.5x from 0.7x drag x rise speed
 # by 0.011-0.014 (seeds 0-2), less than one seeding differs from another (0.03); over its 90
-# frames by 0.04-0.06, and 0.5x wins on D and F too (docs/bench_generalise.md, "Identification
-# from the whole window"; i22_ident_misfit_scans.json).
+# frames by 0.04-0.06 (docs/bench_generalise.md, "Identification from the whole window";
+# i22_ident_misfit_scans.json). The source is judged over the same window: over 90 frames F's
+# silhouettes preferred its image radius to 0.8x of it, which the first 45 alone preferred.
 MAX_SECONDS = 4.0
-# ... but the source's size and height are judged on the first 45 (1.5 s at 30 fps): later frames
-# show the truth's head spreading, which a column can only match with a wider inlet. Over 90
-# frames the silhouettes of F preferred its image radius to 0.8x of it (0.364 against 0.371,
-# mean of 6 seedings), over the first 45 0.8x by 0.289 against 0.336 (D: 0.343 against 0.357).
-SOURCE_SECONDS = 1.5
-MAX_EVALUATIONS = 20  # candidates rolled out per identification (ROLLOUT_SEEDS times each), all stages together
+MAX_EVALUATIONS = 40  # candidates rolled out per identification (ROLLOUT_SEEDS times each)
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
-FLOOR_FRACTION = 0.5  # buoyancy floor: this fraction of drag x observed rise speed
-BUOYANCY_FACTORS = (0.25, 0.5, 1.0, 2.0, 4.0)  # stage-1 grid around the video's estimate
-SOURCE_SIZES = (0.8, 1.0, 1.25)  # source radius factors (stage 2a); why not wider: docs/bench_generalise.md, "Where the source is, measured"
-SOURCE_LIFTS = (-0.5, 0.5)  # then the centre moves along up from there, in radii of the estimate (stage 2b)
-# Spreading rates db/dz tried (stage 1b, fluidcore.physics.entrainment): MTT's 6/5 alpha_e for an
-# entrainment coefficient alpha_e of 0 (the paper's column), 0.05 and 0.1 (laboratory plumes).
-SPREADING_RATES = (0.0, 0.06, 0.12)
 ROLLOUT_SEEDS = 3  # seedings of the source each candidate's misfit is averaged over (see _Search.misfit)
-REFINE = (2.0**0.5, 2.0**0.25)  # step of each refinement stage (factor per grid step)
+# The bounds of the search (`search_space`), each relative to what the video or the prior says.
+BUOYANCY_RANGE = (0.05, 20.0)  # x drag x the observed rise speed (x the prior's buoyancy where the smoke does not climb)
+START_BUOYANCY = 0.5  # x drag x rise speed: where the search starts (the old grid's choice on every dev scene)
+RADIUS_RANGE = (0.5, 2.0)  # x the image estimate's radius
+HEIGHT_RANGE = (-1.5, 2.0)  # the centre's height along up from the estimate's, in the estimate's radii
+SPREADING_RANGE = (0.0, 0.2)  # the spreading rate db/dz (0: the paper's column; MTT's 6/5 alpha_e for alpha_e up to 0.16)
+FIRST_STEP = 0.1  # the initial simplex's step along each parameter, as a fraction of its (log) range
 
 
 # What of a given source (`fluidcore.spec.source_hint.SourceKept`) the record's `held_from_prior` names.
@@ -141,15 +141,16 @@ class Observation:
 
 
 def buoyancy_floor(rise_speed: float, drag: float) -> float:
-    """The least buoyancy a plume rising at `rise_speed` may be given (0 when it does not rise).
+    """The least buoyancy a plume rising at `rise_speed` may be given (0 when it does not rise):
+    the lower bound of the search (`search_space`).
 
-    Sparse smoke tends to the terminal speed buoyancy / drag, and an inflow's momentum is
-    gone after a few 1/drag; smoke seen rising at speed u therefore needs a buoyancy near
-    drag x u, and never zero. FLOOR_FRACTION leaves room for the inflow's share.
+    Sparse smoke tends to the terminal speed buoyancy / drag; smoke seen rising at speed u
+    therefore needs a buoyancy near drag x u, and never zero. The bound sits far below that
+    (BUOYANCY_RANGE), so the video, not the bound, decides.
     """
     if not math.isfinite(rise_speed) or rise_speed <= 0.0:
         return 0.0
-    return FLOOR_FRACTION * max(drag, 1e-3) * rise_speed
+    return BUOYANCY_RANGE[0] * max(drag, 1e-3) * rise_speed
 
 
 def rise_speed(observation: Observation, center: np.ndarray, fps: float) -> float:
@@ -176,8 +177,39 @@ def inlet_rate(radius: float, speed: float, config: PBFConfig, budget: int) -> i
     return int(min(max(round(config.inlet_capacity(radius, speed)), 1), budget))
 
 
-# (buoyancy, source lift along up in radii, source radius factor, spreading rate db/dz)
-Candidate = tuple[float, float, float, float]
+class Candidate(NamedTuple):
+    """One point of the search, in the scene's units."""
+
+    buoyancy: float  # world units / s^2 along up
+    source_radius: float  # world units
+    source_height: float  # the source centre's height along up, world units
+    entrainment: float  # the spreading rate db/dz
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """A searched parameter: its bounds (those of `Candidate`'s field of the same name) and where
+    the search starts. Positive scales are searched in log space, so a factor of two is the same
+    step anywhere in the range."""
+
+    name: str
+    lo: float
+    hi: float
+    start: float
+    log: bool
+
+    def unit(self, value: float) -> float:
+        """`value` mapped to [0, 1] over the bounds."""
+        if self.log:
+            return math.log(value / self.lo) / math.log(self.hi / self.lo)
+        return (value - self.lo) / (self.hi - self.lo)
+
+    def value(self, unit: float) -> float:
+        """The inverse of `unit`, clipped to the bounds."""
+        unit = min(max(float(unit), 0.0), 1.0)
+        if self.log:
+            return self.lo * (self.hi / self.lo) ** unit
+        return self.lo + unit * (self.hi - self.lo)
 
 
 @dataclass(frozen=True)
@@ -205,68 +237,72 @@ class ScenePrior:
         return Scene(self.box.lo, self.box.hi, self.up, physics, source, self.air)
 
 
+def search_space(prior: ScenePrior, rise: float, keep: SourceKept, spreading: bool) -> tuple[list[Parameter], Candidate]:
+    """The parameters the identification varies, with their bounds (see the module docstring),
+    and the candidate that holds the rest: what of the source the user gave (`keep`), the
+    spreading rate unless `spreading`. `rise`: the observed smoke's rise speed (`rise_speed`)."""
+    config, place = prior.physics, prior.place
+    up = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+    drag = max(config.drag, 1e-3)
+    scale = drag * rise if rise > 0.0 else max(float(np.dot(config.body_acceleration, up)), 1e-6)
+    start = START_BUOYANCY * scale if rise > 0.0 else scale
+    height = float(np.dot(place.center, up))
+    held = Candidate(start, place.radius, height, 0.0)
+    space = [Parameter("buoyancy", BUOYANCY_RANGE[0] * scale, BUOYANCY_RANGE[1] * scale, start, True)]
+    if keep in ("nothing", "center"):
+        space.append(Parameter("source_radius", RADIUS_RANGE[0] * place.radius, RADIUS_RANGE[1] * place.radius, place.radius, True))
+    if keep == "nothing":
+        space.append(Parameter("source_height", height + HEIGHT_RANGE[0] * place.radius, height + HEIGHT_RANGE[1] * place.radius,
+                               height, False))
+    if spreading:
+        space.append(Parameter("entrainment", *SPREADING_RANGE, SPREADING_RANGE[0], False))
+    return space, held
+
+
 class _Search:
-    """Rollouts of candidates (cached per candidate) scored against the observation's first
-    frames (cached per candidate and window). Each rollout simulates the prior's scene (its air
-    included) under the candidate's physics."""
+    """Rollouts of candidates (cached per candidate) scored against the observed frames (cached
+    per candidate). Each rollout simulates the prior's scene (its air included) under the
+    candidate's physics."""
 
-    def __init__(self, observation: Observation, prior: ScenePrior, up: np.ndarray, budget: int,
-                 device: torch.device | str) -> None:
-        self.observation, self.prior = observation, prior
-        self.up, self.budget, self.device = up, budget, device
+    def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str) -> None:
+        self.observation, self.prior, self.budget, self.device = observation, prior, budget, device
+        self.up = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
         self.frames = min(len(observation.cells), prior.physics.frames_in(MAX_SECONDS))
-        self.source_frames = prior.physics.frames_in(SOURCE_SECONDS)
         self.max_age = prior.physics.frames_in(MAX_AGE_SECONDS)
-        self.rollouts: dict[Candidate, list[np.ndarray]] = {}  # per seeding: (max_age + frames, gh, gw) bool
-        self.scores: dict[tuple[Candidate, int], tuple[float, int]] = {}
+        self.scores: dict[Candidate, tuple[float, int]] = {}
 
-    def has_room(self, candidate: Candidate) -> bool:
-        """Whether `candidate` can be scored: rolled out already, or fewer than MAX_EVALUATIONS were."""
-        return _key(candidate) in self.rollouts or len(self.rollouts) < MAX_EVALUATIONS
-
-    def misfit(self, candidate: Candidate, frames: int | None = None) -> tuple[float, int]:
-        """(least misfit over the plume ages, that age) of one candidate over the first `frames`
-        observed frames (default: all of them, up to MAX_SECONDS). The misfit of each age is
-        averaged over ROLLOUT_SEEDS seedings of the source: one seeding's misfit has a spread of
-        0.005-0.016 over seeds (six seedings of three source sizes on D and F), more than the 0.004
-        by which ScalarFlow's seed 0 once preferred buoyancy 0.27 to 0.19 (docs/bench_generalise.md,
-        "Identification from the whole window")."""
-        key, frames = _key(candidate), self.frames if frames is None else min(frames, self.frames)
-        if (key, frames) not in self.scores:
-            if key not in self.rollouts:
-                scene = self.scene(key)
-                self.rollouts[key] = [self._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k)))
-                                      for k in range(ROLLOUT_SEEDS)]
-            scores = np.mean([self._age_scores(simulated, frames) for simulated in self.rollouts[key]], axis=0)
+    def misfit(self, candidate: Candidate) -> tuple[float, int]:
+        """(least misfit over the plume ages, that age) of one candidate over the observed frames
+        (up to MAX_SECONDS). The misfit of each age is averaged over ROLLOUT_SEEDS seedings of the
+        source: one seeding's misfit has a spread of 0.005-0.016 over seeds (six seedings of three
+        source sizes on D and F), more than the 0.004 by which ScalarFlow's seed 0 once preferred
+        buoyancy 0.27 to 0.19 (docs/bench_generalise.md, "Identification from the whole window")."""
+        key = _key(candidate)
+        if key not in self.scores:
+            scene = self.scene(key)
+            rollouts = [self._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k)))
+                        for k in range(ROLLOUT_SEEDS)]
+            scores = np.mean([self._age_scores(simulated) for simulated in rollouts], axis=0)
             age = int(np.argmin(scores))
-            self.scores[(key, frames)] = (float(scores[age]), age)
-        return self.scores[(key, frames)]
+            self.scores[key] = (float(scores[age]), age)
+        return self.scores[key]
 
     def tried(self) -> dict[str, tuple[float, float]]:
-        """The least and greatest value of each parameter the rolled-out candidates tried, for the
-        parameters the search varied: whether the choice sits on an end of what was searched
-        (fluidcore.health). Buoyancy in world units / s^2, the source's radius and its centre's
-        height along up in world units, the spreading rate db/dz, the plume's age in frames."""
-        place, up = self.prior.place, self.up
-        values = {
-            "buoyancy": [c[0] for c in self.rollouts],
-            "source_radius": [place.radius * c[2] for c in self.rollouts],
-            "source_height": [float(np.dot(place.center, up)) + c[1] * place.radius for c in self.rollouts],
-            "entrainment": [c[3] for c in self.rollouts],
-        }
-        ranges = {name: (min(v), max(v)) for name, v in values.items() if v and max(v) > min(v)}
+        """The least and greatest value of each `Candidate` field the rolled-out candidates tried,
+        for the fields that varied, and the plume's age in frames."""
+        ranges = {name: (min(values), max(values)) for name, values in zip(Candidate._fields, zip(*self.scores, strict=True))
+                  if max(values) > min(values)}
         return {**ranges, "age": (0.0, float(self.max_age))}
 
     def scene(self, candidate: Candidate) -> Scene:
         """The scene a candidate simulates (inflow at its terminal speed)."""
-        buoyancy, lift, radius_factor, spreading = candidate
-        config = replace(with_buoyancy(self.prior.physics, buoyancy, self.up), entrainment=spreading)
+        config = replace(with_buoyancy(self.prior.physics, candidate.buoyancy, self.up), entrainment=candidate.entrainment)
         speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
         place = self.prior.place
-        radius = place.radius * radius_factor
-        center = np.asarray(place.center) + lift * place.radius * self.up
-        rate = inlet_rate(radius, speed, config, self.budget)
-        return self.prior.scene(config, SourcePlace(tuple(float(c) for c in center), radius), rate, speed * self.up)
+        lift = candidate.source_height - float(np.dot(place.center, self.up))
+        center = place.center if abs(lift) < 1e-9 else tuple(float(c) for c in np.asarray(place.center) + lift * self.up)
+        rate = inlet_rate(candidate.source_radius, speed, config, self.budget)
+        return self.prior.scene(config, SourcePlace(center, candidate.source_radius), rate, speed * self.up)
 
     def _simulate(self, scene: Scene) -> np.ndarray:
         """(max_age + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
@@ -279,8 +315,9 @@ class _Search:
             projected.append(self.observation.project(state.positions[state.alive].cpu().numpy().astype(np.float64)))
         return np.stack(projected)
 
-    def _age_scores(self, simulated: np.ndarray, frames: int) -> np.ndarray:
-        """(max_age + 1,) misfit of one rollout over the first `frames` observed frames, per plume age."""
+    def _age_scores(self, simulated: np.ndarray) -> np.ndarray:
+        """(max_age + 1,) misfit of one rollout over the observed frames, per plume age."""
+        frames = self.frames
         observed = self.observation.cells[:frames]
         simulated_tops, observed_tops = self.observation.tops(simulated), self.observation.tops(observed)
         extent = max(float(self.observation.height.max()), 1.0)
@@ -295,7 +332,7 @@ class _Search:
 
 
 def _key(candidate: Candidate) -> Candidate:
-    return tuple(round(float(x), 9) for x in candidate)  # type: ignore[return-value]
+    return Candidate(*(round(float(x), 9) for x in candidate))
 
 
 def with_buoyancy(config: PBFConfig, buoyancy: float, up: np.ndarray) -> PBFConfig:
@@ -309,61 +346,53 @@ def identify(
     prior: ScenePrior,
     budget: int,
     device: torch.device | str = "cpu",
-    spreading_rates: Sequence[float] = SPREADING_RATES,
+    spreading: bool = False,
     keep: SourceKept = "nothing",
 ) -> IdentifiedRecord:
-    """Buoyancy, inflow speed and rate, and plume age for this scene (see the module docstring).
+    """Buoyancy, inflow speed and rate, source and plume age for this scene (see the module
+    docstring).
 
-    The inflow speed is the buoyancy's terminal speed rather than a search dimension of its own:
-    on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving the
-    buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
-    not pin it down. `prior` is the scene to start from (the preset in this scene's units, the estimated
-    source's place); `budget` caps the particles seeded per step; `spreading_rates` are the plume's
-    spreading rates tried, the first one before the others (`(0.0,)`: no entrainment). `keep`:
-    what of the prior's source the user gave and the search leaves as it is (`SourceKept`).
+    The inflow speed is the terminal speed buoyancy / drag rather than a search dimension of its
+    own: on a synthetic plume, halving it changed the silhouette misfit by 0.002 where halving
+    the buoyancy changed it by 0.04 (its momentum is gone within a few 1/drag), so the images do
+    not pin it down. `prior` is the scene to start from (the preset in this scene's units, the
+    estimated source's place); `budget` caps the particles seeded per step; `spreading`: whether
+    the plume's spreading rate is searched too (else the paper's column). `keep`: what of the
+    prior's source the user gave and the search leaves as it is (`SourceKept`).
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
     config, place = prior.physics, prior.place
     up_v = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
     speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
-    prior_buoyancy = float(np.dot(config.body_acceleration, up_v))
-    floor = buoyancy_floor(speed_obs, config.drag)
-    base = max(prior_buoyancy, config.drag * speed_obs, floor, 1e-6)
-    search = _Search(observation, prior, up_v, budget, device)
-    best = _best(search, None, [(base * f, 0.0, 1.0, spreading_rates[0]) for f in BUOYANCY_FACTORS], floor)
-    a = best[0]
-    best = _best(search, best, [(a, 0.0, 1.0, rate) for rate in spreading_rates], floor)
-    spreading = best[3]
-    # A resized source keeps resting on the smoke's bottom edge (source_estimate.source_in_view): its centre
-    # moves up by (size - 1) radii; only then is the height searched on its own. Both over the
-    # first SOURCE_SECONDS only (see there).
-    if keep == "nothing":
-        best = _best(search, best, [(a, size - 1.0, size, spreading) for size in SOURCE_SIZES], floor, search.source_frames)
-        a, lift, size, _ = best
-        best = _best(search, best, [(a, lift + step, size, spreading) for step in SOURCE_LIFTS], floor, search.source_frames)
-    elif keep == "center":  # a radius measured around the given centre, which stays
-        best = _best(search, best, [(a, 0.0, size, spreading) for size in SOURCE_SIZES], floor, search.source_frames)
-    for step in REFINE:
-        a, lift, size, spreading = best
-        best = _best(search, best, [(a / step, lift, size, spreading), (a * step, lift, size, spreading)], floor)
+    space, held = search_space(prior, speed_obs, keep, spreading)
+    search = _Search(observation, prior, budget, device)
+    best = _minimise(search, space, held)
     misfit, age = search.misfit(best)
     fitted = search.scene(best).source
-    held = ("drag", "rho0", *KEPT_SOURCE[keep])
-    record = IdentificationPrior(preset=prior.preset, buoyancy=prior_buoyancy, drag=config.drag, rho0=config.rho0,
-                                 held_from_prior=held, inflow_speed="buoyancy / drag", budget=budget, source=place)
-    return IdentifiedRecord(buoyancy=max(best[0], floor), inflow_speed=float(np.dot(fitted.velocity, up_v)), rate=fitted.rate,
-                            age=age, misfit=misfit, rise_speed=speed_obs, floor=floor, evaluations=len(search.rollouts),
-                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best[3], prior=record,
-                            tried=search.tried())
+    record = IdentificationPrior(preset=prior.preset, buoyancy=float(np.dot(config.body_acceleration, up_v)), drag=config.drag,
+                                 rho0=config.rho0, held_from_prior=("drag", "rho0", *KEPT_SOURCE[keep]), inflow_speed="buoyancy / drag",
+                                 budget=budget, source=place)
+    return IdentifiedRecord(buoyancy=best.buoyancy, inflow_speed=float(np.dot(fitted.velocity, up_v)),
+                            rate=fitted.rate, age=age, misfit=misfit, rise_speed=speed_obs,
+                            floor=buoyancy_floor(speed_obs, config.drag), evaluations=len(search.scores),
+                            source_center=fitted.center, source_radius=fitted.radius, entrainment=best.entrainment,
+                            prior=record, tried=search.tried(),
+                            bounds={**{p.name: (p.lo, p.hi) for p in space}, "age": (0.0, float(search.max_age))})
 
 
-def _best(search: _Search, incumbent: Candidate | None, grid: list[Candidate], floor: float,
-          frames: int | None = None) -> Candidate:
-    """One stage of the coordinate search: of `incumbent` (the previous stages' choice) and the
-    grid (buoyancies clamped to the floor; points past MAX_EVALUATIONS rollouts left out), the
-    candidate with the least misfit over the first `frames` observed frames (default all).
-    Stages compare their own candidates only, since they may score different windows."""
-    candidates = [] if incumbent is None else [incumbent]
-    candidates += [c for c in ((max(b, floor, 1e-6), lift, size, rate) for b, lift, size, rate in grid) if search.has_room(c)]
-    return min(candidates, key=lambda c: search.misfit(c, frames)[0])
+def _minimise(search: _Search, space: list[Parameter], held: Candidate) -> Candidate:
+    """The candidate of least misfit found by a bounded Nelder-Mead search over `space` (each
+    parameter mapped to [0, 1], log scales in log), from the parameters' starts, within
+    MAX_EVALUATIONS rollouts; the fields not in `space` keep `held`'s values."""
+
+    def candidate(unit: np.ndarray) -> Candidate:
+        return held._replace(**{p.name: p.value(u) for p, u in zip(space, unit, strict=True)})
+
+    start = np.array([p.unit(p.start) for p in space])
+    simplex = [start] + [start + np.where(np.arange(len(space)) == k, FIRST_STEP if start[k] + FIRST_STEP <= 1.0 else -FIRST_STEP, 0.0)
+                         for k in range(len(space))]
+    result = optimize.minimize(lambda unit: search.misfit(candidate(unit))[0], start, method="Nelder-Mead",
+                               bounds=[(0.0, 1.0)] * len(space),
+                               options={"initial_simplex": np.array(simplex), "maxfev": MAX_EVALUATIONS, "xatol": 0.01, "fatol": 1e-3})
+    return _key(candidate(result.x))

@@ -17,7 +17,7 @@ import torch
 
 from fluidcore.errors import InputError
 from fluidcore.physics import PRESETS, Box
-from fluidcore.reconstruct.identify import SPREADING_RATES, Observation, ScenePrior, identify, inlet_rate, with_buoyancy
+from fluidcore.reconstruct.identify import Observation, ScenePrior, identify, inlet_rate, with_buoyancy
 from fluidcore.reconstruct.views import ViewTarget
 from fluidcore.runs import PhysicsRecord
 from fluidcore.spec.scene import Air, Scene, SourcePlace
@@ -108,7 +108,7 @@ def scene_physics(
     The buoyancy, source and plume age come from `identify` when the prior's mode is "auto", in world
     units, so no length scale of another dataset enters them; a preset name keeps that preset's
     buoyancy (the paper's setting for its datasets). `entrainment`: whether the
-    identification also tries the plume spreading (`SPREADING_RATES`) or keeps the paper's
+    identification also searches the plume's spreading rate (`identify.SPREADING_RANGE`) or keeps the paper's
     column. `keep_source`: what of the prior's source the user gave and the identification keeps.
     The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
     carries at rest density (`inlet_rate`, capped by `budget` per 1/30 s: `frame_budget`) at the faster of that speed and
@@ -127,7 +127,7 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, budget, device, SPREADING_RATES if entrainment else (0.0,), keep_source)
+        found = identify(observation, prior, budget, device, entrainment, keep_source)
         config = replace(with_buoyancy(prior.physics, found.buoyancy, up), entrainment=found.entrainment)
         place = SourcePlace(tuple(found.source_center), found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps

@@ -19,22 +19,23 @@ from fluidcore.spec.scene import Scene, SourcePlace
 BOX = ((-0.25, 0.0, -0.25), (0.25, 0.8, 0.25))  # 0.5 wide across up (+y)
 
 
-def _identified(misfit: float, buoyancy: float, floor: float, tried: dict | None = None) -> IdentifiedRecord:
+def _identified(misfit: float, buoyancy: float, floor: float, tried: dict | None = None, bounds: dict | None = None) -> IdentifiedRecord:
     prior = IdentificationPrior(preset="scalarflow", buoyancy=1.0, drag=1.0, rho0=1.0, held_from_prior=("drag",),
                                 inflow_speed="buoyancy / drag", budget=30, source=SourcePlace((0.0, 0.05, 0.0), 0.03))
     return IdentifiedRecord(buoyancy=buoyancy, inflow_speed=0.2, rate=10, age=0, misfit=misfit, rise_speed=0.2, floor=floor,
-                            evaluations=10, source_center=(0.0, 0.05, 0.0), source_radius=0.03, prior=prior, tried=tried)
+                            evaluations=10, source_center=(0.0, 0.05, 0.0), source_radius=0.03, prior=prior, tried=tried,
+                            bounds=bounds)
 
 
 def _run(tmp_path: Path, *, psnr: float = 35.0, radius: float = 0.03, misfit: float = 0.3, buoyancy: float = 1.0,
          floor: float = 0.5, covered: float = 0.0, depth_range=None, capture: CaptureRecord | None = None,  # noqa: ANN001
-         spreading: tuple[bool, float] = (False, 0.0), tried: dict | None = None) -> RunRecord:
+         spreading: tuple[bool, float] = (False, 0.0), tried: dict | None = None, bounds: dict | None = None) -> RunRecord:
     like = Camera("like", 60.0, 60.0, 24.0, 32.0, 48, 64, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     camera = look_at((0.0, 0.4, 1.6), (0.0, 0.4, 0.0), (0.0, 1.0, 0.0), like, "view_02")
     estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=depth_range)
     quality = get("preview").with_overrides(entrainment=spreading[0])
     settings = ReconstructSettings(
-        quality=quality, capture=capture, physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor, tried)),
+        quality=quality, capture=capture, physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor, tried, bounds)),
         source_estimate=estimate, backgrounds={"view_02": BackgroundRecord(textured=covered > 0, covered=covered)},
     )
     run = Run.create(tmp_path / f"run{len(list(tmp_path.iterdir()))}", kind="reconstruct", cameras={"view_02": camera},
@@ -79,11 +80,25 @@ def test_parameters_on_an_end_of_the_searched_range_are_named(tmp_path: Path) ->
     inside their ranges are not. A run that searched nothing at its ends has no such note."""
     tried = {"buoyancy": (0.5, 4.0), "source_radius": (0.03, 0.05), "source_height": (0.04, 0.06), "age": (0.0, 45.0)}
     (note,) = health.report(_run(tmp_path, buoyancy=0.5, floor=0.5, tried=tried))["notes"]
-    assert "buoyancy 0.5 (the lowest tried of 0.5-4)" in note and "sits on its floor" in note
-    assert "source radius 0.03 (the lowest tried of 0.03-0.05)" in note
+    assert "buoyancy 0.5 (the lowest searched of 0.5-4)" in note and "sits on its floor" in note
+    assert "source radius 0.03 (the lowest searched of 0.03-0.05)" in note
     assert "source height" not in note and "plume age" not in note  # a plume that starts in frame 0 is an answer
     inside = {"buoyancy": (0.5, 4.0), "source_radius": (0.02, 0.05), "age": (-1.0, 45.0)}
     assert health.report(_run(tmp_path, buoyancy=1.0, floor=0.5, tried=inside))["notes"] == []
+
+
+def test_the_search_bounds_are_shown_and_a_value_on_one_named(tmp_path: Path) -> None:
+    """A run that recorded its search's bounds shows each identified value with them in the
+    identification's check, and names one that sits on a bound; the bounds, not the range tried,
+    decide (the tried range's ends are inside them)."""
+    bounds = {"buoyancy": (0.05, 20.0), "source_radius": (0.015, 0.06), "source_height": (0.0, 0.1), "age": (0.0, 45.0)}
+    tried = {"buoyancy": (1.0, 4.0), "source_radius": (0.03, 0.05)}
+    report = health.report(_run(tmp_path, buoyancy=1.0, floor=0.05, tried=tried, bounds=bounds))
+    assert report["notes"] == []
+    (check,) = [c for c in report["checks"] if c["name"] == "identification"]
+    assert "buoyancy 1 (searched 0.05-20)" in check["message"] and "source radius 0.03 (searched 0.015-0.06)" in check["message"]
+    (note,) = health.report(_run(tmp_path, buoyancy=20.0, floor=0.05, bounds=bounds))["notes"]
+    assert "buoyancy 20 (the highest searched of 0.05-20)" in note and "source radius" not in note
 
 
 def test_scene_info_carries_the_same_report(tmp_path: Path) -> None:

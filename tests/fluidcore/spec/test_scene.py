@@ -21,7 +21,7 @@ from fluidcore.physics.air import AirGrid
 from fluidcore.physics.build import build_simulator
 from fluidcore.physics.simulator import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
-from fluidcore.reconstruct.identify import Observation, ScenePrior, _Search
+from fluidcore.reconstruct.identify import Candidate, Observation, ScenePrior, _Search
 from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run
 from fluidcore.spec.reconstruct import VisualSettings, get
 from fluidcore.spec.scene import Air, Scene, SceneError, SourcePlace
@@ -118,11 +118,11 @@ def test_the_identifications_rollouts_simulate_the_scenes_air(monkeypatch: pytes
     cells = np.zeros((2, camera.height // 2, camera.width // 2), dtype=bool)
     cells[:, 10:14, 5:7] = True
     observation = Observation(camera, cells, 2, np.zeros(cells.shape[1:]))
-    candidate = (float(spec.config().body_acceleration[1]), 0.0, 1.0, 0.0)
+    candidate = Candidate(float(spec.config().body_acceleration[1]), source.radius, source.center[1], 0.0)
     for air in (Air(8), Air()):
         seen = _steps_seen(monkeypatch)
         prior = ScenePrior(spec.box(), (0.0, 1.0, 0.0), air, "auto", spec.config(), SourcePlace.of(source), source.seed)
-        _Search(observation, prior, np.array([0.0, 1.0, 0.0]), spec.particles_per_step, "cpu").misfit(candidate)
+        _Search(observation, prior, spec.particles_per_step, "cpu").misfit(candidate)
         assert seen and all(isinstance(a, AirGrid) == air.simulated for a in seen)
         if air.simulated:
             assert {a.cells for a in seen} == {air.cells}
