@@ -33,6 +33,7 @@ _LAZY = {
     "sim_step": "functional",
     "Simulator": "simulator",
     "StepStats": "simulator",
+    "step_record": "simulator",
     "ParticleState": "state",
     "NeighbourCache": "verlet",
 }
@@ -44,5 +45,5 @@ __all__ = [
     "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState",
     "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
-    "sim_step", "wind_air", "wind_force",
+    "sim_step", "step_record", "wind_air", "wind_force",
 ]

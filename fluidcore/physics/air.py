@@ -67,11 +67,14 @@ class AirState:
 @dataclass(frozen=True)
 class AirStats:
     """What one projection did: solver iterations, and the largest |divergence| (1/s) over the air
-    cells before and after it (after <= tolerance x before when the solver converged)."""
+    cells before and after it (after <= tolerance x before when the solver converged).
+    `converged` is False when the solver stopped at max_iterations short of its tolerance: the
+    air then keeps some divergence, which the simulator counts (`StepStats.air_unconverged`)."""
 
     iterations: int
     divergence_before: float
     divergence_after: float
+    converged: bool = True
 
 
 @dataclass(frozen=True)
@@ -233,11 +236,11 @@ class AirGrid:
             return AirStats(0, 0.0, 0.0)
         # Pressure phi (scaled by dt / density) solves L phi = -dx^2 div with
         # (L phi)_i = sum over faces of w_f (phi_i - phi_j); then u -= w grad(phi), div(u) = -r / dx^2.
-        phi, iterations = self._solve(-self.spacing**2 * div, walls)
+        phi, iterations, converged = self._solve(-self.spacing**2 * div, walls)
         air.faces = tuple(f - w * gradient(phi, a) / self.spacing  # type: ignore[assignment]
                           for a, (f, w) in enumerate(zip(air.faces, walls.weights)))
         after = float(torch.where(walls.air, self.divergence(air), 0.0).abs().max())
-        return AirStats(iterations, before, after)
+        return AirStats(iterations, before, after, converged)
 
     # --- parts of the step -------------------------------------------------------------------
 
@@ -314,10 +317,11 @@ class AirGrid:
         connected = sum(w.narrow(a, 0, self.shape[a]) + w.narrow(a, 1, self.shape[a]) for a, w in enumerate(weights))
         return _Walls(tuple(weights), tuple(velocities), ~solid & (connected > 0))  # type: ignore[arg-type]
 
-    def _solve(self, b: Tensor, walls: _Walls) -> tuple[Tensor, int]:
+    def _solve(self, b: Tensor, walls: _Walls) -> tuple[Tensor, int, bool]:
         """Preconditioned conjugate gradients for L phi = b on the air cells; the preconditioner
         is the exact inverse of the wall-free L (`_fast_inverse`). Stops when the largest residual
-        is below tolerance x the largest |b|."""
+        is below tolerance x the largest |b| (phi, iterations, True), else after max_iterations
+        (phi, max_iterations, False)."""
         mask = walls.air.float()
         b = b * mask
         goal = self.tolerance * float(b.abs().max())
@@ -332,12 +336,12 @@ class AirGrid:
             phi = phi + alpha * p
             r = r - alpha * ap
             if float(r.abs().max()) <= goal:
-                return phi, iteration
+                return phi, iteration, True
             z = mask * self._fast_inverse(r)
             rz_next = (r * z).sum()
             p = z + (rz_next / rz.clamp_min(1e-30)) * p
             rz = rz_next
-        return phi, self.max_iterations
+        return phi, self.max_iterations, False
 
     def _fast_inverse(self, r: Tensor) -> Tensor:
         """L0^{-1} r for the wall-free Laplacian L0 = Tx + Ty + Tz (floor Neumann, rest Dirichlet):

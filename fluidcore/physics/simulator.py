@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import torch
 
 from fluidcore.physics import checks, source as seeding
-from fluidcore.physics.air import AirGrid, AirState, floor_face
+from fluidcore.physics.air import AirGrid, AirState, AirStats, floor_face
 from fluidcore.physics.forces import AirField, ForceField
 from fluidcore.physics.solver import residual
 from fluidcore.physics.state import ParticleState
@@ -27,8 +27,23 @@ class StepStats:
     max_density_error: float
     n_alive: int
     seeded: int
-    retired: int
+    retired: int  # particles that left the box through its open faces this step (the smoke's outflow)
     substeps: int = 1  # parts the frame was stepped in (fluidcore.physics.step.substeps)
+    air_unconverged: int = 0  # parts whose air projection stopped short of its tolerance (AirStats.converged)
+    air_divergence: float = 0.0  # the largest |divergence| (1/s) the air kept after its projections
+
+
+def step_record(stats: StepStats | None) -> dict[str, float]:
+    """What a frame's step did, for its record in a run (the manifest's per-frame entries): the
+    particles that left through the box's open faces ("left_box": the smoke's outflow, counted,
+    not lost silently) and, with an air grid, the projections that stopped short of their
+    tolerance and the divergence the air kept. Empty for a frame that was not stepped."""
+    if stats is None:
+        return {}
+    record = {"left_box": float(stats.retired)}
+    if stats.air_unconverged or stats.air_divergence:
+        record.update(air_unconverged=float(stats.air_unconverged), air_divergence=stats.air_divergence)
+    return record
 
 
 class Simulator:
@@ -80,15 +95,17 @@ class Simulator:
         config = self.config.substep(count)
         births = self._births(state, count)
         iterations, seeded, retired = 0, 0, 0
+        airs: list[AirStats] = []
         density = torch.zeros(0, device=self.device)
         for part in range(count):
             if births[part].shape[0]:
                 state.add(births[part], births[count + part])
                 seeded += births[part].shape[0]
-            out, inside = self._advance(state, config)
+            out, inside, air = self._advance(state, config)
             iterations += out.iterations
             retired += int((~inside).sum())
             density = out.density[inside]
+            airs += [air] if air is not None else []
         state.time, state.step = start + self.config.dt, state.step + 1
         error = residual(density, self.config.rho0)
         n_alive = int(density.shape[0])
@@ -100,16 +117,22 @@ class Simulator:
             seeded=seeded,
             retired=retired,
             substeps=count,
+            air_unconverged=sum(not air.converged for air in airs),
+            air_divergence=max((air.divergence_after for air in airs), default=0.0),
         )
 
-    def _advance(self, state: ParticleState, config: PBFConfig) -> tuple[Advanced, torch.Tensor]:
+    def _advance(self, state: ParticleState, config: PBFConfig) -> tuple[Advanced, torch.Tensor, AirStats | None]:
         """One part of a frame (config.dt is the part's): advance the live particles, retire those
-        that left the box; returns the step's result and which of them stayed inside."""
+        that left the box; returns the step's result, which of them stayed inside and what the
+        air grid's projection did (None without a grid)."""
         slots = torch.nonzero(state.alive).flatten()
         x = checks.points(state.positions[slots], "state.positions")
         v = checks.points(state.velocities[slots], "state.velocities")
+        air_stats = None
         with torch.no_grad():
-            air = self._advance_air(state, x, config) if isinstance(self.air, AirGrid) else self.air
+            air = self.air
+            if isinstance(self.air, AirGrid):
+                air, air_stats = self._advance_air(state, x, config)
             out = advance(x, v, config, time=state.time, force=self.force, air=air, spheres=self.spheres,
                           fast=use_fused(self.backend, x))
         checks.finite_result(out.positions, "particle positions")
@@ -119,7 +142,7 @@ class Simulator:
         inside = self._inside(out.positions)
         state.alive[slots[~inside]] = False
         state.time += config.dt
-        return out, inside
+        return out, inside, air_stats
 
     def adopt_air(self, state: ParticleState) -> None:
         """Put the air `state` carries onto this simulator's air grid (`AirGrid.resample`), so a
@@ -137,16 +160,17 @@ class Simulator:
             self.step(state)
         state.time = 0.0
 
-    def _advance_air(self, state: ParticleState, smoke: torch.Tensor, config: PBFConfig) -> AirField:
+    def _advance_air(self, state: ParticleState, smoke: torch.Tensor, config: PBFConfig) -> tuple[AirField, AirStats]:
         """Step the state's air grid from the smoke (N, 3) at state.time (still air if it has none
-        yet); the particles then drag towards it: its velocity at their positions."""
+        yet); the particles then drag towards it: its velocity at their positions. Also returns
+        what the grid's projection did."""
         grid = self.air
         assert isinstance(grid, AirGrid)
         if state.air is None:
             state.air = grid.still(state.device)
         air: AirState = state.air
-        grid.step(air, smoke, config, state.time, self.spheres)
-        return lambda positions, _time: grid.velocity_at(air, positions)
+        stats = grid.step(air, smoke, config, state.time, self.spheres)
+        return (lambda positions, _time: grid.velocity_at(air, positions)), stats
 
     def _births(self, state: ParticleState, count: int) -> tuple[torch.Tensor, ...]:
         """The frame's new particles (the source's draw for this frame, `seeding.emit`) in `count`

@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 from fluidcore.spec.controls import InteractionParams, Intervention, branch_frame, parse_interaction
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
+from fluidcore.physics import step_record
 from fluidcore.physics.build import build_simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.predict.interventions import interventions
@@ -206,8 +207,8 @@ def _write(
         began = time.perf_counter()
         stats: dict[str, float] = {}
         if t > start_frame:
-            smoke = rollout.advance(smoke, t - start_frame - 1, t)
-            stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means))}
+            smoke, step = rollout.advance(smoke, t - start_frame - 1, t)
+            stats = {"particles": float(smoke.particles.n_alive), "gaussians": float(len(smoke.means)), **step_record(step)}
         run.write_frame(t, smoke.to_frame(), stats, time.perf_counter() - began)
         context.progress((t + 1 - frame_range[0]) / n_frames, request.kind)
     if request.refined:

@@ -23,7 +23,7 @@ from dataclasses import replace
 import torch
 
 from fluidcore.jobs import JobInputError
-from fluidcore.physics import PBFConfig, Simulator, Source, Sphere
+from fluidcore.physics import PBFConfig, Simulator, Source, Sphere, StepStats
 from fluidcore.physics.coupling import push_out
 from fluidcore.predict.interventions import Ball
 from fluidcore.predict.priors import HeightProfile
@@ -68,13 +68,14 @@ class Rollout:
         self.opacity_concentration = opacity_concentration
         self._static_spheres = tuple(simulator.spheres)
 
-    def advance(self, smoke: SmokeState, index: int, t: int) -> SmokeState:
+    def advance(self, smoke: SmokeState, index: int, t: int) -> tuple[SmokeState, StepStats]:
         """New frame `index` (0 = the first new one; video frame `t`): step `smoke.particles` in
-        place and return the state with the visual layer moved along with it."""
+        place and return the state with the visual layer moved along with it, and what the step
+        did (`fluidcore.physics.step_record` makes it a frame's record)."""
         sim, dt, state = self.simulator, self.simulator.config.dt, smoke.particles
         sim.spheres = self._spheres(index)
         before = state.clone()
-        sim.step(state)
+        step = sim.step(state)
         before = before.padded(state.capacity)
         slots = torch.nonzero(state.alive).flatten()
         p, v = state.positions[slots], state.velocities[slots]
@@ -93,7 +94,7 @@ class Rollout:
             then = concentration(smoke.means, before.positions[before.alive], radius, sim.config)
             appearance = appearance.diluted(then, concentration(means[:n], p, radius, sim.config))
         moved = SmokeState(state, means, appearance.cat(born)).cropped(sim.box.lo, sim.box.hi)
-        return moved if self.profile is None else self.profile.hold(moved, dt)
+        return (moved if self.profile is None else self.profile.hold(moved, dt)), step
 
     def _spheres(self, index: int) -> tuple[Sphere, ...]:
         if self.ball is None or index < self.ball.first_frame:

@@ -42,7 +42,7 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
-from fluidcore.physics import Box, interpolate_velocity
+from fluidcore.physics import Box, interpolate_velocity, step_record
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.images import Background, estimate_background, plate_background, resize_image, smoke_mask, to_float
@@ -343,8 +343,7 @@ class Reconstructor:
         generator = torch.Generator().manual_seed(seed)
         chooser = random.Random(seed)
         state = carry.particles.clone()
-        if not first:
-            self.simulator.step(state)
+        step = None if first else self.simulator.step(state)
         prev = carry.particles.padded(state.capacity)
         # frame 0: the stabilised particles are the prediction, all of them new
         born_mask = state.alive.clone() if first else state.alive & ~prev.alive
@@ -390,7 +389,7 @@ class Reconstructor:
         state.velocities[slots] = velocities
         losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
         smoke = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
-        losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means))})
+        losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means)), **step_record(step)})
         return smoke, losses
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:

@@ -122,7 +122,7 @@ def _expanding_rollout(opacity_concentration: bool) -> tuple[SmokeState, SmokeSt
     start = SmokeState(state.clone(), torch.zeros((1, 3)), one)
     smoke = SmokeState(state, torch.zeros((1, 3)), one)
     for index in range(10):
-        smoke = rollout.advance(smoke, index, index + 1)
+        smoke, _ = rollout.advance(smoke, index, index + 1)
     return start, smoke
 
 
