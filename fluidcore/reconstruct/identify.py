@@ -76,7 +76,7 @@ MAX_AGE_SECONDS = 1.5  # how long the source may have been emitting before the f
 # by 0.011-0.014 (seeds 0-2), less than one seeding differs from another (0.03); over its 90
 # frames by 0.04-0.06 (docs/bench_generalise.md, "Identification from the whole window";
 # i22_ident_misfit_scans.json). The source is judged over the same window: over 90 frames F's
-# silhouettes preferred its image radius to 0.8x of it, which the first 45 alone preferred.
+# silhouettes preferred its image radius to 0.8x of it, where the first 45 alone preferred 0.8x.
 MAX_SECONDS = 4.0
 MAX_EVALUATIONS = 40  # candidates rolled out per identification (ROLLOUT_SEEDS times each)
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
