@@ -231,6 +231,11 @@ class ScenePrior:
     def preset(self) -> str:
         return PHYSICS_MODES[self.mode]
 
+    @property
+    def up_vector(self) -> np.ndarray:
+        """(3,) `up` as a float64 array of unit length (normalised again against a caller's rounding)."""
+        return np.asarray(self.up, dtype=np.float64) / np.linalg.norm(self.up)
+
     def scene(self, physics: PBFConfig, place: SourcePlace, rate: int, velocity: np.ndarray) -> Scene:
         """This scene under `physics`, its source at `place` seeding `rate` particles per step at `velocity`."""
         source = Source(place.center, place.radius, rate, tuple(float(c) for c in velocity), self.seed)
@@ -242,7 +247,7 @@ def search_space(prior: ScenePrior, rise: float, keep: SourceKept, spreading: bo
     and the candidate that holds the rest: what of the source the user gave (`keep`), the
     spreading rate unless `spreading`. `rise`: the observed smoke's rise speed (`rise_speed`)."""
     config, place = prior.physics, prior.place
-    up = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+    up = prior.up_vector
     drag = max(config.drag, 1e-3)
     scale = drag * rise if rise > 0.0 else max(float(np.dot(config.body_acceleration, up)), 1e-6)
     start = START_BUOYANCY * scale if rise > 0.0 else scale
@@ -266,7 +271,7 @@ class _Search:
 
     def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str) -> None:
         self.observation, self.prior, self.budget, self.device = observation, prior, budget, device
-        self.up = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+        self.up = prior.up_vector
         self.frames = min(len(observation.cells), prior.physics.frames_in(MAX_SECONDS))
         self.max_age = prior.physics.frames_in(MAX_AGE_SECONDS)
         self.scores: dict[Candidate, tuple[float, int]] = {}
@@ -363,7 +368,7 @@ def identify(
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
     config, place = prior.physics, prior.place
-    up_v = np.asarray(prior.up, dtype=np.float64) / np.linalg.norm(prior.up)
+    up_v = prior.up_vector
     speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
     space, held = search_space(prior, speed_obs, keep, spreading)
     search = _Search(observation, prior, budget, device)
