@@ -74,7 +74,9 @@ def simulate(reference: Path, fps: float, seconds: float) -> dict[str, float]:
     """The plume `reference` records stepped at `fps` for `seconds` (see the module docstring)."""
     import torch
 
-    from fluidcore.physics import Box, PBFConfig, Simulator, Source
+    from fluidcore.physics import Box, PBFConfig, Source
+    from fluidcore.physics.build import build_simulator
+    from fluidcore.spec.scene import Scene
 
     record = json.loads(reference.read_text())
     physics = PBFConfig(**{**record["physics"], "gravity": tuple(record["physics"]["gravity"]),
@@ -83,15 +85,16 @@ def simulate(reference: Path, fps: float, seconds: float) -> dict[str, float]:
     per_second = recorded["rate"] / record["physics"]["dt"]
     center = (0.0, 0.05, 0.0)
     source = Source(center, recorded["radius"], max(1, round(per_second / fps)), tuple(recorded["velocity"]), seed=0)
-    simulator = Simulator(physics, Box((-0.3, 0.0, -0.3), (0.3, 1.0, 0.3)), source)
+    box = Box((-0.3, 0.0, -0.3), (0.3, 1.0, 0.3))
+    simulator = build_simulator(Scene(box.lo, box.hi, (0.0, 1.0, 0.0), physics, source))
     state = simulator.new_state()
     frames = round(seconds * fps)
     last_second = max(1, round(fps))
     speeds, held, counted, parts = [], 0, 0, 0
     started = time.process_time()
     for frame in range(frames):
-        stats = simulator.step(state)
-        count = getattr(stats, "substeps", 1)  # main before issue 33 stepped once per frame
+        state, stats = simulator.step(state)
+        count = stats.substeps
         speed = torch.linalg.vector_norm(state.velocities[state.alive], dim=1)
         held += int((speed >= LIMIT_REACHED * count * physics.speed_limit).sum())  # h / (dt / count)
         counted, parts = counted + stats.n_alive, parts + count

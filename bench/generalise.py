@@ -18,11 +18,13 @@ computed in the same run):
               baselines: blank, freeze (the input view's frame B-1 held, on every view); and the
               plume width in the input view at frame B+30 (120 on dev scene D): the smoke's extent
               across the image row at the truth plume's mid-height, prediction vs truth
-    velocity  mean end-point error (world units/s) of the particle velocity field, interpolated
-              at the truth's sample points (voxels with density > 0.05, or the synth's particles),
-              at every saved frame of the observed and predicted windows; baseline: zero velocity;
+    velocity  mean end-point error (world units/s) of the run's velocity field as its motion model
+              reports it (the carrier's air; the paper model's particles, interpolated), at the
+              truth's sample points (voxels with density > 0.05, or the synth's particles), at
+              every saved frame of the observed and predicted windows; baseline: zero velocity;
               reference: the truth's own axisymmetric mean flow (bench/flow_reference.py), the
-              least error of a model without eddies
+              least error of a model without eddies. With it, the plume's head: the 0.98 quantile
+              of the particles' height along up against the truth's (HEAD_FRAMES, world units)
     whatif    per counterfactual variant beside the scene (wind / ball, from the protocol.json beside
               it where there is one, else from each variant's gt/meta.json):
               the reconstruction branched at the variant's branch frame, continued once with the
@@ -57,7 +59,7 @@ import typer
 if __package__ in (None, ""):  # `python bench/generalise.py`
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.gt_scenes import GroundTruth, Variant, open_scene  # noqa: E402
+from bench.gt_scenes import TOP_QUANTILE, GroundTruth, Variant, open_scene  # noqa: E402
 from bench.predict import per_frame  # noqa: E402
 from bench.scene_args import SET_HELP, quality_overrides  # noqa: E402
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP  # noqa: E402
@@ -71,6 +73,7 @@ PLUME_WIDTH_AFTER = 30  # frames after B: issue 23's plume width is measured at 
 # 5 % of full scale, above 8-bit rounding and the soft edge of the renders; set once, not per scene
 SMOKE_LEVEL = 13
 VELOCITY_MEASURES = ("epe", "zero_epe", "axisymmetric_epe")  # per saved frame; summaries average each
+HEAD_FRAMES = (15, 90)  # the saved frames whose head height error is averaged (issue 46: f15-f90)
 Predictor = Callable[[Any, list[int], tuple[int, int]], Any]  # (camera, frames, size) -> uint8 (T, H, W, 3)
 
 
@@ -329,7 +332,8 @@ class Protocol:
     def velocity(self, runs: Sequence[Any]) -> dict:
         """End-point error per saved truth frame the runs hold, against zero velocity and against
         the truth's own axisymmetric mean flow at the scene's kernel radius (bench/flow_reference.py:
-        what a model with the mean flow exactly right and no eddies would score)."""
+        what a model with the mean flow exactly right and no eddies would score); and the head
+        height's error where the truth has one (`_head`)."""
         import numpy as np
 
         from bench.flow_reference import axisymmetric_mean_flow
@@ -341,10 +345,10 @@ class Protocol:
             if truth is None or len(truth[0]) == 0:
                 continue
             points, expected = truth
-            predicted = _particle_velocity(run, t, points)
+            predicted = _model_velocity(run, t, points)
             reference = axisymmetric_mean_flow(points, expected, np.asarray(run.scene.up), run.scene.physics.h)
             rows[str(t)] = {"epe": _epe(predicted, expected), "zero_epe": _epe(0.0, expected),
-                            "axisymmetric_epe": _epe(reference, expected),
+                            "axisymmetric_epe": _epe(reference, expected), "head_error": self._head(run, t),
                             "samples": len(points), "window": "observed" if t < self.window[1] else "future"}
         summary = {}
         for part in ("observed", "future"):
@@ -354,7 +358,24 @@ class Protocol:
         first = rows.get(str(self.window[1]))
         if first is not None:
             summary["first_future_frame"] = {"frame": self.window[1], **{k: first[k] for k in VELOCITY_MEASURES}}
+        heads = [abs(r["head_error"]) for t, r in rows.items() if r["head_error"] is not None
+                 and HEAD_FRAMES[0] <= int(t) <= HEAD_FRAMES[1]]
+        if heads:
+            summary["head_error"] = {"frames": list(HEAD_FRAMES), "mean_abs": float(np.mean(heads)), "max_abs": float(np.max(heads))}
         return {"frames": rows, "summary": summary}
+
+    def _head(self, run: Any, t: int) -> float | None:
+        """The run's plume head at frame t (the 0.98 quantile of its particles' height along up)
+        minus the truth's (`GroundTruth.top_height`, the same quantile of its smoke voxels); None
+        without a truth height or particles."""
+        import numpy as np
+
+        truth = self.gt.top_height(t)
+        state = run.read_frame(t)
+        heights = state.positions[state.alive] @ np.asarray(run.scene.up, dtype=np.float32)
+        if truth is None or not len(heights):
+            return None
+        return float(np.quantile(heights, TOP_QUANTILE)) - truth
 
     def whatif(self, recon: Any, variant: Variant) -> dict:
         """The variant's intervention and the own factual prediction, both against its truth."""
@@ -487,23 +508,19 @@ def _epe(predicted: Any, expected: Any) -> float:
     return float(np.linalg.norm(predicted - expected, axis=1).mean())
 
 
-def _particle_velocity(run: Any, t: int, points: Any) -> Any:
-    """The run's particle velocities at frame t, interpolated at `points` as the reconstruction
-    carries its visual Gaussians (Shepard average within the visual velocity radius; 0 where no
-    particle is near)."""
+def _model_velocity(run: Any, t: int, points: Any) -> Any:
+    """The run's velocity at frame t at `points` (Q, 3), as its motion model reports it
+    (`fluidcore.physics.Simulator.velocity_at`: the carrier's air; the paper model's particles,
+    Shepard-averaged within 2 kernel radii, 0 where none is near)."""
     import numpy as np
     import torch
 
-    from fluidcore.physics import interpolate_velocity
+    from fluidcore.physics.build import build_simulator
+    from fluidcore.smoke import SmokeState
 
-    state = run.read_frame(t)
-    h = run.scene.physics.h
-    radius = run.visual_settings().velocity_radius
-    alive = state.alive
+    state = SmokeState.from_frame(run.read_frame(t), "cpu").particles
     with torch.no_grad():
-        v = interpolate_velocity(torch.from_numpy(np.ascontiguousarray(points)), torch.from_numpy(state.positions[alive]),
-                                 torch.from_numpy(state.velocities[alive]), radius * h)
-    return v.numpy()
+        return build_simulator(run.scene).velocity_at(state, torch.from_numpy(np.ascontiguousarray(points))).numpy()
 
 
 def _branch(recon: Any, last: int, out: Path) -> Any:
@@ -572,6 +589,10 @@ def print_table(result: dict) -> None:
               f"{width['truth']} px (ratio {width['ratio']:.2f}, row {width['row']})")
     velocity = result["tasks"].get("velocity")
     for part, v in ((velocity or {}).get("summary") or {}).items():
+        if part == "head_error":
+            print(f"{'head height':<16} frames {v['frames'][0]}-{v['frames'][1]}: mean |error| {v['mean_abs']:.3f}, "
+                  f"largest {v['max_abs']:.3f} (world units)")
+            continue
         print(f"{'velocity EPE':<16} {part:<12} {v['epe']:7.3f} (zero velocity {v['zero_epe']:.3f}, "
               f"the truth's axisymmetric mean {v['axisymmetric_epe']:.3f})")
     for variant, scored in (result["tasks"].get("whatif") or {}).items():

@@ -84,11 +84,13 @@ def log(message: str) -> None:
 
 
 def plume(n: int, scene: str, config, device: str, backend: str):
-    """Simulator and state of the benchmark plume with n particles, plus a re-seeding function."""
+    """Simulator, controls and state of the benchmark plume with n particles, plus a re-seeding
+    function (it puts `count` particles back into the state it is given)."""
     import torch
 
     from fluidcore.physics import ParticleState, Source, Sphere, wind_force
     from fluidcore.physics.build import build_simulator
+    from fluidcore.physics.motion import Controls
     from fluidcore.spec.controls import WindParams
     from fluidcore.physics.source import emit
     from fluidcore.spec.scene import Scene
@@ -114,13 +116,13 @@ def plume(n: int, scene: str, config, device: str, backend: str):
     wind = WindParams(direction=(1.0, 0.0, 0.0), strength=3.0, growth=2.0 / height)
     force = wind_force(wind, blowing=lambda time: True) if violent else None
     spheres = [Sphere((0.0, 0.3 * height, 0.0), 0.5 * radius, velocity=(0.0, 0.3, 0.0))] if violent else []
-    sim = build_simulator(plume_scene, spheres=spheres, force=force, device=device, backend=backend)
+    sim = build_simulator(plume_scene, device=device, backend=backend)
 
-    def reseed(count: int) -> None:
+    def reseed(into: ParticleState, count: int) -> None:
         if count:
-            state.add(*emit(replace(plume_scene.source, rate=count), state.step, device))
+            into.add(*emit(replace(plume_scene.source, rate=count), into.step, device))
 
-    return sim, state, reseed
+    return sim, Controls(force=force, spheres=tuple(spheres)), state, reseed
 
 
 def run(n: int, iterations: int | None, tolerance: float | None, steps: int, warmup: int, scene: str,
@@ -132,16 +134,18 @@ def run(n: int, iterations: int | None, tolerance: float | None, steps: int, war
 
     base = PRESETS["scalarflow"]
     config = replace(base, iterations=iterations if iterations is not None else base.iterations, tolerance=tolerance)
-    sim, state, reseed = plume(n, scene, config, device, backend)
+    sim, controls, state, reseed = plume(n, scene, config, device, backend)
     for _ in range(warmup):
-        reseed(sim.step(state).retired)
+        state, step = sim.step(state, controls)
+        reseed(state, step.retired)
     stats = []
     if device == "cuda":
         torch.cuda.synchronize()
     start, cpu_start = time.perf_counter(), time.process_time()
     for _ in range(steps):
-        stats.append(sim.step(state))
-        reseed(stats[-1].retired)
+        state, step = sim.step(state, controls)
+        stats.append(step)
+        reseed(state, step.retired)
     if device == "cuda":
         torch.cuda.synchronize()
     elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
@@ -162,8 +166,8 @@ def run_air(n: int, steps: int, warmup: int, scene: str, device: str, backend: s
     from fluidcore.physics.air import AirGrid
 
     config = PRESETS["scalarflow"]
-    sim, state, reseed = plume(n, scene, config, device, backend)
-    grids = [AirGrid(sim.box, cells, force=sim.force) for cells in AIR_CELLS]
+    sim, controls, state, reseed = plume(n, scene, config, device, backend)
+    grids = [AirGrid(sim.box, cells) for cells in AIR_CELLS]
     airs = [grid.still(device) for grid in grids]
     timing = {key: [0.0, 0.0] for key in ("pbf", *AIR_CELLS)}
     iterations = {cells: 0 for cells in AIR_CELLS}
@@ -186,12 +190,13 @@ def run_air(n: int, steps: int, warmup: int, scene: str, device: str, backend: s
         smoke = state.positions[state.alive]
         for grid, air in zip(grids, airs):
             stats = timed(grid.cells if key else None,
-                          lambda: grid.step(air, smoke, config, state.time, sim.spheres))  # noqa: B023
+                          lambda: grid.step(air, smoke, config, state.time, controls.spheres, controls.force))  # noqa: B023
             if key:
                 iterations[grid.cells] += stats.iterations
                 divergence[grid.cells] = max(divergence[grid.cells], stats.divergence_after
                                              / max(stats.divergence_before, 1e-30))
-        reseed(timed(key, lambda: sim.step(state)).retired)
+        state, stepped = timed(key, lambda: sim.step(state, controls))  # noqa: B023
+        reseed(state, stepped.retired)
     pbf_wall, pbf_cpu = (t / steps for t in timing["pbf"])
     return [AirResult(scene=scene, particles=n, cells=grid.cells, grid=grid.shape, steps=steps,
                       air_s_per_step=timing[grid.cells][0] / steps, air_cpu_s_per_step=timing[grid.cells][1] / steps,

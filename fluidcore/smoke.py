@@ -123,6 +123,9 @@ class SmokeState:
     def with_visual(self, means: torch.Tensor, appearance: Appearance) -> SmokeState:
         return SmokeState(self.particles, means, appearance)
 
+    def with_particles(self, particles: ParticleState) -> SmokeState:
+        return SmokeState(particles, self.means, self.appearance)
+
     def cropped(self, lo: Sequence[float], hi: Sequence[float]) -> SmokeState:
         """Without the Gaussians outside the box [lo, hi]: the simulator retires particles that
         leave it, and a Gaussian out there would float on with nothing to carry it."""

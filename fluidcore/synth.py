@@ -131,14 +131,13 @@ def particle_gaussians(positions: torch.Tensor, spec: SynthSpec) -> Gaussians:
 def generate(spec: SynthSpec) -> SynthScene:
     """Simulate and render the scene in memory (the 20 stabilisation steps come first)."""
     simulator = build_simulator(spec.scene())
-    state = simulator.new_state()
-    simulator.stabilize(state, 20)
+    state = simulator.stabilize(simulator.new_state(), 20)
     cameras = spec.cameras()
     frames: dict[str, list[np.ndarray]] = {name: [] for name in cameras}
     positions, velocities = [], []
     for t in range(spec.frames):
         if t > 0:
-            simulator.step(state)
+            state, _ = simulator.step(state)
         alive = state.alive
         positions.append(state.positions[alive].numpy().copy())
         velocities.append(state.velocities[alive].numpy().copy())

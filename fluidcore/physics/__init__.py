@@ -5,13 +5,16 @@ paper's rho0 values keep their meaning); gravity is scaled by `PBFConfig.length_
 (see `fluidcore.spec.physics`). The density constraint is one-sided (only rho > rho0 is corrected), and the
 residual reported everywhere (StepStats, the benchmark) is max(0, rho/rho0 - 1).
 
-Two paths: a pure-torch reference (any device, differentiable: `sim_step`,
-`density_residual`, `incompressibility_loss`) and a fused C++/OpenMP CPU kernel
-(`fluidcore/kernels/pbf.cpp`) that `Simulator` uses on CPU when no gradient is needed.
+Two motion models sit behind one seam (`motion`: `Controls`, `Integrator`, `StepStats`): the
+paper's particles (`paper`) and buoyant air carrying them as markers (`carrier`); a `Simulator`
+is a scene's box and source with one of them, built by `build.build_simulator` from a scene.
 
-The air around the smoke is still unless the simulator is given one: a prescribed field
-(`AirField`, e.g. `wind_air`) or an `AirGrid` (`air`), incompressible air that the smoke's
-buoyancy and the wind drive and that the particles drag towards.
+The paper's particles have two paths: a pure-torch reference (any device, differentiable:
+`sim_step`, `density_residual`, `incompressibility_loss`) and a fused C++/OpenMP CPU kernel
+(`fluidcore/kernels/pbf.cpp`) used on CPU when no gradient is needed. The air around them is
+still unless the step's controls prescribe one (`Controls.air`, e.g. `wind_air`) or the scene
+simulates it (`AirGrid`, `air`): incompressible air that the smoke's buoyancy and the wind drive
+and that the particles drag towards.
 """
 
 from fluidcore.lazy import lazy_exports
@@ -23,6 +26,7 @@ _LAZY = {
     "AirField": "forces",
     "AirGrid": "air",
     "AirState": "air",
+    "Controls": "motion",
     "ForceField": "forces",
     "wind_air": "forces",
     "wind_force": "forces",
@@ -32,8 +36,8 @@ _LAZY = {
     "interpolate_velocity": "functional",
     "sim_step": "functional",
     "Simulator": "simulator",
-    "StepStats": "simulator",
-    "step_record": "simulator",
+    "StepStats": "motion",
+    "step_record": "motion",
     "ParticleState": "state",
     "NeighbourCache": "verlet",
 }
@@ -42,7 +46,7 @@ _LAZY = {
 __getattr__ = lazy_exports(__name__, _LAZY)
 
 __all__ = [
-    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState",
+    "PRESETS", "AirField", "AirGrid", "AirState", "Box", "Controls", "ForceField", "NeighbourCache", "PBFConfig", "ParticleState",
     "PhysicsInputError", "Simulator", "Source",
     "Sphere", "StepStats", "Vec3", "density", "density_residual", "incompressibility_loss", "interpolate_velocity",
     "sim_step", "step_record", "wind_air", "wind_force",

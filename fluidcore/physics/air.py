@@ -1,19 +1,25 @@
 """The air around the smoke: an incompressible velocity field on a coarse staggered grid.
 
-Smoke is a marker carried by buoyant air. The physical particles feel the air through the
-paper's drag, f = -k (v - v_env) max(0, 1 - rho/rho0), with v_env the air's velocity at the
-particle (`AirGrid.velocity_at`); the air feels the smoke through buoyancy. One step of the air
-(`AirGrid.step`), from time t to t + dt:
+Both motion models use it. The paper's particles (`fluidcore.physics.paper`) feel it through
+their drag, f = -k (v - v_env) max(0, 1 - rho/rho0), with v_env the air's velocity at the
+particle (`AirGrid.velocity_at`), and it feels them through buoyancy (`AirGrid.step`); the
+buoyant-air carrier (`fluidcore.physics.carrier`) is this air, its particles markers it carries.
+An air step from time t to t + dt is composed of:
 
-  1. self-advection, semi-Lagrangian (trace each face back along the velocity, take the value there);
-  2. body forces: buoyancy = smoke fraction x the smoke's buoyancy (`PBFConfig.body_acceleration`,
-     the one the identification finds) x `buoyancy`, the smoke fraction being the particles
-     splatted trilinearly onto the cells at the rest density (1 = a cell full of smoke at rho0);
-     the wind (`force`, a `ForceField`) pushes all the air; optional vorticity confinement;
-  3. each face velocity capped at the particles' speed limit (drag cannot move a particle faster,
-     and it keeps a runaway force finite);
-  4. pressure projection: the floor (the box face gravity points through) and the solid balls are
-     no-through walls, the other five faces are open (pressure 0 just outside, air flows in and out).
+  1. self-advection, semi-Lagrangian (`advect`: trace each face back along the velocity, take
+     the value there);
+  2. body forces (`accelerate`): an acceleration per cell the model computes from its smoke
+     (buoyancy), the wind (a `ForceField` evaluated at the faces) and, optionally, vorticity
+     confinement; each face velocity is then capped at the model's speed limit (drag cannot move
+     a particle faster, and it keeps a runaway force finite);
+  3. optionally an eddy viscosity (`diffuse`);
+  4. pressure projection (`project`): the floor (the box face gravity points through) and the
+     solid balls are no-through walls, the other five faces are open (pressure 0 just outside,
+     air flows in and out).
+
+`step` is the paper model's composition: buoyancy = the smoke fraction x the smoke's buoyancy
+(`PBFConfig.body_acceleration`) x `buoyancy`, the smoke fraction being the particles splatted
+trilinearly onto the cells at the rest density (1 = a cell full of smoke at rho0).
 
 The grid is a MAC grid (normal velocities on cell faces) over the scene box with `cells` cells
 on its longest side and cubic cells. The pressure solve is conjugate gradients preconditioned
@@ -39,6 +45,7 @@ from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Sphere, Ve
 from fluidcore.spec.simulation import AIR_CELLS  # the one range of the grid's cells, and why it is that
 
 MIN_CELLS_PER_AXIS = 2  # trilinear sampling and central differences need two cells on every axis
+DIFFUSION_STABLE = 1.0 / 6.0  # the largest nu dt / dx^2 an explicit pass of the 7-point Laplacian takes
 
 
 @dataclass
@@ -94,13 +101,12 @@ class AirGrid:
     may overhang it by less than a cell on the other axes). down: the direction of gravity;
     the box face it points through is the closed floor (the Simulator checks it against its
     config). buoyancy: multiple of the smoke's buoyancy given to a cell full of smoke.
-    vorticity: confinement epsilon (dimensionless, Fedkiw et al. 2001; 0 = off). force: a body
-    force on the air (the wind), world units / s^2. tolerance: the projection stops when the
-    largest |divergence| is below this fraction of the one before it.
+    vorticity: confinement epsilon (dimensionless, Fedkiw et al. 2001; 0 = off). tolerance: the
+    projection stops when the largest |divergence| is below this fraction of the one before it.
     """
 
     def __init__(self, box: Box, cells: int = 32, *, down: Vec3 = (0.0, -1.0, 0.0), buoyancy: float = 1.0,
-                 vorticity: float = 0.0, force: ForceField | None = None, tolerance: float = 1e-4,
+                 vorticity: float = 0.0, tolerance: float = 1e-4,
                  max_iterations: int = 200) -> None:
         if not isinstance(box, Box):
             raise PhysicsInputError(f"box must be a Box, got {type(box).__name__}")
@@ -113,9 +119,7 @@ class AirGrid:
             raise PhysicsInputError(f"tolerance must be in (0, 1), got {tolerance!r}")
         if not isinstance(max_iterations, int) or not 1 <= max_iterations <= 10_000:
             raise PhysicsInputError(f"max_iterations must be an integer in 1..10000, got {max_iterations!r}")
-        if force is not None and not callable(force):
-            raise PhysicsInputError("force must be a callable (positions, time) -> (N, 3) tensor, or None")
-        self.box, self.cells, self.force = box, cells, force
+        self.box, self.cells = box, cells
         self.buoyancy, self.vorticity = float(buoyancy), float(vorticity)
         self.tolerance, self.max_iterations = float(tolerance), max_iterations
         self.floor = floor_face(down)
@@ -171,7 +175,7 @@ class AirGrid:
         origin = torch.tensor(air.origin, dtype=torch.float32, device=device)
         faces = []
         for a in range(3):
-            world = self.box_origin(device) + self.spacing * self._face_coords(a, device)
+            world = self.face_positions(a, device)
             shape = [n + (b == a) for b, n in enumerate(self.shape)]
             faces.append(self._velocity(air.faces, (world - origin) / air.spacing)[:, a].reshape(shape))
         moved = AirState(tuple(faces), self.box.lo, self.spacing)  # type: ignore[arg-type]
@@ -183,13 +187,13 @@ class AirGrid:
     def velocity_at(self, air: AirState, points: Tensor) -> Tensor:
         """The air's velocity at `points` (N, 3), trilinear per component; points outside the grid
         take the value at its border."""
-        return self._velocity(air.faces, self._grid_coords(points))
+        return self._velocity(air.faces, self.grid_coords(points))
 
     def smoke_fraction(self, smoke: Tensor, config: PBFConfig) -> Tensor:
         """Fraction of each cell (nx, ny, nz) filled with smoke at the rest density: the particles
         (N, 3) splatted trilinearly onto the cell centres, times the volume one particle takes at
         rho0 (h^3 / (8 rho0), density 1 being 8 particles per h^3), over the cell volume; at most 1."""
-        counts = splat(self._grid_coords(smoke) - 0.5, self.shape)
+        counts = splat(self.grid_coords(smoke) - 0.5, self.shape)
         return (counts * (config.h**3 / (8.0 * config.rho0 * self.spacing**3))).clamp(max=1.0)
 
     def divergence(self, air: AirState) -> Tensor:
@@ -208,21 +212,68 @@ class AirGrid:
     # --- the step ----------------------------------------------------------------------------
 
     def step(self, air: AirState, smoke: Tensor, config: PBFConfig, time: float,
-             spheres: Sequence[Sphere] = ()) -> AirStats:
-        """Advance `air` in place from `time` to `time + config.dt`, driven by the smoke particles
-        `smoke` (N, 3) at `time`; the spheres are walls at `time + dt` (where the particles meet them)."""
+             spheres: Sequence[Sphere] = (), force: ForceField | None = None,
+             terminal_time: float | None = None) -> AirStats:
+        """The paper model's air step (module docstring): advance `air` in place from `time` to
+        `time + config.dt`, driven by the smoke particles `smoke` (N, 3) at `time` and the wind
+        `force` (bounded by `terminal_time`, `accelerate`); the spheres are walls at `time + dt`
+        (where the particles meet them)."""
         self.check(air)
         smoke = checks.points(smoke, "smoke").to(air.device)
-        dt = config.dt
-        faces = self._advect(air.faces, dt)
-        accel = self._body_forces(faces, smoke, config, time)
-        limit = config.speed_limit
-        faces = tuple((f + dt * a).clamp(-limit, limit) for f, a in zip(faces, accel))
-        air.faces = faces  # type: ignore[assignment]
-        stats = self.project(air, spheres, time + dt)
-        for face in air.faces:
-            checks.finite_result(face, "air velocity")
-        return stats
+        self.advect(air, config.dt)
+        lift = None
+        if smoke.shape[0]:
+            fraction = self.buoyancy * self.smoke_fraction(smoke, config)
+            lift = fraction[None] * fraction.new_tensor(config.body_acceleration)[:, None, None, None]
+        self.accelerate(air, config.dt, config.speed_limit, cells=lift, force=force, terminal_time=terminal_time, time=time)
+        return self.project(air, spheres, time + config.dt)
+
+    def advect(self, air: AirState, dt: float) -> None:
+        """Semi-Lagrangian self-advection of `air` in place over `dt` (`_advect`)."""
+        air.faces = self._advect(air.faces, dt)  # type: ignore[assignment]
+
+    def accelerate(self, air: AirState, dt: float, limit: float, *, cells: Tensor | None = None,
+                   force: ForceField | None = None, terminal_time: float | None = None, time: float = 0.0) -> None:
+        """Add dt x the body forces to `air` in place, then cap every face velocity at `limit`:
+        `cells` (3, nx, ny, nz) an acceleration at the cell centres (the model's buoyancy), `force`
+        a field evaluated at the faces at `time` (the wind) and the vorticity confinement. With
+        `terminal_time` T the force f on a face whose air already moves at u along it is
+        f (1 - (u / (T f))^2), 0 from u = T f on: a quadratic drag that holds the air it drives
+        below the terminal velocity T f (`fluidcore.spec.controls.WindParams.terminal_speed`)."""
+        confinement = self._confinement(air.faces) if self.vorticity > 0.0 else None
+        faces = []
+        for a, face in enumerate(air.faces):
+            total = torch.zeros_like(face)
+            if cells is not None:
+                total = total + to_faces(cells[a], a)
+            if confinement is not None:
+                total = total + to_faces(confinement[a], a)
+            if force is not None:
+                total = total + bounded(self.force_on_faces(force, a, time, face), face, terminal_time)
+            faces.append((face + dt * total).clamp(-limit, limit))
+        air.faces = tuple(faces)  # type: ignore[assignment]
+
+    def force_on_faces(self, force: ForceField, axis: int, time: float, like: Tensor) -> Tensor:
+        """The `axis` component of `force` at the faces along `axis` at `time`, shaped like them."""
+        positions = self.face_positions(axis, like.device)
+        value = force(positions, time)
+        if not isinstance(value, Tensor) or value.shape != positions.shape:
+            raise PhysicsInputError(f"air force must return a tensor of shape {tuple(positions.shape)}")
+        return checks.points(value, "air force(positions, time)")[:, axis].view(like.shape)
+
+    def face_positions(self, axis: int, device: torch.device) -> Tensor:
+        """World positions (F, 3) of the faces along `axis`, in their memory order."""
+        return self.box_origin(device) + self.spacing * self._face_coords(axis, device)
+
+    def diffuse(self, air: AirState, viscosity: float, dt: float) -> None:
+        """Explicit diffusion of every face component in place: dv/dt = viscosity lap(v), world
+        units^2 / s, in as many passes as keep each stable (viscosity dt / dx^2 <= 1/6 a pass);
+        border faces see their own value beyond the grid (no flux through its ends)."""
+        if viscosity <= 0.0:
+            return
+        number = viscosity * dt / self.spacing**2
+        passes = max(1, math.ceil(number / DIFFUSION_STABLE))
+        air.faces = tuple(_diffused(f, number / passes, passes) for f in air.faces)  # type: ignore[assignment]
 
     def project(self, air: AirState, spheres: Sequence[Sphere] = (), time: float = 0.0) -> AirStats:
         """Make `air` divergence-free in place, with the floor and the spheres at `time` as walls and
@@ -240,6 +291,8 @@ class AirGrid:
         air.faces = tuple(f - w * gradient(phi, a) / self.spacing  # type: ignore[assignment]
                           for a, (f, w) in enumerate(zip(air.faces, walls.weights)))
         after = float(torch.where(walls.air, self.divergence(air), 0.0).abs().max())
+        for face in air.faces:
+            checks.finite_result(face, "air velocity")
         return AirStats(iterations, before, after, converged)
 
     # --- parts of the step -------------------------------------------------------------------
@@ -262,29 +315,6 @@ class AirGrid:
     def _velocity(faces: Sequence[Tensor], s: Tensor) -> Tensor:
         """Velocity (N, 3) at grid coordinates s (N, 3): each component sampled on its own faces."""
         return torch.stack([sample(faces[b], s - face_offset(b, s)) for b in range(3)], dim=1)
-
-    def _body_forces(self, faces: tuple[Tensor, ...], smoke: Tensor, config: PBFConfig,
-                     time: float) -> list[Tensor]:
-        """Acceleration on each face component (world units / s^2): buoyancy of the smoke in the
-        neighbouring cells, the wind, and vorticity confinement."""
-        device = faces[0].device
-        lift = self.buoyancy * self.smoke_fraction(smoke, config) if smoke.shape[0] else None
-        confinement = self._confinement(faces) if self.vorticity > 0.0 else None
-        accel = []
-        for a, face in enumerate(faces):
-            total = torch.zeros_like(face)
-            if lift is not None and config.body_acceleration[a] != 0.0:
-                total = total + config.body_acceleration[a] * to_faces(lift, a)
-            if confinement is not None:
-                total = total + to_faces(confinement[a], a)
-            if self.force is not None:
-                positions = self.box_origin(device) + self.spacing * self._face_coords(a, device)
-                value = self.force(positions, time)
-                if not isinstance(value, Tensor) or value.shape != positions.shape:
-                    raise PhysicsInputError(f"air force must return a tensor of shape {tuple(positions.shape)}")
-                total = total + checks.points(value, "air force(positions, time)")[:, a].view(face.shape)
-            accel.append(total)
-        return accel
 
     def _confinement(self, faces: tuple[Tensor, ...]) -> Tensor:
         """Vorticity confinement at the cell centres (3, nx, ny, nz): epsilon dx (N x omega),
@@ -366,7 +396,7 @@ class AirGrid:
     def box_origin(self, device: torch.device) -> Tensor:
         return torch.tensor(self.box.lo, dtype=torch.float32, device=device)
 
-    def _grid_coords(self, points: Tensor) -> Tensor:
+    def grid_coords(self, points: Tensor) -> Tensor:
         """World points (N, 3) in grid units: cell i spans [i, i+1) on each axis."""
         return (points - self.box_origin(points.device)) / self.spacing
 
@@ -491,6 +521,28 @@ def splat(index: Tensor, shape: Sequence[int]) -> Tensor:
             flat = flat + (base[:, a] + bit) * strides[a]
         out.index_add_(0, flat, weight)
     return out.view(*shape)
+
+
+def bounded(force: Tensor, velocity: Tensor, terminal_time: float | None) -> Tensor:
+    """`force` on air moving at `velocity` (the same component, the same faces), faded by a quadratic
+    drag towards the terminal velocity terminal_time x force (`AirGrid.accelerate`); unchanged
+    without a terminal time. Air moving against the force feels all of it."""
+    if terminal_time is None:
+        return force
+    terminal = terminal_time * force
+    ratio = torch.where(terminal != 0.0, velocity / torch.where(terminal != 0.0, terminal, 1.0), 0.0)
+    return force * (1.0 - ratio.clamp(0.0, 1.0).square())
+
+
+def _diffused(face: Tensor, number: float, passes: int) -> Tensor:
+    """`face` (A, B, C) after `passes` explicit steps of dv = number x the 7-point Laplacian (edge
+    values repeated beyond the border)."""
+    for _ in range(passes):
+        p = F.pad(face[None, None], (1, 1, 1, 1, 1, 1), mode="replicate")[0, 0]
+        neighbours = (p[:-2, 1:-1, 1:-1] + p[2:, 1:-1, 1:-1] + p[1:-1, :-2, 1:-1] + p[1:-1, 2:, 1:-1]
+                      + p[1:-1, 1:-1, :-2] + p[1:-1, 1:-1, 2:])
+        face = face + number * (neighbours - 6.0 * face)
+    return face
 
 
 def _pad_axis(t: Tensor, axis: int, value: float | bool) -> Tensor:

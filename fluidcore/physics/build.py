@@ -3,41 +3,40 @@
 Every simulation of a scene (the reconstruction's fit, the identification's rollouts, the
 buoyancy calibration, the continuations, the synthetic plume, the benchmark) builds its
 `Simulator` here from a `fluidcore.spec.scene.Scene`, so none of them can leave out a part of
-the scene's physics: when the scene simulates the air, each of them steps it.
+the scene's physics: the motion model the scene names (`Scene.motion`, its integrator) and the
+air it keeps. What acts on the scene from outside (a wind, balls) is not part of it: it comes
+with each step (`fluidcore.physics.motion.Controls`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 
 from fluidcore.physics.air import AirGrid
-from fluidcore.physics.forces import AirField, ForceField
+from fluidcore.physics.carrier import BuoyantAirCarrier
+from fluidcore.physics.motion import Integrator
+from fluidcore.physics.paper import PositionBasedFluid
 from fluidcore.physics.simulator import Simulator
-from fluidcore.spec.physics import Sphere
 from fluidcore.spec.scene import Scene
 
 
-def build_simulator(
-    scene: Scene,
-    *,
-    device: torch.device | str = "cpu",
-    force: ForceField | None = None,
-    spheres: Sequence[Sphere] = (),
-    backend: str = "auto",
-    still_air: AirField | None = None,
-) -> Simulator:
-    """The simulator of `scene`: its physics, box and source, and its air.
+def build_simulator(scene: Scene, *, device: torch.device | str = "cpu", backend: str = "auto") -> Simulator:
+    """The simulator of `scene`: its physics, box and source, moved by its motion model.
 
-    `force` (a wind) pushes the particles and, when the scene simulates the air, that air too;
-    `spheres` are solid balls in the way. The air is the scene's `AirGrid` (floor where its
-    gravity points, `scene.air` cells and vorticity) when `scene.air.simulated`; otherwise
-    `still_air`, a prescribed air velocity (the wind's air, `fluidcore.physics.wind_air`), or
-    still air when None.
+    "paper": the position-based particles, in the scene's air grid when `scene.air.simulated`
+    (still air otherwise); `backend` picks their kernel (`PositionBasedFluid`). "carrier": the
+    scene's air grid is the motion (`BuoyantAirCarrier`, with the scene's eddy viscosity and diffusivity).
     """
-    air: AirField | AirGrid | None = still_air
+    return Simulator(integrator(scene, torch.device(device), backend))
+
+
+def integrator(scene: Scene, device: torch.device, backend: str = "auto") -> Integrator:
+    """The integrator of the scene's motion model (`build_simulator`)."""
+    grid = None
     if scene.air.simulated:
-        air = AirGrid(scene.box, scene.air.cells, down=scene.physics.gravity, force=force, vorticity=scene.air.vorticity)
-    return Simulator(scene.physics, scene.box, scene.source, spheres=spheres, force=force, air=air, device=device,
-                     backend=backend)
+        grid = AirGrid(scene.box, scene.air.cells, down=scene.physics.gravity, vorticity=scene.air.vorticity)
+    if scene.motion == "carrier":
+        assert grid is not None  # a carrier scene always has its air (`Scene` checks it)
+        return BuoyantAirCarrier(scene.physics, scene.box, scene.source, device, grid, scene.air.viscosity,
+                                 scene.air.diffusivity)
+    return PositionBasedFluid(scene.physics, scene.box, scene.source, device, grid, backend)

@@ -48,16 +48,16 @@ def wind_air(
     A wind is a body force on all the air, not on the smoke alone: the air it pushes carries the
     smoke, and drag relaxes the smoke towards that moving air. With drag towards still air a
     wind of acceleration a could only ever move sparse smoke at a / k (a few cm/s here), however
-    long it blew. Nothing in the model slows the air down, so the air's velocity is the force
-    integrated over the time it has blown, `seconds_blown(time)`, and it keeps that velocity
-    after the wind stops.
+    long it blew. The air's velocity is the force integrated over the time it has blown,
+    `seconds_blown(time)`, up to the wind's terminal speed (`WindParams.air_speed`), and it keeps
+    that velocity after the wind stops.
     """
 
     def air(positions: Tensor, time: float) -> Tensor:
-        seconds = seconds_blown(time)
-        if seconds <= 0.0:
+        speed = wind.air_speed(seconds_blown(time))
+        if speed == 0.0:
             return torch.zeros_like(positions)
-        return seconds * wind_acceleration(wind, positions, base_height, up)
+        return (speed / wind.strength) * wind_acceleration(wind, positions, base_height, up)
 
     return air
 

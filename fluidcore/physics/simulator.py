@@ -1,176 +1,100 @@
-"""The stateful simulator: a scene (box, source, spheres, force) stepped forward in place."""
+"""The simulator: a scene's box and source with a motion model's integrator behind it, stepped a
+frame at a time (a state in, a state out; fluidcore.physics.motion says how the two meet)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
 
-from fluidcore.physics import checks, source as seeding
-from fluidcore.physics.air import AirGrid, AirState, AirStats, floor_face
-from fluidcore.physics.forces import AirField, ForceField
-from fluidcore.physics.solver import residual
+from fluidcore.physics import source as seeding
+from fluidcore.physics.motion import NO_CONTROLS, Controls, Integrator, PartStats, StepStats
 from fluidcore.physics.state import ParticleState
-from fluidcore.physics.step import BACKENDS, Advanced, advance, substeps, use_fused
-from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Sphere, Vec3
-
-
-@dataclass(frozen=True)
-class StepStats:
-    """What one step did. Density errors are the one-sided residual max(0, rho/rho0 - 1) of the
-    particles alive after the step, measured on their final positions."""
-
-    iterations: int
-    mean_density_error: float
-    max_density_error: float
-    n_alive: int
-    seeded: int
-    retired: int  # particles that left the box through its open faces this step (the smoke's outflow)
-    substeps: int = 1  # parts the frame was stepped in (fluidcore.physics.step.substeps)
-    air_unconverged: int = 0  # parts whose air projection stopped short of its tolerance (AirStats.converged)
-    air_divergence: float = 0.0  # the largest |divergence| (1/s) the air kept after its projections
-
-
-def step_record(stats: StepStats | None) -> dict[str, float]:
-    """What a frame's step did, for its record in a run (the manifest's per-frame entries): the
-    particles that left through the box's open faces ("left_box": the smoke's outflow, counted,
-    not lost silently) and, with an air grid, the projections that stopped short of their
-    tolerance and the divergence the air kept. Empty for a frame that was not stepped."""
-    if stats is None:
-        return {}
-    record = {"left_box": float(stats.retired)}
-    if stats.air_unconverged or stats.air_divergence:
-        record.update(air_unconverged=float(stats.air_unconverged), air_divergence=stats.air_divergence)
-    return record
+from fluidcore.spec.physics import PBFConfig, PhysicsInputError, Vec3
 
 
 class Simulator:
-    """PBF smoke in an open box: a source seeds particles, particles leaving the box are retired.
+    """Smoke in an open box: the source seeds particles every frame, the integrator moves them
+    (and the air it keeps), particles leaving the box are retired.
 
-    backend: "auto" (the fused C++ kernel on CPU when it builds, torch otherwise), "torch"
-    (reference, any device) or "fused" (CPU only). Spheres, the force field and the air it
-    moves (`force`, `air`: fluidcore.physics.forces), XSPH and vorticity cost nothing when absent.
-
-    air: None (still air, apart from `env_velocity`), an `AirField` (a prescribed air velocity,
-    e.g. `wind_air`), or an `AirGrid` (fluidcore.physics.air): air that evolves with the smoke.
-    With a grid, each step first advances the state's air (`ParticleState.air`, still air when
-    it has none) from the particles, then the particles drag towards it; drag is computed in
-    torch on both backends, so the fused kernel path needs nothing else.
+    Built by `fluidcore.physics.build.build_simulator` from a scene; `integrator` is the scene's
+    motion model (`fluidcore.physics.paper.PositionBasedFluid`,
+    `fluidcore.physics.carrier.BuoyantAirCarrier`), made for this simulator's config, box,
+    source and device.
     """
 
-    def __init__(self, config: PBFConfig, box: Box, source: Source | None = None, spheres: Sequence[Sphere] = (),
-                 force: ForceField | None = None, air: AirField | AirGrid | None = None, device: torch.device | str = "cpu",
-                 backend: str = "auto") -> None:
-        for value, kind, name in ((config, PBFConfig, "config"), (box, Box, "box")):
-            if not isinstance(value, kind):
-                raise PhysicsInputError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
-        if source is not None and not isinstance(source, Source):
-            raise PhysicsInputError(f"source must be a Source or None, got {type(source).__name__}")
-        if not all(isinstance(s, Sphere) for s in spheres):
-            raise PhysicsInputError("spheres must be Sphere instances")
-        if force is not None and not callable(force):
-            raise PhysicsInputError("force must be a callable (positions, time) -> (N, 3) tensor, or None")
-        if air is not None and not callable(air) and not isinstance(air, AirGrid):
-            raise PhysicsInputError("air must be an AirGrid, a callable (positions, time) -> (N, 3) tensor, or None")
-        if isinstance(air, AirGrid) and air.floor != floor_face(config.gravity):
-            raise PhysicsInputError(f"air.down must point through the box face gravity {list(config.gravity)} points "
-                                    f"through (axis {floor_face(config.gravity)[0]})")
-        if backend not in BACKENDS:
-            raise PhysicsInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        self.config, self.box, self.source = config, box, source
-        self.spheres, self.force, self.air = tuple(spheres), force, air
-        self.device, self.backend = torch.device(device), backend
+    def __init__(self, integrator: Integrator) -> None:
+        if not isinstance(integrator, Integrator):
+            raise PhysicsInputError(f"integrator must be an Integrator, got {type(integrator).__name__}")
+        self.integrator = integrator
+
+    @property
+    def config(self) -> PBFConfig:
+        return self.integrator.config
+
+    @property
+    def box(self):  # noqa: ANN201 - fluidcore.spec.physics.Box
+        return self.integrator.box
+
+    @property
+    def source(self):  # noqa: ANN201 - fluidcore.spec.physics.Source | None
+        return self.integrator.source
+
+    @property
+    def device(self) -> torch.device:
+        return self.integrator.device
+
+    @property
+    def motion(self) -> str:
+        """The motion model's name (`fluidcore.spec.scene.MOTION_MODELS`)."""
+        return self.integrator.name
 
     def new_state(self) -> ParticleState:
         """An empty state on the simulator's device; the source fills it."""
         return ParticleState.empty(device=self.device)
 
-    def step(self, state: ParticleState) -> StepStats:
-        """Advance one frame (config.dt) in place: in `substeps` parts, each seeding its share of
-        the frame's particles, advancing and retiring particles outside the box."""
-        start, alive = state.time, torch.nonzero(state.alive).flatten()
-        count = substeps(torch.cat([state.velocities[alive], self._inflow()]), self.config)
+    def step(self, state: ParticleState, controls: Controls = NO_CONTROLS) -> tuple[ParticleState, StepStats]:
+        """One frame (config.dt) from `state` (left as it was) under `controls`: the new state and
+        what the step did. The frame is stepped in the parts the integrator asks for, each
+        seeding its share of the frame's particles."""
+        if not isinstance(controls, Controls):
+            raise PhysicsInputError(f"controls must be a Controls, got {type(controls).__name__}")
+        state = state.clone()
+        start = state.time
+        count = self.integrator.parts(state, self._inflow())
         config = self.config.substep(count)
         births = self._births(state, count)
-        iterations, seeded, retired = 0, 0, 0
-        airs: list[AirStats] = []
-        density = torch.zeros(0, device=self.device)
+        parts: list[PartStats] = []
+        seeded = 0
         for part in range(count):
             if births[part].shape[0]:
                 state.add(births[part], births[count + part])
                 seeded += births[part].shape[0]
-            out, inside, air = self._advance(state, config)
-            iterations += out.iterations
-            retired += int((~inside).sum())
-            density = out.density[inside]
-            airs += [air] if air is not None else []
+            parts.append(self.integrator.advance(state, controls, config))
+            state.time += config.dt
         state.time, state.step = start + self.config.dt, state.step + 1
-        error = residual(density, self.config.rho0)
-        n_alive = int(density.shape[0])
-        return StepStats(
-            iterations=iterations,
-            mean_density_error=float(error.mean()) if n_alive else 0.0,
-            max_density_error=float(error.max()) if n_alive else 0.0,
-            n_alive=n_alive,
-            seeded=seeded,
-            retired=retired,
-            substeps=count,
-            air_unconverged=sum(not air.converged for air in airs),
-            air_divergence=max((air.divergence_after for air in airs), default=0.0),
-        )
+        return state, self.integrator.stats(parts, state.n_alive, seeded, state)
 
-    def _advance(self, state: ParticleState, config: PBFConfig) -> tuple[Advanced, torch.Tensor, AirStats | None]:
-        """One part of a frame (config.dt is the part's): advance the live particles, retire those
-        that left the box; returns the step's result, which of them stayed inside and what the
-        air grid's projection did (None without a grid)."""
-        slots = torch.nonzero(state.alive).flatten()
-        x = checks.points(state.positions[slots], "state.positions")
-        v = checks.points(state.velocities[slots], "state.velocities")
-        air_stats = None
-        with torch.no_grad():
-            air = self.air
-            if isinstance(self.air, AirGrid):
-                air, air_stats = self._advance_air(state, x, config)
-            out = advance(x, v, config, time=state.time, force=self.force, air=air, spheres=self.spheres,
-                          fast=use_fused(self.backend, x))
-        checks.finite_result(out.positions, "particle positions")
-        checks.finite_result(out.velocities, "particle velocities")
-        state.positions[slots] = out.positions
-        state.velocities[slots] = out.velocities
-        inside = self._inside(out.positions)
-        state.alive[slots[~inside]] = False
-        state.time += config.dt
-        return out, inside, air_stats
-
-    def adopt_air(self, state: ParticleState) -> None:
-        """Put the air `state` carries onto this simulator's air grid (`AirGrid.resample`), so a
-        state saved on another grid (a continuation at other cells than its parent's) steps on
-        from its own air; nothing to do without a grid or without saved air."""
-        if isinstance(self.air, AirGrid) and state.air is not None:
-            state.air = self.air.resample(state.air)
-
-    def stabilize(self, state: ParticleState, steps: int = 20) -> None:
-        """Run `steps` steps ending at time 0 (the paper's N_stable = 20 before the first frame)."""
+    def stabilize(self, state: ParticleState, steps: int = 20) -> ParticleState:
+        """`steps` steps ending at time 0 (the paper's N_stable = 20 before the first frame)."""
         if not isinstance(steps, int) or steps < 0:
             raise PhysicsInputError(f"steps must be an integer >= 0, got {steps!r}")
+        state = state.clone()
         state.time = -steps * self.config.dt
         for _ in range(steps):
-            self.step(state)
+            state, _ = self.step(state)
         state.time = 0.0
+        return state
 
-    def _advance_air(self, state: ParticleState, smoke: torch.Tensor, config: PBFConfig) -> tuple[AirField, AirStats]:
-        """Step the state's air grid from the smoke (N, 3) at state.time (still air if it has none
-        yet); the particles then drag towards it: its velocity at their positions. Also returns
-        what the grid's projection did."""
-        grid = self.air
-        assert isinstance(grid, AirGrid)
-        if state.air is None:
-            state.air = grid.still(state.device)
-        air: AirState = state.air
-        stats = grid.step(air, smoke, config, state.time, self.spheres)
-        return (lambda positions, _time: grid.velocity_at(air, positions)), stats
+    def velocity_at(self, state: ParticleState, points: torch.Tensor) -> torch.Tensor:
+        """The smoke's velocity (world units / s) at `points` (Q, 3) in `state`, as the motion
+        model reports it (`Integrator.velocity_at`)."""
+        return self.integrator.velocity_at(state, points)
+
+    def adopt_air(self, state: ParticleState) -> ParticleState:
+        """`state` with the air it carries put onto this simulator's air grid (a state saved on
+        another grid steps on from its own air); unchanged where there is nothing to adopt."""
+        return self.integrator.adopt_air(state)
 
     def _births(self, state: ParticleState, count: int) -> tuple[torch.Tensor, ...]:
         """The frame's new particles (the source's draw for this frame, `seeding.emit`) in `count`
@@ -178,7 +102,7 @@ class Simulator:
         if self.source is None or self.source.rate == 0:
             empty = torch.zeros(0, 3, device=self.device)
             return (empty,) * (2 * count)
-        positions, velocities = seeding.emit(self.source, state.step, self.device, self._up())
+        positions, velocities = seeding.emit(self.source, state.step, self.device, self.up)
         return (*torch.tensor_split(positions, count), *torch.tensor_split(velocities, count))
 
     def _inflow(self) -> torch.Tensor:
@@ -187,12 +111,14 @@ class Simulator:
             return torch.zeros(0, 3, device=self.device)
         return torch.tensor([self.source.velocity], device=self.device)
 
-    def _up(self) -> Vec3:
+    @property
+    def up(self) -> Vec3:
         """The scene's up: against gravity, +y where there is none."""
-        g = self.config.gravity
-        norm = math.sqrt(sum(c * c for c in g))
-        return (0.0, 1.0, 0.0) if norm == 0.0 else (-g[0] / norm, -g[1] / norm, -g[2] / norm)
+        return up_of(self.config)
 
-    def _inside(self, positions: torch.Tensor) -> torch.Tensor:
-        lo, hi = positions.new_tensor(self.box.lo), positions.new_tensor(self.box.hi)
-        return ((positions >= lo) & (positions <= hi)).all(dim=1)
+
+def up_of(config: PBFConfig) -> Vec3:
+    """The unit vector against `config.gravity` (+y where there is none)."""
+    g = config.gravity
+    norm = math.sqrt(sum(c * c for c in g))
+    return (0.0, 1.0, 0.0) if norm == 0.0 else (-g[0] / norm, -g[1] / norm, -g[2] / norm)

@@ -43,10 +43,9 @@ def calibrate_buoyancy(
     errors: dict[str, float] = {}
     for scale in scales:
         simulator = build_simulator(scene.with_buoyancy_scaled(scale), device=device)
-        state, total = begin.clone(), 0.0
-        simulator.adopt_air(state)
+        state, total = simulator.adopt_air(begin), 0.0
         for target in targets:
-            simulator.step(state)
+            state, _ = simulator.step(state)
             total += _tracking_error(state, begin.alive, target)
         errors[f"{scale:g}"] = total / len(targets)
     best = min(scales, key=lambda scale: errors[f"{scale:g}"])

@@ -18,6 +18,7 @@ import numpy as np
 
 from fluidcore.spec.controls import BallParams, InteractionParams, WindParams
 from fluidcore.physics import AirField, ForceField, PBFConfig, Source, Sphere, wind_air, wind_force
+from fluidcore.physics.motion import Controls
 
 
 @dataclass(frozen=True)
@@ -31,11 +32,18 @@ class Ball:
 @dataclass(frozen=True)
 class Interventions:
     """What the rollout applies: a force field and the air velocity it causes (or None), and a
-    ball (or None)."""
+    ball (or None); `controls` is what reaches the simulator each new frame."""
 
     force: ForceField | None = None
     air: AirField | None = None
     ball: Ball | None = None
+    terminal_time: float | None = None  # the wind's (`WindParams.terminal_time`): how it bounds the air it drives
+
+    def controls(self, index: int) -> Controls:
+        """The controls of new frame `index` (0 = the first new one): the wind's force and air
+        (each knows when it blows), the ball from its first frame on."""
+        spheres = () if self.ball is None or index < self.ball.first_frame else (self.ball.sphere,)
+        return Controls(self.force, self.air, spheres, self.terminal_time)
 
 
 def interventions(
@@ -54,7 +62,7 @@ def interventions(
         force = wind_force(wind, blowing, base_height, tuple(up))
         air = wind_air(wind, seconds_blown(wind, start_time, config.dt), base_height, tuple(up))
     ball = None if params.ball is None else ball_sphere(params.ball, start_time, config.dt)
-    return Interventions(force, air, ball)
+    return Interventions(force, air, ball, None if params.wind is None else params.wind.terminal_time)
 
 
 def seconds_blown(wind: WindParams, start_time: float, dt: float) -> Callable[[float], float]:

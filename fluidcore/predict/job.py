@@ -201,6 +201,7 @@ def _write(
     run.update(refinement="pending: runs after the last simulated frame" if request.refined else NOT_REFINED)
     rollout = _rollout(scene, start, params, visual_settings, device, profile)
     smoke = start if run.next_frame() == frame_range[0] else SmokeState.from_frame(run.read_frame(run.frames()[-1]), device)
+    smoke = smoke.with_particles(rollout.simulator.adopt_air(smoke.particles))
     for t in range(run.next_frame(), frame_range[1]):
         if context.should_cancel():
             raise Cancelled(f"{request.kind} cancelled; {out_dir} resumes from frame {t}")
@@ -227,21 +228,20 @@ def _rollout(
     """The simulator of the parent's scene with the interventions, ready to continue `start`.
 
     New frame 0 is the step that begins at the start state's time; the interventions' frame
-    numbers are counted from there. When the scene simulates the air, it is an `AirGrid` that
-    the wind pushes (instead of the wind's uniformly accelerated air); it continues the air saved
-    with `start` (still air when the parent frame holds none: a run written before the air was
-    saved), resampled onto this grid when the parent's lies on another.
+    numbers are counted from there and reach the simulator with each step (`Interventions.controls`).
+    When the scene simulates the air, the wind pushes that air (instead of the wind's uniformly
+    accelerated air); the rollout continues the air saved with `start` (`Simulator.adopt_air`:
+    still air when the parent frame holds none, resampled onto this grid when the parent's lies
+    on another).
     """
     applied = interventions(params, scene.physics, scene.source, scene.up, start.particles.time)
-    simulator = build_simulator(scene, device=device, force=applied.force, still_air=applied.air)
-    simulator.adopt_air(start.particles)
     return Rollout(
-        simulator,
+        build_simulator(scene, device=device),
         source_template(start, scene.source.center),
         velocity_radius=visual.velocity_radius * scene.physics.h,
         per_physical=visual.per_physical,
         seed=visual.seed,
-        ball=applied.ball,
+        interventions=applied,
         profile=profile,
         opacity_concentration=visual.opacity_concentration,
     )

@@ -1,9 +1,9 @@
 """The rollout of Algorithm S2: a smoke state stepped forward by physics, one frame per call.
 
-Every new frame costs one simulator step. The visual Gaussians ride on the physical velocity
-field exactly as during reconstruction (`fluidcore.reconstruct.physical.visual_means`:
-kernel-interpolated displacement, forward Euler), so a prediction continues the reconstruction
-without a visual jump; Gaussians are born with every new physical particle and take the fitted
+Every new frame costs one simulator step, carried exactly as during reconstruction
+(`fluidcore.carry`: the visual Gaussians ride on the physical particles' displacement), so a
+prediction continues the reconstruction without a visual jump; the step's controls (a wind, a
+ball from its first frame) are passed with it (`fluidcore.predict.interventions`). Gaussians are born with every new physical particle and take the fitted
 appearance of the reconstruction's Gaussians nearest the source (`source_template`), because
 newborn smoke should look like the smoke the video showed coming out of it. With
 `opacity_concentration` (the reconstruction's `ReconstructConfig.visual.opacity_concentration`) each Gaussian
@@ -22,12 +22,12 @@ from dataclasses import replace
 
 import torch
 
+from fluidcore.carry import carry, visual_means
 from fluidcore.jobs import JobInputError
-from fluidcore.physics import PBFConfig, Simulator, Source, Sphere, StepStats
+from fluidcore.physics import PBFConfig, Simulator, Source, StepStats
 from fluidcore.physics.coupling import push_out
-from fluidcore.predict.interventions import Ball
+from fluidcore.predict.interventions import Interventions
 from fluidcore.predict.priors import HeightProfile
-from fluidcore.reconstruct.physical import PositionProblem, visual_means
 from fluidcore.smoke import Appearance, SmokeState, concentration
 from fluidcore.spec.scene import Scene
 
@@ -52,7 +52,7 @@ class Rollout:
         velocity_radius: float,
         per_physical: int,
         seed: int,
-        ball: Ball | None = None,
+        interventions: Interventions = Interventions(),
         profile: HeightProfile | None = None,
         opacity_concentration: bool = False,
     ) -> None:
@@ -63,43 +63,32 @@ class Rollout:
         self.velocity_radius = velocity_radius
         self.per_physical = per_physical
         self.seed = seed
-        self.ball = ball
+        self.interventions = interventions
         self.profile = profile
         self.opacity_concentration = opacity_concentration
-        self._static_spheres = tuple(simulator.spheres)
 
     def advance(self, smoke: SmokeState, index: int, t: int) -> tuple[SmokeState, StepStats]:
-        """New frame `index` (0 = the first new one; video frame `t`): step `smoke.particles` in
-        place and return the state with the visual layer moved along with it, and what the step
+        """New frame `index` (0 = the first new one; video frame `t`): `smoke` stepped one frame
+        under that frame's controls, with the visual layer moved along with it, and what the step
         did (`fluidcore.physics.step_record` makes it a frame's record)."""
-        sim, dt, state = self.simulator, self.simulator.config.dt, smoke.particles
-        sim.spheres = self._spheres(index)
-        before = state.clone()
-        step = sim.step(state)
-        before = before.padded(state.capacity)
-        slots = torch.nonzero(state.alive).flatten()
-        p, v = state.positions[slots], state.velocities[slots]
-        was_alive = before.alive[slots]
-        p_prev = torch.where(was_alive[:, None], before.positions[slots], p - dt * v)
-        owner, offsets, born = self._births(torch.nonzero(~was_alive).flatten(), t)
-        problem = PositionProblem(p_prev, p, v, smoke.means, owner, offsets, self.velocity_radius)
-        means = visual_means(p, problem, dt)
-        if sim.spheres:
-            means, _ = push_out(means, sim.spheres, state.time)
+        sim, dt = self.simulator, self.simulator.config.dt
+        controls = self.interventions.controls(index)
+        carried = carry(smoke, sim, lambda rows: self._births(rows, t), self.velocity_radius, controls=controls)
+        state, problem = carried.state, carried.problem
+        means = visual_means(problem.p_sim, problem, dt)
+        if controls.spheres:
+            means, _ = push_out(means, controls.spheres, state.time)
         if not bool(torch.isfinite(means).all()):
             raise FloatingPointError(f"visual Gaussians became NaN or Inf at frame {t}")
-        appearance = smoke.appearance
+        old = carried.old
         if self.opacity_concentration:
-            n, radius = len(smoke.means), self.velocity_radius
+            n, radius, before = len(smoke.means), self.velocity_radius, smoke.particles
             then = concentration(smoke.means, before.positions[before.alive], radius, sim.config)
-            appearance = appearance.diluted(then, concentration(means[:n], p, radius, sim.config))
-        moved = SmokeState(state, means, appearance.cat(born)).cropped(sim.box.lo, sim.box.hi)
-        return (moved if self.profile is None else self.profile.hold(moved, dt)), step
-
-    def _spheres(self, index: int) -> tuple[Sphere, ...]:
-        if self.ball is None or index < self.ball.first_frame:
-            return self._static_spheres
-        return (*self._static_spheres, self.ball.sphere)
+            old = old.diluted(then, concentration(means[:n], problem.p_sim, radius, sim.config))
+        appearance = old.cat(carried.newborn)
+        moved = SmokeState(state, means, appearance).cropped(sim.box.lo, sim.box.hi)
+        assert carried.step is not None
+        return (moved if self.profile is None else self.profile.hold(moved, dt)), carried.step
 
     def _births(self, rows: torch.Tensor, t: int) -> tuple[torch.Tensor, torch.Tensor, Appearance]:
         """Gaussians for the physical particles born this frame (`rows` of the live particles):

@@ -63,10 +63,11 @@ from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
 from fluidcore.physics import Box, PBFConfig, Source
 from fluidcore.physics.build import build_simulator
+from fluidcore.physics.carrier import eddy_diffusivity, eddy_viscosity
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.physics import Vec3
 from fluidcore.spec.scene import Air, Scene, SourcePlace
-from fluidcore.spec.simulation import PHYSICS_MODES
+from fluidcore.spec.simulation import PHYSICS_MODES, MotionModel
 from fluidcore.spec.source_hint import SourceKept
 
 # Windows in seconds, counted in frames at the clip's rate (`PBFConfig.frames_in`); measured at 30 fps.
@@ -78,10 +79,14 @@ MAX_AGE_SECONDS = 1.5  # how long the source may have been emitting before the f
 # i22_ident_misfit_scans.json). The source is judged over the same window: over 90 frames F's
 # silhouettes preferred its image radius to 0.8x of it, where the first 45 alone preferred 0.8x.
 MAX_SECONDS = 4.0
-MAX_EVALUATIONS = 40  # candidates rolled out per identification (ROLLOUT_SEEDS times each)
+# Candidates rolled out per identification (ROLLOUT_SEEDS times each), per motion model: the carrier
+# searches five parameters where the paper model searches three (four with its spreading).
+MAX_EVALUATIONS = {"paper": 40, "carrier": 60}
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
-ROLLOUT_SEEDS = 3  # seedings of the source each candidate's misfit is averaged over (see _Search.misfit)
+# Seedings of the source each candidate's misfit is averaged over, per motion model (see _Search.misfit).
+# The carrier's markers only mark the air, whose motion the seeding barely changes: TODO measure
+ROLLOUT_SEEDS = {"paper": 3, "carrier": 1}
 # The bounds of the search (`search_space`), each relative to what the video or the prior says.
 BUOYANCY_RANGE = (0.05, 20.0)  # x drag x the observed rise speed (x the prior's buoyancy where the smoke does not climb)
 START_BUOYANCY = 0.5  # x drag x rise speed: where the search starts (the old grid's choice on every dev scene)
@@ -89,6 +94,10 @@ RADIUS_RANGE = (0.5, 2.0)  # x the image estimate's radius
 HEIGHT_RANGE = (-1.5, 2.0)  # the centre's height along up from the estimate's, in the estimate's radii
 SPREADING_RANGE = (0.0, 0.2)  # the spreading rate db/dz (0: the paper's column; MTT's 6/5 alpha_e for alpha_e up to 0.16)
 FIRST_STEP = 0.1  # the initial simplex's step along each parameter, as a fraction of its (log) range
+# The carrier's buoyancy (x rise^2 / source radius) and inflow speed (x rise): bounds and starts. TODO measure
+# Its smoke's turbulent diffusivity, x rise x source radius (0: markers carried by the resolved air alone).
+CARRIER_RANGES = {"buoyancy": (0.02, 20.0), "inflow_speed": (0.1, 3.0), "diffusivity": (0.0, 0.5)}
+CARRIER_START = {"buoyancy": 0.4, "inflow_speed": 1.0, "diffusivity": 0.05}
 
 
 # What of a given source (`fluidcore.spec.source_hint.SourceKept`) the record's `held_from_prior` names.
@@ -184,6 +193,8 @@ class Candidate(NamedTuple):
     source_radius: float  # world units
     source_height: float  # the source centre's height along up, world units
     entrainment: float  # the spreading rate db/dz
+    inflow_speed: float = 0.0  # world units / s along up: the carrier's, searched (the paper model's follows from the buoyancy)
+    diffusivity: float = 0.0  # world units^2 / s: the carrier's turbulent diffusivity of the smoke, searched
 
 
 @dataclass(frozen=True)
@@ -226,6 +237,7 @@ class ScenePrior:
     physics: PBFConfig
     place: SourcePlace
     seed: int
+    motion: MotionModel = "paper"
 
     @property
     def preset(self) -> str:
@@ -236,24 +248,51 @@ class ScenePrior:
         """(3,) `up` as a float64 array of unit length (normalised again against a caller's rounding)."""
         return np.asarray(self.up, dtype=np.float64) / np.linalg.norm(self.up)
 
-    def scene(self, physics: PBFConfig, place: SourcePlace, rate: int, velocity: np.ndarray) -> Scene:
-        """This scene under `physics`, its source at `place` seeding `rate` particles per step at `velocity`."""
+    def scene(self, physics: PBFConfig, place: SourcePlace, rate: int, velocity: np.ndarray,
+              diffusivity: float | None = None) -> Scene:
+        """This scene under `physics`, its source at `place` seeding `rate` particles per step at
+        `velocity`; the carrier's air gets the eddy viscosity of that inflow
+        (`fluidcore.physics.carrier.eddy_viscosity`) and the smoke's turbulent `diffusivity`
+        (identified; without one, the prior's `eddy_diffusivity` of that viscosity)."""
         source = Source(place.center, place.radius, rate, tuple(float(c) for c in velocity), self.seed)
-        return Scene(self.box.lo, self.box.hi, self.up, physics, source, self.air)
+        air = self.air
+        if self.motion == "carrier":
+            viscosity = eddy_viscosity(float(np.linalg.norm(velocity)), place.radius)
+            air = replace(air, viscosity=viscosity,
+                          diffusivity=eddy_diffusivity(viscosity) if diffusivity is None else diffusivity)
+        return Scene(self.box.lo, self.box.hi, self.up, physics, source, air, self.motion)
 
 
 def search_space(prior: ScenePrior, rise: float, keep: SourceKept, spreading: bool) -> tuple[list[Parameter], Candidate]:
     """The parameters the identification varies, with their bounds (see the module docstring),
     and the candidate that holds the rest: what of the source the user gave (`keep`), the
-    spreading rate unless `spreading`. `rise`: the observed smoke's rise speed (`rise_speed`)."""
+    spreading rate unless `spreading`. `rise`: the observed smoke's rise speed (`rise_speed`).
+
+    The paper model's buoyancy is scaled by drag x rise (its sparse smoke's terminal speed is
+    buoyancy / drag). The carrier's buoyancy acts on air at the inlet's concentration, and a
+    plume of radius r driven by it rises at about sqrt(b r): its scale is rise^2 / r, and its
+    inflow speed is searched too, scaled by the rise (CARRIER_RANGES)."""
     config, place = prior.physics, prior.place
     up = prior.up_vector
-    drag = max(config.drag, 1e-3)
-    scale = drag * rise if rise > 0.0 else max(float(np.dot(config.body_acceleration, up)), 1e-6)
-    start = START_BUOYANCY * scale if rise > 0.0 else scale
     height = float(np.dot(place.center, up))
-    held = Candidate(start, place.radius, height, 0.0)
-    space = [Parameter("buoyancy", BUOYANCY_RANGE[0] * scale, BUOYANCY_RANGE[1] * scale, start, True)]
+    if prior.motion == "carrier":
+        speed = rise if rise > 0.0 else max(config.terminal_speed, 1e-6)
+        scale = speed * speed / place.radius
+        mixing = speed * place.radius  # the plume's own scale of a diffusivity, world units^2 / s
+        held = Candidate(CARRIER_START["buoyancy"] * scale, place.radius, height, 0.0, CARRIER_START["inflow_speed"] * speed,
+                         CARRIER_START["diffusivity"] * mixing)
+        space = [Parameter("buoyancy", CARRIER_RANGES["buoyancy"][0] * scale, CARRIER_RANGES["buoyancy"][1] * scale,
+                           held.buoyancy, True),
+                 Parameter("inflow_speed", CARRIER_RANGES["inflow_speed"][0] * speed, CARRIER_RANGES["inflow_speed"][1] * speed,
+                           held.inflow_speed, True),
+                 Parameter("diffusivity", CARRIER_RANGES["diffusivity"][0] * mixing, CARRIER_RANGES["diffusivity"][1] * mixing,
+                           held.diffusivity, False)]
+    else:
+        drag = max(config.drag, 1e-3)
+        scale = drag * rise if rise > 0.0 else max(float(np.dot(config.body_acceleration, up)), 1e-6)
+        start = START_BUOYANCY * scale if rise > 0.0 else scale
+        held = Candidate(start, place.radius, height, 0.0)
+        space = [Parameter("buoyancy", BUOYANCY_RANGE[0] * scale, BUOYANCY_RANGE[1] * scale, start, True)]
     if keep in ("nothing", "center"):
         space.append(Parameter("source_radius", RADIUS_RANGE[0] * place.radius, RADIUS_RANGE[1] * place.radius, place.radius, True))
     if keep == "nothing":
@@ -286,7 +325,7 @@ class _Search:
         if key not in self.scores:
             scene = self.scene(key)
             rollouts = [self._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k)))
-                        for k in range(ROLLOUT_SEEDS)]
+                        for k in range(ROLLOUT_SEEDS[self.prior.motion])]
             scores = np.mean([self._age_scores(simulated) for simulated in rollouts], axis=0)
             age = int(np.argmin(scores))
             self.scores[key] = (float(scores[age]), age)
@@ -300,14 +339,16 @@ class _Search:
         return {**ranges, "age": (0.0, float(self.max_age))}
 
     def scene(self, candidate: Candidate) -> Scene:
-        """The scene a candidate simulates (inflow at its terminal speed)."""
+        """The scene a candidate simulates: the carrier's inflow at the candidate's speed, the
+        paper model's at its terminal speed (`identify` says why it is not searched there)."""
         config = replace(with_buoyancy(self.prior.physics, candidate.buoyancy, self.up), entrainment=candidate.entrainment)
-        speed = config.terminal_speed  # the inflow is not searched on its own: see `identify`
+        speed = candidate.inflow_speed if self.prior.motion == "carrier" else config.terminal_speed
         place = self.prior.place
         lift = candidate.source_height - float(np.dot(place.center, self.up))
         center = place.center if abs(lift) < 1e-9 else tuple(float(c) for c in np.asarray(place.center) + lift * self.up)
         rate = inlet_rate(candidate.source_radius, speed, config, self.budget)
-        return self.prior.scene(config, SourcePlace(center, candidate.source_radius), rate, speed * self.up)
+        return self.prior.scene(config, SourcePlace(center, candidate.source_radius), rate, speed * self.up,
+                                candidate.diffusivity)
 
     def _simulate(self, scene: Scene) -> np.ndarray:
         """(max_age + frames, gh, gw) bool: the cells a rollout of `scene` from an empty box covers
@@ -316,7 +357,7 @@ class _Search:
         state = simulator.new_state()
         projected = []
         for _ in range(self.max_age + self.frames):
-            simulator.step(state)
+            state, _ = simulator.step(state)
             projected.append(self.observation.project(state.positions[state.alive].cpu().numpy().astype(np.float64)))
         return np.stack(projected)
 
@@ -375,13 +416,16 @@ def identify(
     best = _minimise(search, space, held)
     misfit, age = search.misfit(best)
     fitted = search.scene(best).source
+    held = ("eddy viscosity",) if prior.motion == "carrier" else ("drag", "rho0")
     record = IdentificationPrior(preset=prior.preset, buoyancy=float(np.dot(config.body_acceleration, up_v)), drag=config.drag,
-                                 rho0=config.rho0, held_from_prior=("drag", "rho0", *KEPT_SOURCE[keep]), inflow_speed="buoyancy / drag",
+                                 rho0=config.rho0, held_from_prior=(*held, *KEPT_SOURCE[keep]),
+                                 inflow_speed="searched" if prior.motion == "carrier" else "buoyancy / drag",
                                  budget=budget, source=place)
     return IdentifiedRecord(buoyancy=best.buoyancy, inflow_speed=float(np.dot(fitted.velocity, up_v)),
                             rate=fitted.rate, age=age, misfit=misfit, rise_speed=speed_obs,
                             floor=buoyancy_floor(speed_obs, config.drag), evaluations=len(search.scores),
                             source_center=fitted.center, source_radius=fitted.radius, entrainment=best.entrainment,
+                            diffusivity=best.diffusivity if prior.motion == "carrier" else None,
                             prior=record, tried=search.tried(),
                             bounds={**{p.name: (p.lo, p.hi) for p in space}, "age": (0.0, float(search.max_age))})
 
@@ -399,5 +443,5 @@ def _minimise(search: _Search, space: list[Parameter], held: Candidate) -> Candi
                          for k in range(len(space))]
     result = optimize.minimize(lambda unit: search.misfit(candidate(unit))[0], start, method="Nelder-Mead",
                                bounds=[(0.0, 1.0)] * len(space),
-                               options={"initial_simplex": np.array(simplex), "maxfev": MAX_EVALUATIONS, "xatol": 0.01, "fatol": 1e-3})
+                               options={"initial_simplex": np.array(simplex), "maxfev": MAX_EVALUATIONS[search.prior.motion], "xatol": 0.01, "fatol": 1e-3})
     return _key(candidate(result.x))

@@ -42,11 +42,12 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
-from fluidcore.physics import Box, interpolate_velocity, step_record
+from fluidcore.physics import Box, ParticleState, interpolate_velocity, step_record
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.images import Background, estimate_background, plate_background, resize_image, smoke_mask, to_float
-from fluidcore.reconstruct.physical import PositionProblem, fit_positions, visual_means
+from fluidcore.carry import PositionProblem, carry, visual_means
+from fluidcore.reconstruct.physical import fit_positions
 from fluidcore.reconstruct.scene_physics import scene_physics, scene_prior
 from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source, source_frames
 from fluidcore.spec.source_hint import SourceHint
@@ -242,7 +243,9 @@ def prepare(
         )
     sim_box = Box(tuple(map(float, box[0])), tuple(map(float, box[1])))
     first = targets[0]
-    prior = scene_prior(physics, sim_box, up_v, fps, place, Air(quality.simulation.air_cells, quality.simulation.air_vorticity), quality.seed)
+    simulation = quality.simulation
+    prior = scene_prior(physics, sim_box, up_v, fps, place, Air(simulation.cells, simulation.air_vorticity), quality.seed,
+                        simulation.motion)
     chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
                            keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device)
     center = np.asarray(chosen.scene.source.center)
@@ -334,7 +337,7 @@ class Reconstructor:
         return run
 
     # -- one frame ----------------------------------------------------------------------
-    def frame(self, t: int, carry: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
+    def frame(self, t: int, smoke: SmokeState, first: bool) -> tuple[SmokeState, dict[str, float]]:
         """Fit frame `t` from the state after frame t-1 (`first`: from the stabilised particles)."""
         rec, config = self.rec, self.simulator.config
         q, fit, visual, lr = rec.quality, rec.quality.fit, rec.quality.visual, rec.quality.optimiser
@@ -342,42 +345,26 @@ class Reconstructor:
         seed = q.seed * 1_000_003 + t
         generator = torch.Generator().manual_seed(seed)
         chooser = random.Random(seed)
-        state = carry.particles.clone()
-        step = None if first else self.simulator.step(state)
-        prev = carry.particles.padded(state.capacity)
-        # frame 0: the stabilised particles are the prediction, all of them new
-        born_mask = state.alive.clone() if first else state.alive & ~prev.alive
-        slots = torch.nonzero(state.alive).flatten()
-        p_sim, v_sim = state.positions[slots], state.velocities[slots]
-        born = born_mask[slots]
-        p_prev = torch.where(born[:, None], p_sim - config.dt * v_sim, prev.positions[slots])
-        owner, offsets, new_appearance = spawn(
-            torch.nonzero(born).flatten(),
-            visual.per_physical,
-            spread=0.25 * config.h,
-            scale=0.35 * config.h,
-            opacity=visual.initial_opacity,
-            color=carry.appearance.colors.mean(0) if len(carry.appearance) else torch.from_numpy(rec.smoke_color).to(self.device),
-            generator=generator,
-        )
-        problem = PositionProblem(
-            p_prev, p_sim, v_sim, carry.means, owner.to(self.device), offsets.to(self.device), visual.velocity_radius * config.h
-        )
-        appearance = carry.appearance.cat(new_appearance)
-        forecast = self._input_psnr(index, visual_means(p_sim, problem, config.dt), appearance)
+        color = smoke.appearance.colors.mean(0) if len(smoke.appearance) else torch.from_numpy(rec.smoke_color).to(self.device)
+
+        def births(rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, Appearance]:
+            return spawn(rows, visual.per_physical, spread=0.25 * config.h, scale=0.35 * config.h,
+                         opacity=visual.initial_opacity, color=color, generator=generator)
+
+        carried = carry(smoke, self.simulator, births, visual.velocity_radius * config.h, first=first)
+        state, problem, appearance = carried.state, carried.problem, carried.appearance
+        forecast = self._input_psnr(index, visual_means(problem.p_sim, problem, config.dt), appearance)
         iterations = fit.position_iterations * (fit.first_frame_factor if first else 1)
         loss_fn = self._image_loss(index, iterations, chooser)
-        flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, p_prev, config.h)
-        p, terms = fit_positions(
-            problem, appearance, loss_fn, config, q.weights, iterations, lr.lr_position, q.priors.next_step_incompressibility, flow
-        )
+        flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, problem.p_prev, config.h)
+        p, terms = fit_positions(problem, appearance, loss_fn, self.simulator.integrator, q.weights, iterations,
+                                 lr.lr_position, q.priors.next_step_incompressibility, flow)
         means = visual_means(p, problem, config.dt).detach()
-        velocities = v_sim if first else smooth_velocities(p, (p - p_prev) / config.dt, problem.velocity_radius)
         app_iterations = fit.appearance_iterations * (fit.first_frame_factor if first else 1)
         appearance, app_loss = fit_appearance(
             means,
             appearance,
-            carry.appearance,
+            smoke.appearance,
             self._image_loss(index, app_iterations, chooser),
             app_iterations,
             {"color": lr.lr_color, "scale": lr.lr_scale, "opacity": lr.lr_opacity, "rotation": lr.lr_rotation},
@@ -385,12 +372,22 @@ class Reconstructor:
             ScaleBounds(visual.min_scale * config.h, visual.max_scale * config.h),
             OpacityTie(visual.opacity_spread),
         )
-        state.positions[slots] = p
-        state.velocities[slots] = velocities
+        state.positions[carried.slots] = p
+        state.velocities[carried.slots] = self._velocities(state, p, problem, first)
         losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
-        smoke = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
-        losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means)), **step_record(step)})
-        return smoke, losses
+        fitted = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
+        losses.update({"particles": float(state.n_alive), "gaussians": float(len(fitted.means)), **step_record(carried.step)})
+        return fitted, losses
+
+    def _velocities(self, state: ParticleState, p: torch.Tensor, problem: PositionProblem, first: bool) -> torch.Tensor:
+        """The fitted particles' velocities u_t: the motion model's own where it has a velocity
+        field of its own (the carrier's air, at the fitted positions), else the smoothed
+        displacements of the fit (`smooth_velocities`; the simulator's on the first frame)."""
+        if self.simulator.motion == "carrier":
+            return self.simulator.velocity_at(state, p)
+        if first:
+            return problem.v_sim
+        return smooth_velocities(p, (p - problem.p_prev) / self.simulator.config.dt, problem.velocity_radius)
 
     def _image_loss(self, index: int, iterations: int, chooser: random.Random) -> Callable[[Gaussians, int], torch.Tensor]:
         """One random view per iteration (probability ~ weight), coarse to fine over the iterations;
@@ -430,8 +427,7 @@ class Reconstructor:
         done = run.frames()
         if done:
             return SmokeState.from_frame(run.read_frame(done[-1]), self.device)
-        state = self.simulator.new_state()
-        self.simulator.stabilize(state, self.rec.stabilization_steps)
+        state = self.simulator.stabilize(self.simulator.new_state(), self.rec.stabilization_steps)
         return SmokeState.start(state, self.rec.channels)
 
 

@@ -21,7 +21,7 @@ from fluidcore.reconstruct.identify import Observation, ScenePrior, identify, in
 from fluidcore.reconstruct.views import ViewTarget
 from fluidcore.runs import PhysicsRecord
 from fluidcore.spec.scene import Air, Scene, SourcePlace
-from fluidcore.spec.simulation import PHYSICS_MODES
+from fluidcore.spec.simulation import DEFAULT_MOTION, PHYSICS_MODES, MotionModel
 from fluidcore.spec.source_hint import SourceKept
 
 KERNEL_RADII_PER_BOX = 37.5  # resolution: the scene box's height spans this many kernel radii
@@ -77,10 +77,11 @@ def check_mode(mode: str) -> str:
     return mode
 
 
-def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePlace, air: Air, seed: int) -> ScenePrior:
+def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePlace, air: Air, seed: int,
+                motion: MotionModel = DEFAULT_MOTION) -> ScenePrior:
     """The scene of a reconstruction before its physics is chosen: the prior preset of the
     physics `mode` in this scene's units, the source at its estimated `place` (at least half a
-    kernel radius wide).
+    kernel radius wide), moved by the `motion` model in `air`.
 
     The kernel radius is a resolution choice in the scene's own units (its box's height over
     KERNEL_RADII_PER_BOX), and the preset's buoyancy is converted with it (`KERNEL_RADIUS_SIM`).
@@ -90,7 +91,7 @@ def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePl
     gravity = tuple(float(c) for c in -9.8 * up)
     physics = replace(PRESETS[preset], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
     return ScenePrior(box, tuple(float(c) for c in up), air, mode, physics,
-                      SourcePlace(place.center, max(place.radius, 0.5 * h)), seed)
+                      SourcePlace(place.center, max(place.radius, 0.5 * h)), seed, motion)
 
 
 def scene_physics(
@@ -135,9 +136,11 @@ def scene_physics(
     else:
         config, steps = prior.physics, prior.physics.frames_in(PRESET_STABILIZATION_SECONDS)
     buoyancy = float(np.dot(config.body_acceleration, up))
-    speed = config.terminal_speed
+    # the carrier's inflow speed is identified with the rest; the paper model's is its terminal speed
+    speed = found.inflow_speed if found is not None and prior.motion == "carrier" else config.terminal_speed
     carried = inflow_rate_speed(speed, observed_rise)
-    scene = prior.scene(config, place, inlet_rate(place.radius, carried, config, budget), speed * up)
+    scene = prior.scene(config, place, inlet_rate(place.radius, carried, config, budget), speed * up,
+                        None if found is None else found.diffusivity)
     record = PhysicsRecord(mode=prior.mode, prior_preset=prior.preset, kernel_radius=h, identified=found, buoyancy=buoyancy,
                            inflow_speed=speed, inflow_rate=scene.source.rate, inflow_rate_speed=carried, drag=config.drag,
                            rho0=config.rho0, entrainment=config.entrainment, stabilization_steps=steps)

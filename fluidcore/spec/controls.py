@@ -34,6 +34,11 @@ Height = TypeVar("Height")  # a float, or a torch tensor of heights
 MAX_WIND_STRENGTH = 1.0e3  # world units / s^2 at the source height; beyond this nothing is smoke any more
 MAX_WIND_GROWTH = 50.0  # per world unit of height; exp(50 * 1) is already far past physical
 MAX_GAIN_EXPONENT = 60.0  # exp(60) ~ 1e26: far past physical, still finite in float32 after scaling
+# A wind's terminal speed when none is given: the speed its strength gives still air in this many
+# seconds (it then reaches 76% of it, tanh(1), in as many seconds). Longer than the dev scenes'
+# what-ifs blow (3.3-3.5 s), so there the air reaches 88% of the unbounded a t at their end.
+WIND_TERMINAL_SECONDS = 5.0
+MAX_WIND_SPEED = 1.0e3  # world units / s: a terminal speed beyond this is no longer a wind around smoke
 
 _STRICT = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -58,7 +63,11 @@ class WindParams(BaseModel):
       linear       max(0, 1 + growth * z)  a ramp in height, as the official release's force;
       uniform      1                       the same push everywhere (growth must be 0).
     The acceleration drives the air around the smoke as well as the smoke itself, so the smoke is
-    carried by the air the wind sets moving (fluidcore.physics.forces.wind_air).
+    carried by the air the wind sets moving (fluidcore.physics.forces.wind_air). It drives the air
+    up to a terminal speed, `terminal_speed` x gain(z) along `direction`, as a quadratic drag of
+    the surroundings would: still air blown for t seconds moves at terminal x gain x
+    tanh(strength t / terminal) (`air_speed`); without one given, the speed its strength gives in
+    WIND_TERMINAL_SECONDS (filled in when the wind is made, so a run records the speed it used).
     A linear ramp from zero at height y0 to `strength` at y1 is profile "linear" with
     base_height y1 and growth 1 / (y1 - y0).
     Units: `strength` in world units / s^2 (the acceleration at the base height), `growth`
@@ -78,6 +87,9 @@ class WindParams(BaseModel):
     end_frame: int | None = Field(default=None, ge=0, description="the new frame it stops on (exclusive; null: never)")
     base_height: float | None = Field(default=None, description="the world height where `strength` holds "
                                       "(null: the source centre's)")
+    terminal_speed: float | None = Field(default=None, gt=0.0, le=MAX_WIND_SPEED, description=(
+        f"the air's speed the wind blows up to at the base height, units/s (null: what its strength gives in "
+        f"{WIND_TERMINAL_SECONDS:g} s)"))
 
     @field_validator("direction")
     @classmethod
@@ -94,7 +106,25 @@ class WindParams(BaseModel):
             raise ValueError(f"end_frame ({self.end_frame}) must be after start_frame ({self.start_frame})")
         if self.profile == "uniform" and self.growth != 0.0:
             raise ValueError("growth must be 0 for a uniform wind (it is the same at every height)")
+        if self.terminal_speed is None and self.strength > 0.0:  # recorded as used (class docstring)
+            object.__setattr__(self, "terminal_speed", min(self.strength * WIND_TERMINAL_SECONDS, MAX_WIND_SPEED))
         return self
+
+    @property
+    def terminal_time(self) -> float | None:
+        """Seconds the wind's push takes to bring still air to its terminal speed at a constant
+        rate (terminal / strength): the time constant of `air_speed`. None for a wind of no strength."""
+        if self.strength == 0.0 or self.terminal_speed is None:
+            return None
+        return self.terminal_speed / self.strength
+
+    def air_speed(self, seconds: float) -> float:
+        """The speed (units/s, at gain 1) the wind has given still air after blowing `seconds`:
+        terminal x tanh(seconds / terminal_time); 0 before it blows or without strength."""
+        tau = self.terminal_time
+        if tau is None or seconds <= 0.0:
+            return 0.0
+        return float(self.terminal_speed) * math.tanh(seconds / tau)  # type: ignore[arg-type]
 
     def active(self, frame: int) -> bool:
         """Whether the wind blows during new frame `frame`: the one definition of its window

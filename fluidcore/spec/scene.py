@@ -1,13 +1,15 @@
 """The scene spec: what a simulator is built from (`fluidcore.physics.build.build_simulator`).
 
 A scene is the box the particles live in, the up axis, the physics constants (`PBFConfig`, in
-this scene's units), the source that seeds the smoke and the air around it. Reconstruction,
-identification, calibration and every continuation build their simulator from one of these, so
-they all simulate the same physics (the air included when it is on).
+this scene's units), the source that seeds the smoke, the air around it and the motion model
+that moves the smoke (`MOTION_MODELS`). Reconstruction, identification, calibration and every
+continuation build their simulator from one of these, so they all simulate the same physics
+(the air included when it is on).
 
-In a run's manifest the "scene" record holds box, up, physics, source and air (`to_json`): it is
-the one record of the air the run simulates, which a continuation reads back as it is
-(`fluidcore.runs.RunRecord.scene`). A record without the air is still air.
+In a run's manifest the "scene" record holds box, up, physics, source, air and motion
+(`to_json`): it is the one record of the physics the run simulates, which a continuation reads
+back as it is (`fluidcore.runs.RunRecord.scene`). A record without the air is still air; one
+without the motion model is the paper's (every run written before the carrier existed).
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from typing import Any, Literal
 
 from fluidcore.errors import InputError
 from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Vec3, vec3
-from fluidcore.spec.simulation import AIR_CELLS
+from fluidcore.spec.simulation import AIR_CELLS, MOTION_MODELS, MotionModel
 
 
 # The scene box is axis-aligned, so up is one of its six axis directions (fluidcore.cameras.world_up
@@ -40,19 +42,25 @@ class SceneError(InputError):
 @dataclass(frozen=True)
 class Air:
     """The air a scene simulates around its smoke: an incompressible grid with `cells` cells on
-    the box's long side (0: still air, the default) and vorticity confinement `vorticity`
-    (`fluidcore.physics.air.AirGrid`'s epsilon; 0 = off)."""
+    the box's long side (0: still air, the default), vorticity confinement `vorticity`
+    (`fluidcore.physics.air.AirGrid`'s epsilon; 0 = off), and for the carrier
+    (`fluidcore.physics.carrier`) its eddy viscosity `viscosity` and the smoke's turbulent
+    `diffusivity` (world units^2 / s)."""
 
     cells: int = 0
     vorticity: float = 0.0
+    viscosity: float = 0.0
+    diffusivity: float = 0.0
 
     def __post_init__(self) -> None:
         if isinstance(self.cells, bool) or not isinstance(self.cells, int) or not (
                 self.cells == 0 or AIR_CELLS[0] <= self.cells <= AIR_CELLS[1]):
             raise SceneError(f"air.cells must be 0 (still air) or an integer in {AIR_CELLS[0]}..{AIR_CELLS[1]}, got {self.cells!r}")
-        if isinstance(self.vorticity, bool) or not isinstance(self.vorticity, (int, float)) or not 0.0 <= self.vorticity < float("inf"):
-            raise SceneError(f"air.vorticity must be a finite number >= 0, got {self.vorticity!r}")
-        object.__setattr__(self, "vorticity", float(self.vorticity))
+        for name in ("vorticity", "viscosity", "diffusivity"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < float("inf"):
+                raise SceneError(f"air.{name} must be a finite number >= 0, got {value!r}")
+            object.__setattr__(self, name, float(value))
 
     @property
     def simulated(self) -> bool:
@@ -93,7 +101,8 @@ class Scene:
 
     `physics` is the scene's `PBFConfig` (world units, with the `length_scale` and kernel radius
     `h` chosen for this scene), `source` its `Source`, (`box_lo`, `box_hi`) the simulation box,
-    `up` the scene's up axis and `air` the air around the smoke.
+    `up` the scene's up axis, `air` the air around the smoke and `motion` the model that moves
+    it (`MOTION_MODELS`; the carrier is its air, so it needs `air.simulated`).
     """
 
     box_lo: Vec3
@@ -102,6 +111,7 @@ class Scene:
     physics: PBFConfig
     source: Source
     air: Air = field(default_factory=Air)
+    motion: MotionModel = "paper"
 
     def __post_init__(self) -> None:
         try:
@@ -116,6 +126,10 @@ class Scene:
         for value, kind, name in ((self.physics, PBFConfig, "physics"), (self.source, Source, "source"), (self.air, Air, "air")):
             if not isinstance(value, kind):
                 raise SceneError(f"scene.{name} must be a {kind.__name__}, got {type(value).__name__}")
+        if self.motion not in MOTION_MODELS:
+            raise SceneError(f"scene.motion must be one of {', '.join(MOTION_MODELS)}, got {self.motion!r}")
+        if self.motion == "carrier" and not self.air.simulated:
+            raise SceneError("scene.air.cells must be > 0 for the carrier: its air is the motion")
 
     @property
     def box(self) -> Box:
@@ -130,11 +144,13 @@ class Scene:
             "physics": asdict(self.physics),
             "source": asdict(self.source),
             "air": asdict(self.air),
+            "motion": self.motion,
         }))
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> Scene:
-        """The scene of a manifest's "scene" record; a record without "air" is still air."""
+        """The scene of a manifest's "scene" record; a record without "air" is still air, one
+        without "motion" the paper's."""
         def tuples(d: Mapping[str, Any]) -> dict[str, Any]:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
@@ -146,6 +162,7 @@ class Scene:
                 physics=PBFConfig(**tuples(data["physics"])),
                 source=Source(**tuples(data["source"])),
                 air=Air(**data.get("air", {})),
+                motion=data.get("motion", "paper"),
             )
         except (KeyError, TypeError, ValueError, InputError) as exc:
             raise SceneError(f"scene: malformed ({exc})") from None

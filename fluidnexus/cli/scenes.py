@@ -92,7 +92,8 @@ def reconstruct(
         None, "--world-up", help="+x|-x|+y|-y|+z|-z: the axis the world's up points along (+z in Blender's files); default: "
         "the camera file's `up`, else the cameras' mean image up, else +y.",
     ),
-    air_cells: int = spec_option(ReconstructParams, "air_cells", "--air-cells"),
+    motion: str = spec_option(ReconstructParams, "motion", "--motion"),
+    air_cells: int | None = spec_option(ReconstructParams, "air_cells", "--air-cells"),
     air_vorticity: float = spec_option(ReconstructParams, "air_vorticity", "--air-vorticity"),
     entrainment: bool = spec_option(ReconstructParams, "entrainment", "--entrainment"),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
@@ -116,7 +117,8 @@ def reconstruct(
             raise UserError("--refine-source refines a --source: give one")
         params = job_params(  # the API's reconstruct params: one check, one message naming the field
             ReconstructParams, quality=quality, physics=physics, frames=parse_frames(frames),
-            source=None if source is None else parse_source(source, refine_source), air_cells=air_cells, air_vorticity=air_vorticity,
+            source=None if source is None else parse_source(source, refine_source), motion=motion, air_cells=air_cells,
+            air_vorticity=air_vorticity,
             entrainment=entrainment, background_frames=parse_frames(background_frames, "--background-frames"),
             world_up=world_up,
         )

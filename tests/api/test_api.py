@@ -183,7 +183,8 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     job = created.json()
     assert job["state"] == "queued" and job["progress"] == 0.0
     assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None,
-                             "air_cells": 0, "air_vorticity": 0.0, "entrainment": False, "background_frames": None,
+                             "motion": "carrier", "air_cells": None, "air_vorticity": 0.0, "entrainment": False,
+                             "background_frames": None,
                              "world_up": None}
     assert service.queue.sent == [(job["id"], "reconstruct")]
     fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
@@ -204,7 +205,9 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
         ({"quality": "ultra"}, "quality"), ({"physics": "phiflow"}, "physics"), ({"frames": [4, 2]}, "frames"),
         ({"frames": [0, 99]}, "frames"), ({"speed": 1}, "speed"),
         ({"air_cells": 4}, "air_cells"), ({"air_cells": 129}, "air_cells"), ({"air_cells": 32, "air_vorticity": 3}, "air_vorticity"),
-        ({"air_vorticity": 0.5}, "air_vorticity needs the simulated air"), ({"entrainment": "yes please"}, "entrainment"),
+        ({"motion": "paper", "air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
+        ({"entrainment": "yes please"}, "entrainment"), ({"motion": "eulerian"}, "motion"),
+        ({"air_cells": 0}, "cannot carry the smoke"), ({"entrainment": True}, "the paper model's spreading"),
     ],
 )
 def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params: dict, field: str) -> None:
@@ -232,11 +235,12 @@ def test_a_source_hint_is_checked_against_the_capture_box(service: Service, tmp_
     assert refined.status_code == 202 and refined.json()["params"]["source"]["refine"] is True
 
 
-def test_reconstruct_takes_the_simulated_air_and_the_spreading(service: Service, scene_id: str) -> None:
-    created = reconstruct(service, service.key("alice"), scene_id, air_cells=32, air_vorticity=0.3, entrainment=True)
+def test_reconstruct_takes_the_motion_model_the_simulated_air_and_the_spreading(service: Service, scene_id: str) -> None:
+    created = reconstruct(service, service.key("alice"), scene_id, motion="paper", air_cells=32, air_vorticity=0.3,
+                          entrainment=True)
     assert created.status_code == 202, created.text
     params = created.json()["params"]
-    assert (params["air_cells"], params["air_vorticity"], params["entrainment"]) == (32, 0.3, True)
+    assert (params["motion"], params["air_cells"], params["air_vorticity"], params["entrainment"]) == ("paper", 32, 0.3, True)
     assert service.queue.sent == [(created.json()["id"], "reconstruct")]
 
 

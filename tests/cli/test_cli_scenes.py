@@ -75,12 +75,19 @@ def test_export_writes_world_space_particles(run_dir, tmp_path):
         assert np.median(data["velocities"][:, 1]) > 0
 
 
-def test_reconstruct_with_the_simulated_air_saves_it_and_exports_its_velocity(scene, tmp_path):
+@pytest.mark.parametrize("motion", ["paper", "carrier"])
+def test_reconstruct_with_the_simulated_air_saves_it_and_exports_its_velocity(scene, tmp_path, motion):
+    """Either motion model: the paper's particles in an air grid with their spreading, or the
+    carrier, whose air is its motion; the run records the choice and exports the air's velocity."""
     out = tmp_path / "airy"
+    spreading = ["--entrainment"] if motion == "paper" else []
     _ok(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}",
-         "--frames", "0:2", "--air-cells", "8", "--air-vorticity", "0.3", "--entrainment", "--out", str(out), "--threads", "1"])
-    simulation = Run.open(out).settings.quality.simulation
-    assert (simulation.air_cells, simulation.air_vorticity, simulation.entrainment) == (8, 0.3, True)
+         "--frames", "0:2", "--motion", motion, "--air-cells", "8", "--air-vorticity", "0.3", *spreading, "--out", str(out),
+         "--threads", "1"])
+    run = Run.open(out)
+    simulation = run.settings.quality.simulation
+    assert (simulation.motion, simulation.air_cells, simulation.air_vorticity, simulation.entrainment) == (motion, 8, 0.3, bool(spreading))
+    assert run.scene.motion == motion and run.scene.air.cells == 8
     _ok(["export", str(out), "--frame", "1", "--format", "density", "--out", str(tmp_path / "d.npz")])
     with np.load(tmp_path / "d.npz") as data:
         assert str(data["velocity_source"]) == "air"
@@ -98,7 +105,9 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--source", "9,9,9", "--out", str(tmp_path / "r")], "outside the scene box")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--refine-source", "--out", str(tmp_path / "r")], "give one")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "4", "--out", str(tmp_path / "r")], "air_cells must be 0")
-    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-vorticity", "0.5", "--out", str(tmp_path / "r")], "needs the simulated air")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--motion", "paper", "--air-vorticity", "0.5", "--out", str(tmp_path / "r")], "needs the simulated air")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "0", "--out", str(tmp_path / "r")], "cannot carry the smoke")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--motion", "eulerian", "--out", str(tmp_path / "r")], "motion")
     assert not (tmp_path / "r").exists()
     _fails(["synth", "--out", str(tmp_path / "odd"), "--width", "135"], "width must be even")
     assert not (tmp_path / "odd").exists()

@@ -81,7 +81,7 @@ def test_the_numpy_sampler_reads_the_air_as_the_simulator_does(airy: Path) -> No
     run = Run.open(airy)
     saved = run.read_frame(2)
     assert run.scene.air.cells == CELLS  # the run's scene records the air it simulates
-    grid = build_simulator(run.scene).air
+    grid = build_simulator(run.scene).integrator.air
     box = run.scene.box
     air = SmokeState.from_frame(saved, "cpu").particles.air
     points = torch.rand(500, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
@@ -113,7 +113,7 @@ def test_resimulation_starts_from_the_first_frames_air_and_steps_it(airy: Path, 
     resim = Run.open(run_resimulate(airy, tmp_path / "resim"))
     assert faces_equal(resim.read_frame(0).air, parent.read_frame(0).air)
     state = SmokeState.from_frame(parent.read_frame(0), "cpu").particles
-    build_simulator(resim.scene).step(state)
+    state, _ = build_simulator(resim.scene).step(state)
     np.testing.assert_allclose(resim.read_frame(1).air.faces[1], state.air.faces[1].numpy(), atol=1e-6)
 
 
@@ -132,13 +132,14 @@ def _reconstructor(scene: synth.SynthScene) -> Reconstructor:
 
 
 def test_reconstruction_carries_the_air_and_a_resumed_run_continues_it(scene, tmp_path: Path) -> None:
-    """S1 with air_cells: each frame saves the air stepped from the fitted particles; a run stopped
+    """S1 with the carrier's air (the default model): each frame saves the air stepped from the fitted particles; a run stopped
     after frame 1 and resumed writes the same air at frame 2 as an uninterrupted one."""
     straight = _reconstructor(scene).run(tmp_path / "straight")
     airs = [straight.read_frame(t).air for t in straight.frames()]
     assert all(a is not None for a in airs) and speed(airs[-1]) > 0.0
     assert max(airs[-1].cells) == CELLS  # cells on the box's long side
-    assert straight.manifest["scene"]["air"] == {"cells": CELLS, "vorticity": 0.0}  # the air it simulates, recorded
+    recorded = straight.manifest["scene"]  # the air it simulates, recorded: the carrier's grid and its eddy viscosity
+    assert recorded["motion"] == "carrier" and recorded["air"]["cells"] == CELLS and recorded["air"]["viscosity"] > 0.0
     calls = iter([False, False, True])
     partial = _reconstructor(scene).run(tmp_path / "resumed", should_stop=lambda: next(calls))
     assert partial.frames() == [0, 1]

@@ -30,8 +30,9 @@ def run_dir(tmp_path_factory):
     folder = tmp_path_factory.mktemp("scene")
     _ok(["synth", "--out", str(folder), "--frames", "2", "--width", "32", "--height", "48", "--views", "2"])
     out = tmp_path_factory.mktemp("runs") / "run"
+    # the paper model in still air (the synthetic plume's own physics): a run whose velocity is its particles'
     _ok(["reconstruct", "--cameras", str(folder / "transforms.json"), "--video", f"view_00={folder / 'videos' / 'view_00.mp4'}",
-         "--frames", "0:2", "--out", str(out), "--threads", "1"])
+         "--frames", "0:2", "--out", str(out), "--threads", "1", "--motion", "paper"])
     return out
 
 

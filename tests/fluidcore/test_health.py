@@ -33,7 +33,7 @@ def _run(tmp_path: Path, *, psnr: float = 35.0, radius: float = 0.03, misfit: fl
     like = Camera("like", 60.0, 60.0, 24.0, 32.0, 48, 64, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
     camera = look_at((0.0, 0.4, 1.6), (0.0, 0.4, 0.0), (0.0, 1.0, 0.0), like, "view_02")
     estimate = SourceEstimateRecord(depth_cue="box axis", depth_range=depth_range)
-    quality = get("preview").with_overrides(entrainment=spreading[0])
+    quality = get("preview").with_overrides(motion="paper", entrainment=spreading[0])  # the spreading is the paper model's
     settings = ReconstructSettings(
         quality=quality, capture=capture, physics=PhysicsRecord(mode="auto", identified=_identified(misfit, buoyancy, floor, tried, bounds)),
         source_estimate=estimate, backgrounds={"view_02": BackgroundRecord(textured=covered > 0, covered=covered)},

@@ -168,12 +168,13 @@ def test_version_2_runs_read_with_their_quality_nested_and_their_records_typed()
     rec = Run.open(V2_RUNS / "reconstruct")
     flat = json.loads((V2_RUNS / "reconstruct" / "manifest.json").read_text())["settings"]
     assert flat["quality"]["visual_per_physical"] == 2 and rec.manifest["format_version"] == FORMAT_VERSION
-    assert rec.settings.quality == get("preview")
+    # written before the carrier: the paper model, whose still air its air_cells 0 meant
+    assert rec.settings.quality == get("preview").with_overrides(motion="paper", air_cells=0)
     assert rec.visual_settings().model_dump() == flat["visual"]
     assert rec.settings.physics.model_dump(mode="json", exclude_none=True) == flat["physics"]
     assert rec.settings.symmetry.model_dump() == flat["symmetry"]
     airy = Run.open(V2_RUNS / "recair").settings.quality
-    assert airy.simulation == SimulationConfig(air_cells=16, air_vorticity=0.1, entrainment=True)
+    assert airy.simulation == SimulationConfig(motion="paper", air_cells=16, air_vorticity=0.1, entrainment=True)
     assert airy.model_copy(update={"simulation": SimulationConfig()}) == get("preview")
     assert Run.open(V2_RUNS / "predict").visual_settings() == rec.visual_settings()
     stored = (V2_RUNS / "reconstruct" / "manifest.json").read_bytes()  # as the API fetches it from storage

@@ -24,13 +24,14 @@ from fluidcore.synth import SynthSpec, particle_gaussians
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
 
 
-def scene_of(spec: SynthSpec = SPEC, air: Air = Air()) -> Scene:
-    """The plume's scene; with simulated `air` it simulates the air, as a reconstruction does."""
-    return replace(spec.scene(), air=air)
+def scene_of(spec: SynthSpec = SPEC, air: Air = Air(), motion: str = "paper") -> Scene:
+    """The plume's scene; with simulated `air` it simulates the air, as a reconstruction does,
+    and with the carrier that air carries the smoke."""
+    return replace(spec.scene(), air=air, motion=motion)
 
 
-def simulator_of(spec: SynthSpec = SPEC, air_cells: int = 0) -> Simulator:
-    return build_simulator(scene_of(spec, Air(air_cells)))
+def simulator_of(spec: SynthSpec = SPEC, air: Air = Air(), motion: str = "paper") -> Simulator:
+    return build_simulator(scene_of(spec, air, motion))
 
 
 def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
@@ -44,15 +45,17 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
               quality: dict | None = None, physics: str = "scalarflow") -> Path:
     """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
     (`quality`: overrides of the preview quality its settings record, whose Gaussians are one per
-    particle with fixed opacity unless they say otherwise; with `air_cells` there the plume is
-    simulated with the air, and every frame saves it; `physics`: the physics mode it records, a
-    preset's unless "auto")."""
-    config = get("preview").with_overrides(**{"per_physical": 1, "opacity_concentration": False, **(quality or {})})
-    simulator = simulator_of(spec, config.simulation.air_cells)
-    state = simulator.new_state()
-    simulator.stabilize(state, 20)
+    particle with fixed opacity unless they say otherwise; its motion the paper model's unless they
+    say "motion": "carrier"; with `air_cells` there the plume is simulated with the air, and every
+    frame saves it; `physics`: the physics mode it records, a preset's unless "auto")."""
+    config = get("preview").with_overrides(**{"per_physical": 1, "opacity_concentration": False, "motion": "paper",
+                                              **(quality or {})})
+    simulation = config.simulation
+    scene = scene_of(spec, Air(simulation.cells, simulation.air_vorticity), simulation.motion)  # the air its quality asks for
+    simulator = build_simulator(scene)
+    state = simulator.stabilize(simulator.new_state(), 20)
     for _ in range(warmup):
-        simulator.step(state)
+        state, _ = simulator.step(state)
     run = Run.create(
         path,
         kind=RunKind.RECONSTRUCT,
@@ -62,12 +65,12 @@ def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = S
         fps=spec.fps,
         channels=1,
         background_color=[1.0],
-        scene=scene_of(spec, Air(config.simulation.air_cells, config.simulation.air_vorticity)),  # the air its quality asks for
+        scene=scene,
         settings=ReconstructSettings(quality=config, physics=PhysicsRecord(mode=physics)),
     )
     for t in range(frames):
         if t > 0:
-            simulator.step(state)
+            state, _ = simulator.step(state)
         run.write_frame(t, frame_state(state, spec), {}, 0.0)
     return path
 

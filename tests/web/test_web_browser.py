@@ -194,7 +194,11 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     air.fill("4")  # below the grid's range: refused before anything is sent
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air must be 0 or a whole number from")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    air.fill("0")  # still air cannot carry the smoke: refused for the default motion
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air 0 is still air")
     air.fill("8")
+    sync_api.expect(page.get_by_label("Let the plume spread")).to_be_disabled()  # the paper model's spreading
+    page.get_by_label("Motion: how the smoke moves").select_option("paper")
     page.get_by_label("Let the plume spread").check()
     page.get_by_label("World up: the axis the smoke rises along").select_option("+y")  # the synth's, said outright
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
@@ -207,8 +211,8 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05, "refine": True} and sent["physics"] == "auto"
-    assert (sent["air_cells"], sent["entrainment"], sent["world_up"]) == (8, True, "+y")
-    sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
+    assert (sent["motion"], sent["air_cells"], sent["entrainment"], sent["world_up"]) == ("paper", 8, True, "+y")
+    sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("paper's particles, air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
     sync_api.expect(row(page, "reconstruct").locator(".job-origin")).to_contain_text("scene plume")
 
@@ -366,7 +370,7 @@ def test_the_forms_judge_values_by_the_apis_limits_as_the_models_do(static_web: 
 
     wind = {"direction": [1, 0, 0], "strength": 1.0}
     models = {
-        "air_cells": lambda v: ReconstructParams(air_cells=v),
+        "air_cells": lambda v: ReconstructParams(motion="paper", air_cells=v),  # the per-field rule (the carrier also refuses 0)
         "wind.strength": lambda v: InteractParams(wind={**wind, "strength": v}),
         "wind.growth": lambda v: InteractParams(wind={**wind, "growth": v}),
         "wind.start_frame": lambda v: InteractParams(wind={**wind, "start_frame": v}),

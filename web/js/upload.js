@@ -85,6 +85,9 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   else {
     const air = $("air-cells").value && limitProblem("Simulated air", Number($("air-cells").value), limits.air_cells);
     if (air) problems.push(air);
+    else if ($("motion").value === "carrier" && $("air-cells").value !== "" && Number($("air-cells").value) === 0) {
+      problems.push("Simulated air 0 is still air, which cannot carry the smoke: leave it empty, give cells, or choose the paper's particles.");
+    }
   }
   if (!cameras) return problems;
   const known = cameras.map((c) => c.name).join(", ");
@@ -147,6 +150,7 @@ function render() {
   }
   const list = $("video-list");
   list.replaceChildren(...state.videos.map(videoCard));
+  $("entrainment").disabled = $("motion").value !== "paper";  // the paper model's spreading
   const problems = uploadProblems(state);
   showList("upload-problems", problems);
   $("upload-button").disabled = problems.length > 0;
@@ -255,10 +259,9 @@ function parseFrameSpan(text) {
 
 /** The reconstruction's params (the API's ReconstructParams); no end frame: to the clip's end. */
 function reconstructParams() {
-  const params = { quality: $("quality").value, physics: $("physics").value };
-  const air = Number($("air-cells").value || 0);
-  if (air > 0) params.air_cells = air;
-  if ($("entrainment").checked) params.entrainment = true;
+  const params = { quality: $("quality").value, physics: $("physics").value, motion: $("motion").value };
+  if ($("air-cells").value !== "") params.air_cells = Number($("air-cells").value);
+  if ($("entrainment").checked && params.motion === "paper") params.entrainment = true;
   const source = parseSource($("source").value).value;
   if (source) params.source = $("source-refine").checked ? { ...source, refine: true } : source;
   const plate = parseFrameSpan($("background-frames").value).value;
@@ -298,6 +301,7 @@ export function initUpload(onDone) {
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
   for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames", "fov"]) $(id).addEventListener("input", render);
+  $("motion").addEventListener("change", render);
   render();
   loadLimits().then((all) => { limits = all.reconstruct; showLimits(); }, (error) => { limits = { error: error.message }; })
     .finally(render);
@@ -309,7 +313,7 @@ function showLimits() {
   bound($("air-cells"), limits.air_cells);
   bound($("frame-start"), limits["frames[0]"]);
   bound($("frame-end"), limits["frames[1]"]);
-  for (const name of ["quality", "physics"]) {
+  for (const name of ["quality", "physics", "motion"]) {
     const select = $(name), labels = new Map([...select.options].map((o) => [o.value, o.textContent]));
     select.replaceChildren(...limits[name].enum.map((value) => new Option(labels.get(value) || value, value, false, value === limits[name].default)));
   }

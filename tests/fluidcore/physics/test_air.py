@@ -12,12 +12,13 @@ import pytest
 import torch
 
 from fluidcore.spec.controls import WindParams
-from fluidcore.physics import PRESETS, Box, ParticleState, PhysicsInputError, Simulator, Source, Sphere, step_record, wind_force
+from fluidcore.physics import PRESETS, Box, Controls, ParticleState, PhysicsInputError, Source, Sphere, step_record, wind_force
 from fluidcore.physics.air import AirGrid, AirState, cell_velocity, curl
 from fluidcore.predict.job import run_predict
 from fluidcore.runs import Run
 from fluidcore.spec.scene import Air
 from tests.support.predict_scenes import plume_run
+from tests.support.simulators import paper, run
 
 CFG = PRESETS["scalarflow"]
 BOX = Box((0.0, 0.0, 0.0), (0.3, 0.4, 0.3))
@@ -60,9 +61,7 @@ def circulation(grid: AirGrid, air: AirState, theta: float, r: tuple[float, floa
 def test_a_buoyant_blob_rolls_up_into_a_vortex_ring_within_20_frames() -> None:
     grid = AirGrid(BOX, 32)
     state = blob(0.04, (AXIS[0], 0.1, AXIS[1]))
-    sim = Simulator(CFG, BOX, air=grid)
-    for _ in range(20):
-        sim.step(state)
+    state, _ = run(paper(CFG, BOX, air=grid), state, 20)
     thetas = [k * math.pi / 4.0 for k in range(8)]
     ys = torch.linspace(0.03, 0.35, 65)
     _, axis = half_plane(grid, state.air, 0.0, torch.tensor([0.0]), ys)
@@ -115,11 +114,11 @@ def test_projection_leaves_divergence_below_the_solvers_tolerance(spheres: tuple
 def test_air_flows_around_a_ball_not_into_it_and_faster_past_its_sides() -> None:
     box = Box((0.0, 0.0, 0.0), (0.4, 0.3, 0.3))
     centre, radius = torch.tensor([0.2, 0.15, 0.15]), 0.05
-    grid = AirGrid(box, 32, force=uniform((0.5, 0.0, 0.0)))
+    grid = AirGrid(box, 32)
     air = grid.still()
     ball = (Sphere(tuple(centre.tolist()), radius),)
     for step in range(10):
-        grid.step(air, torch.zeros(0, 3), CFG, step * CFG.dt, ball)
+        grid.step(air, torch.zeros(0, 3), CFG, step * CFG.dt, ball, uniform((0.5, 0.0, 0.0)))
     generator = torch.Generator().manual_seed(0)
     far = torch.rand(4000, 3, generator=generator) * torch.tensor([0.4, 0.3, 0.3])
     far = far[(far - centre).norm(dim=1) > 3.0 * radius]
@@ -140,12 +139,12 @@ def test_air_flows_around_a_ball_not_into_it_and_faster_past_its_sides() -> None
 def test_a_wind_accelerates_still_air_to_a_t_away_from_obstacles(ball: bool) -> None:
     box = Box((0.0, 0.0, 0.0), (0.4, 0.3, 0.3))
     centre, radius, a = torch.tensor([0.2, 0.15, 0.15]), 0.04, 0.4
-    grid = AirGrid(box, 32, force=uniform((a, 0.0, 0.0)))
+    grid = AirGrid(box, 32)
     air = grid.still()
     spheres = (Sphere(tuple(centre.tolist()), radius),) if ball else ()
     steps = 12
     for step in range(steps):
-        grid.step(air, torch.zeros(0, 3), CFG, step * CFG.dt, spheres)
+        grid.step(air, torch.zeros(0, 3), CFG, step * CFG.dt, spheres, uniform((a, 0.0, 0.0)))
     expected = torch.tensor([a * steps * CFG.dt, 0.0, 0.0])
     points = torch.rand(3000, 3, generator=torch.Generator().manual_seed(2)) * torch.tensor([0.4, 0.3, 0.3])
     points = points[(points - centre).norm(dim=1) > 3.0 * radius]
@@ -161,11 +160,9 @@ def test_still_air_grid_is_todays_still_air_bit_for_bit() -> None:
     air=None (today's path): the grid adds nothing of its own."""
     source = Source((0.15, 0.03, 0.15), 0.025, 30, (0.0, 0.05, 0.0), seed=1)
     spheres = (Sphere((0.15, 0.15, 0.15), 0.04),)
-    today, still = Simulator(CFG, BOX, source, spheres), Simulator(CFG, BOX, source, spheres, air=AirGrid(BOX, 16, buoyancy=0.0))
-    a, b = today.new_state(), still.new_state()
-    for _ in range(25):
-        today.step(a)
-        still.step(b)
+    today, still = paper(CFG, BOX, source), paper(CFG, BOX, source, air=AirGrid(BOX, 16, buoyancy=0.0))
+    a, _ = run(today, today.new_state(), 25, Controls(spheres=spheres))
+    b, _ = run(still, still.new_state(), 25, Controls(spheres=spheres))
     assert a.air is None and b.air is not None
     assert all(float(f.abs().max()) == 0.0 for f in b.air.faces)
     assert torch.equal(a.positions, b.positions) and torch.equal(a.velocities, b.velocities)
@@ -179,13 +176,9 @@ def test_the_air_moves_the_smoke_and_the_smoke_moves_the_air() -> None:
     for backend in ("torch", "auto"):
         state = blob(0.04, (AXIS[0], 0.1, AXIS[1]))
         tracer = torch.tensor([[AXIS[0], 0.05, AXIS[1]]])  # alone below the blob: sparse, so drag acts fully
-        state.add(tracer, torch.zeros(1, 3))
-        with_air = state.clone()
-        for sim, s in ((Simulator(CFG, BOX, backend=backend), state),
-                       (Simulator(CFG, BOX, air=AirGrid(BOX, 32), backend=backend), with_air)):
-            for _ in range(15):
-                sim.step(s)
-        slot = s.n_alive - 1
+        slot = int(state.add(tracer, torch.zeros(1, 3)))
+        with_air, _ = run(paper(CFG, BOX, air=AirGrid(BOX, 32), backend=backend), state, 15)
+        state, _ = run(paper(CFG, BOX, backend=backend), state, 15)
         results[backend] = (state.positions[slot, 1], with_air.positions[slot, 1])
         # 3.4 mm higher (of a 3 cm rise in still air) on both backends when written
         assert float(with_air.positions[slot, 1] - state.positions[slot, 1]) > 0.002
@@ -194,8 +187,7 @@ def test_the_air_moves_the_smoke_and_the_smoke_moves_the_air() -> None:
 
 def test_state_copies_carry_the_air() -> None:
     grid = AirGrid(BOX, 8)
-    state = blob(0.03, (AXIS[0], 0.1, AXIS[1]))
-    Simulator(CFG, BOX, air=grid).step(state)
+    state, _ = paper(CFG, BOX, air=grid).step(blob(0.03, (AXIS[0], 0.1, AXIS[1])))
     copy = state.clone()
     assert copy.air is not state.air and all(torch.equal(a, b) for a, b in zip(copy.air.faces, state.air.faces))
     assert state.padded(state.capacity + 10).air is not state.air
@@ -204,7 +196,7 @@ def test_state_copies_carry_the_air() -> None:
 @pytest.mark.parametrize("kwargs, field", [
     ({"cells": 2}, "cells"), ({"cells": 1000}, "cells"), ({"cells": 32.0}, "cells"), ({"buoyancy": -1.0}, "buoyancy"),
     ({"vorticity": float("nan")}, "vorticity"), ({"tolerance": 0.0}, "tolerance"), ({"max_iterations": 0}, "max_iterations"),
-    ({"force": 3}, "force"), ({"down": (0.0, 0.0, 0.0)}, "down"),
+    ({"down": (0.0, 0.0, 0.0)}, "down"),
 ])
 def test_bad_air_settings_are_refused_by_name(kwargs: dict, field: str) -> None:
     with pytest.raises(PhysicsInputError, match=field):
@@ -213,7 +205,7 @@ def test_bad_air_settings_are_refused_by_name(kwargs: dict, field: str) -> None:
 
 def test_the_floor_must_be_where_gravity_points() -> None:
     with pytest.raises(PhysicsInputError, match="air.down"):
-        Simulator(CFG, BOX, air=AirGrid(BOX, 8, down=(0.0, 0.0, -1.0)))
+        paper(CFG, BOX, air=AirGrid(BOX, 8, down=(0.0, 0.0, -1.0)))
     grid = AirGrid(BOX, 8)
     with pytest.raises(PhysicsInputError, match=r"air.faces\[0\]"):
         grid.step(AirGrid(Box((0, 0, 0), (1, 1, 1)), 8).still(), torch.zeros(0, 3), CFG, 0.0)
@@ -238,12 +230,13 @@ def run_hard_case(name: str, frames: int) -> None:
     case = HARD_CASES[name]
     wind = case.get("wind")
     force = None if wind is None else wind_force(wind, blowing=lambda time: True)
-    grid = AirGrid(BOX, 32, force=force, vorticity=0.5)
-    sim = Simulator(CFG, BOX, case["source"], case.get("spheres", ()), force=force, air=grid)
+    grid = AirGrid(BOX, 32, vorticity=0.5)
+    sim = paper(CFG, BOX, case["source"], air=grid)
+    controls = Controls(force=force, spheres=case.get("spheres", ()))
     state = sim.new_state()
     seeded = left = 0
     for _ in range(frames):
-        stats = sim.step(state)
+        state, stats = sim.step(state, controls)
         seeded, left = seeded + stats.seeded, left + stats.retired
         limit = CFG.substep(stats.substeps).speed_limit  # the air is held to the substeps' limit
         x = state.positions[state.alive]
@@ -269,8 +262,7 @@ def test_a_pressure_solve_that_stops_short_is_reported() -> None:
     ball = (Sphere((AXIS[0], 0.2, AXIS[1]), 0.05),)
     for iterations, short in ((1, True), (200, False)):
         grid = AirGrid(BOX, 16, max_iterations=iterations)
-        state = blob(0.04, (AXIS[0], 0.1, AXIS[1]))
-        stats = Simulator(CFG, BOX, spheres=ball, air=grid).step(state)
+        _, stats = paper(CFG, BOX, air=grid).step(blob(0.04, (AXIS[0], 0.1, AXIS[1])), Controls(spheres=ball))
         assert (stats.air_unconverged > 0) == short and stats.air_divergence > 0.0
         record = step_record(stats)
         assert record["left_box"] == 0.0 and (record["air_unconverged"] > 0) == short
@@ -279,13 +271,13 @@ def test_a_pressure_solve_that_stops_short_is_reported() -> None:
 
 @pytest.mark.gpu
 def test_the_air_runs_on_cuda_as_on_cpu() -> None:
-    grid = AirGrid(BOX, 32, force=uniform((0.2, 0.0, 0.0)))
+    grid = AirGrid(BOX, 32)
     state = blob(0.04, (AXIS[0], 0.1, AXIS[1]))
     smoke = state.positions[state.alive]
     airs = {device: grid.still(device) for device in ("cpu", "cuda")}
     for device, air in airs.items():
         for step in range(10):
-            grid.step(air, smoke.to(device), CFG, step * CFG.dt, (Sphere((0.15, 0.25, 0.15), 0.04),))
+            grid.step(air, smoke.to(device), CFG, step * CFG.dt, (Sphere((0.15, 0.25, 0.15), 0.04),), uniform((0.2, 0.0, 0.0)))
     for cpu, cuda in zip(airs["cpu"].faces, airs["cuda"].faces):
         torch.testing.assert_close(cuda.cpu(), cpu, atol=1e-4, rtol=1e-3)
 

@@ -7,8 +7,9 @@ from dataclasses import replace
 import pytest
 import torch
 
-from fluidcore.physics import PRESETS, Box, PBFConfig, PhysicsInputError, Simulator, Source
+from fluidcore.physics import PRESETS, Box, PBFConfig, PhysicsInputError, Source
 from fluidcore.physics.entrainment import spread
+from tests.support.simulators import paper, run
 
 CFG = replace(PRESETS["scalarflow"], h=0.02)
 
@@ -78,10 +79,8 @@ def test_a_simulated_plume_is_wider_high_up_with_entrainment() -> None:
     source = Source((0.3, 0.06, -0.2), 0.03, 20, (0.0, 0.12, 0.0))
     widths = {}
     for rate in (0.0, 0.12):
-        sim = Simulator(replace(CFG, alpha=-3.6, entrainment=rate), box, source)
-        state = sim.new_state()
-        for _ in range(90):
-            sim.step(state)
+        sim = paper(replace(CFG, alpha=-3.6, entrainment=rate), box, source)
+        state, _ = run(sim, sim.new_state(), 90)
         p = state.positions[state.alive]
         high = p[p[:, 1] > 0.35]
         assert len(high) > 100

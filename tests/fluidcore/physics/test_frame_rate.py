@@ -8,8 +8,9 @@ from dataclasses import replace
 import pytest
 import torch
 
-from fluidcore.physics import Box, PBFConfig, Simulator, Source, sim_step
+from fluidcore.physics import Box, PBFConfig, Source, sim_step
 from fluidcore.physics.step import CFL, MAX_SUBSTEPS, substeps
+from tests.support.simulators import paper
 
 # Dev scene D's identified plume (docs/bench_generalise_results/i32_after_D_s0.json, as bench/frame_rate.py)
 PHYSICS = PBFConfig(alpha=-3.589, drag=3.0, rho0=2.0, h=0.02, length_scale=100.0)
@@ -35,11 +36,11 @@ def rise(fps: float, seconds: float = 3.0) -> tuple[float, float]:
     """(median upward speed over the last second, the clock after the last frame) of the plume at `fps`."""
     config = replace(PHYSICS, dt=1.0 / fps)
     source = Source((0.0, 0.05, 0.0), 0.035, round(PER_SECOND / fps), (0.0, 0.117, 0.0), seed=0)
-    simulator = Simulator(config, BOX, source)
+    simulator = paper(config, BOX, source)
     state = simulator.new_state()
     frames, speeds = round(seconds * fps), []
     for frame in range(frames):
-        simulator.step(state)
+        state, _ = simulator.step(state)
         if frame >= frames - round(fps):
             speeds.append(state.velocities[state.alive][:, 1])
     return float(torch.cat(speeds).median()), state.time

@@ -13,6 +13,7 @@ from fluidcore.spec.controls import WindParams
 from fluidcore.physics import (
     PRESETS,
     Box,
+    Controls,
     NeighbourCache,
     ParticleState,
     PBFConfig,
@@ -32,6 +33,7 @@ from fluidcore.physics import step as step_module
 from fluidcore.physics.neighbours import cell_table, neighbours_torch
 from fluidcore.physics.solver import residual, solve_torch
 from fluidcore.physics.source import emit, from_y
+from tests.support.simulators import paper, run
 
 needs_fused = pytest.mark.skipif(not fused.available(), reason="fused PBF kernel cannot be built here")
 CFG = PRESETS["scalarflow"]
@@ -102,8 +104,7 @@ def test_unused_features_cost_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
         monkeypatch.setattr(module, name, forbidden)
     monkeypatch.setattr(step_module, "external_force", forbidden)
     sim = plume_simulator("auto")
-    state = sim.new_state()
-    assert sim.step(state).n_alive > 0
+    assert sim.step(sim.new_state())[1].n_alive > 0
 
 
 # -- solver --------------------------------------------------------------------------------
@@ -148,7 +149,7 @@ def test_fused_solver_agrees_with_torch(config: PBFConfig) -> None:
 
 def plume_simulator(backend: str, **kw) -> Simulator:
     source = Source((0.1, 0.02, 0.1), 0.03, 60, (0.0, 0.05, 0.0), seed=3)
-    return Simulator(CFG, Box((0, 0, 0), (0.2, 0.3, 0.2)), source, backend=backend, **kw)
+    return paper(CFG, Box((0, 0, 0), (0.2, 0.3, 0.2)), source, backend=backend, **kw)
 
 
 @needs_fused
@@ -156,8 +157,8 @@ def test_fused_and_torch_simulators_agree() -> None:
     states, stats = [], []
     for backend in ("torch", "fused"):
         sim = plume_simulator(backend)
-        state = sim.new_state()
-        stats.append([sim.step(state) for _ in range(8)])
+        state, steps = run(sim, sim.new_state(), 8)
+        stats.append(steps)
         states.append(state)
     assert torch.equal(states[0].alive, states[1].alive)
     # float rounding differs (summation order), and eight steps of fresh, overlapping seeds amplify it
@@ -275,8 +276,9 @@ def test_sphere_pushes_particles_to_its_surface_and_removes_normal_velocity() ->
     sphere = Sphere((0.0, 0.0, 0.0), 0.05)
     state = ParticleState.from_positions(torch.tensor([[0.04, 0.0, 0.0], [0.0, 0.2, 0.0]]),
                                          torch.tensor([[0.0, 0.2, 0.0], [0.0, 0.0, 0.0]]))
-    sim = Simulator(replace(CFG, alpha=0.0, drag=0.0), Box((-1, -1, -1), (1, 1, 1)), spheres=[sphere])
-    assert sim.step(state).substeps == 1  # in one part: contact at its end (in two it would slide off the surface)
+    sim = paper(replace(CFG, alpha=0.0, drag=0.0), Box((-1, -1, -1), (1, 1, 1)))
+    state, stats = sim.step(state, Controls(spheres=(sphere,)))
+    assert stats.substeps == 1  # in one part: contact at its end (in two it would slide off the surface)
     r = state.positions[0].norm().item()
     assert r == pytest.approx(0.05, rel=1e-5)
     normal = state.positions[0] / r
@@ -314,8 +316,7 @@ def test_simulator_seeds_the_same_particles_on_every_run() -> None:
     runs = []
     for _ in range(2):
         sim = plume_simulator("auto")
-        state = sim.new_state()
-        stats = [sim.step(state) for _ in range(3)]
+        state, stats = run(sim, sim.new_state(), 3)
         runs.append(state.positions[state.alive])
         assert [s.seeded for s in stats] == [60, 60, 60]
     assert torch.equal(runs[0], runs[1])
@@ -323,11 +324,9 @@ def test_simulator_seeds_the_same_particles_on_every_run() -> None:
 
 def test_particles_leaving_the_box_are_retired_and_slots_reused() -> None:
     box = Box((0, 0, 0), (0.2, 0.2, 0.2))
-    sim = Simulator(replace(CFG, alpha=-30.0), box, Source((0.1, 0.15, 0.1), 0.02, 40, (0, 0.5, 0)))
-    state = sim.new_state()
-    retired = 0
-    for _ in range(30):
-        retired += sim.step(state).retired
+    sim = paper(replace(CFG, alpha=-30.0), box, Source((0.1, 0.15, 0.1), 0.02, 40, (0, 0.5, 0)))
+    state, stats = run(sim, sim.new_state(), 30)
+    retired = sum(s.retired for s in stats)
     assert retired > 0
     alive = state.positions[state.alive]
     assert bool(((alive >= 0) & (alive <= 0.2)).all())
@@ -344,8 +343,7 @@ def test_capacity_grows_geometrically() -> None:
 
 def test_stabilize_runs_twenty_steps_and_ends_at_time_zero() -> None:
     sim = plume_simulator("auto")
-    state = sim.new_state()
-    sim.stabilize(state)
+    state = sim.stabilize(sim.new_state())
     assert state.time == 0.0 and state.step == 20 and state.n_alive > 0
 
 
@@ -461,7 +459,7 @@ def test_bad_scene_parts_are_rejected_by_name() -> None:
     with pytest.raises(PhysicsInputError, match="sphere.center"):
         Sphere((0, float("nan"), 0), 1.0)
     with pytest.raises(PhysicsInputError, match="backend"):
-        Simulator(CFG, Box((0, 0, 0), (1, 1, 1)), backend="warp")
+        paper(CFG, Box((0, 0, 0), (1, 1, 1)), backend="warp")
 
 
 # -- CUDA (skipped without a GPU) ----------------------------------------------------------
@@ -471,8 +469,7 @@ def test_cuda_simulation_matches_cpu() -> None:
     results = []
     for device in ("cpu", "cuda"):
         sim = plume_simulator("torch", device=device)
-        state = sim.new_state()
-        stats = [sim.step(state) for _ in range(8)]
+        state, stats = run(sim, sim.new_state(), 8)
         results.append((state.to("cpu"), stats))
     (cpu, cpu_stats), (gpu, gpu_stats) = results
     assert torch.equal(cpu.alive, gpu.alive)

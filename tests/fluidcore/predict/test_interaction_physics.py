@@ -130,15 +130,17 @@ def test_the_absurd_wind_limit_is_the_simulators_speed_limit(parent: Path) -> No
                 params.check_scene(run.scene, FRAMES)
 
 
-def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
-    """The whole chain on a run written by the reconstruction itself (fluidcore.synth scene)."""
+@pytest.mark.parametrize("motion", ["paper", "carrier"])
+def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path, motion: str) -> None:
+    """The whole chain on a run written by the reconstruction itself (fluidcore.synth scene), with
+    either motion model."""
     from fluidcore import run_frames, synth
     from fluidcore.reconstruct import job as reconstruct_job
     from fluidcore.spec.reconstruct import get
 
     spec = synth.SynthSpec(frames=3, width=24, height=32, views=2)
     cameras = synth.write(synth.generate(spec), tmp_path / "scene")
-    quality = get("preview").with_overrides(position_iterations=2, appearance_iterations=1, first_frame_factor=1)
+    quality = get("preview").with_overrides(position_iterations=2, appearance_iterations=1, first_frame_factor=1, motion=motion)
     inputs = {"view_00": tmp_path / "scene/videos/view_00.mp4"}
     parent = reconstruct_job.run_reconstruct(cameras, inputs, tmp_path / "rec", quality=quality)
     calm = Run.open(run_predict(parent, tmp_path / "calm", frames=8))
@@ -147,8 +149,10 @@ def test_a_real_reconstruction_can_be_blown_sideways(tmp_path: Path) -> None:
     assert calm.frames() == windy.frames() == list(range(3, 11))
     shift = float(last_positions(windy)[:, 2].mean() - last_positions(calm)[:, 2].mean())
     free = 0.5 * (1 / 30) ** 2 * 8 * 9 / 2  # wind alone, no drag, 8 semi-implicit Euler steps: a dt^2 n(n+1)/2
-    # Drag and particles born later (pushed for less time) take some of it away; nothing adds to it.
-    assert 0.3 * free < shift < free
+    # Drag and particles born later (pushed for less time) take some of it away; nothing adds to it. The
+    # carrier's wind moves the air, which moves the smoke after it; its inlet blows straight up, so the
+    # young plume's smoke at the source is not blown (0.2 free when written).
+    assert (0.3 if motion == "paper" else 0.1) * free < shift < free
     video = run_frames.render_frames(windy, windy.cameras()["view_01"])
     assert video.shape[0] == 8
 
@@ -171,7 +175,8 @@ def test_the_wind_blows_in_exactly_the_frames_its_window_names() -> None:
 
 def test_the_air_gains_the_winds_velocity_in_its_window_and_keeps_it() -> None:
     """The wind moves the air as well as the smoke: the air's velocity is the acceleration
-    integrated over the seconds blown, zero before the window and frozen after it."""
+    integrated over the seconds blown up to the wind's terminal speed (`WindParams.air_speed`),
+    zero before the window and frozen after it."""
     from fluidcore.physics import PRESETS, Source
     from fluidcore.predict.interventions import interventions
 
@@ -181,8 +186,9 @@ def test_the_air_gains_the_winds_velocity_in_its_window_and_keeps_it() -> None:
     p = torch.zeros(1, 3)
     speed = lambda frame: float(air(p, start + frame * config.dt)[0, 2])  # noqa: E731
     assert speed(3) == 0.0
-    assert speed(5) == pytest.approx(0.5 * 2 * config.dt)
-    assert speed(9) == pytest.approx(0.5 * 6 * config.dt) == speed(30)
+    assert speed(5) == pytest.approx(wind.air_speed(2 * config.dt)) == pytest.approx(0.5 * 2 * config.dt, rel=1e-3)
+    assert speed(9) == pytest.approx(wind.air_speed(6 * config.dt)) == speed(30)
+    assert wind.air_speed(1e3) == pytest.approx(wind.terminal_speed) == pytest.approx(0.5 * 5.0)  # bounded: 5 s of its strength
 
 
 def test_sparse_smoke_moves_with_the_wind_blown_air_not_at_drag_terminal_speed() -> None:

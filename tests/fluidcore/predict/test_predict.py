@@ -13,12 +13,14 @@ import numpy as np
 import pytest
 import torch
 from tests.support.predict_scenes import SPEC, horizontal_distance, live, plume_run
+from tests.support.simulators import paper, run
 from typer.testing import CliRunner
 
 from fluidcore import run_frames
 from fluidcore.spec.controls import InteractionParams, WindParams
 from fluidcore.jobs import Cancelled, JobContext, JobInputError
 from fluidcore.physics import ParticleState, Simulator
+from fluidcore.physics.motion import NO_CONTROLS
 from fluidcore.predict import identification, job, priors, rollout
 from fluidcore.runs import AppearanceProfile, Run, RunError
 from fluidcore.smoke import Appearance, SmokeState
@@ -80,9 +82,9 @@ def test_cost_per_frame_is_one_step_plus_one_render_per_view(parent: Path, tmp_p
     calls = {"step": 0, "render": 0}
     step, original_render = Simulator.step, render_module.render
 
-    def counting_step(self: Simulator, state):  # noqa: ANN001, ANN202
+    def counting_step(self: Simulator, state, controls=NO_CONTROLS):  # noqa: ANN001, ANN202
         calls["step"] += 1
-        return step(self, state)
+        return step(self, state, controls)
 
     def counting_render(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
         calls["render"] += 1
@@ -273,10 +275,8 @@ def test_an_overfilled_source_is_capped_to_what_its_inlet_carries_at_rest_densit
     # keeps the plume's base as narrow as an inlet at rest density allows.
     widths = []
     for seeded in (flooded, rollout.inlet_source(flooded, config)):
-        simulator = Simulator(config, SPEC.box(), seeded)
-        state = simulator.new_state()
-        for _ in range(30):
-            simulator.step(state)
+        simulator = paper(config, SPEC.box(), seeded)
+        state, _ = run(simulator, simulator.new_state(), 30)
         x = state.positions[state.alive]
         base = x[(x[:, 1] > source.center[1]) & (x[:, 1] < source.center[1] + 2 * source.radius)]
         widths.append(float(horizontal_distance(base, source.center).mean()))

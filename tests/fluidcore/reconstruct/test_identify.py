@@ -25,11 +25,12 @@ from fluidcore.reconstruct import scene_physics
 from fluidcore.reconstruct.identify import (ROLLOUT_SEEDS, Candidate, Observation, ScenePrior, _Search, buoyancy_floor,
                                            identify, inlet_rate, rise_speed)
 from fluidcore.reconstruct.scene_physics import PhysicsChoiceError, inflow_rate_speed
-from fluidcore.physics import PRESETS, PBFConfig, Simulator, Source
+from fluidcore.physics import PRESETS, PBFConfig, Source
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import Air, SourcePlace
 from fluidcore.spec.source_hint import SourceHint
+from tests.support.simulators import paper
 
 INPUT = "view_00"
 
@@ -45,10 +46,12 @@ def _prior(spec: synth.SynthSpec, source: Source, physics: PBFConfig | None = No
 
 
 def _prepare(scene: synth.SynthScene, physics: str, **overrides):
+    """The reconstruction of the synthetic plume prepared under the paper model, the model that
+    made it (`fluidcore.synth`), unless `overrides` name another."""
     spec = scene.spec
     box = spec.box()
     quality = get("preview").with_overrides(**{"long_side": 96, "particles_per_frame": spec.particles_per_step, "symmetry_views": 0,
-                                               **overrides})
+                                               "motion": "paper", **overrides})
     inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), quality=quality)
     return prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics=physics)
 
@@ -162,11 +165,11 @@ def _silhouettes(scene: synth.SynthScene, rate: float, frames: int = 45):
     smoke masks (each particle's pixel grown by about a kernel radius), and its source."""
     spec, camera = scene.spec, scene.cameras[INPUT]
     source = spec.source()
-    simulator = Simulator(replace(spec.config(), entrainment=rate), spec.box(), source)
+    simulator = paper(replace(spec.config(), entrainment=rate), spec.box(), source)
     state = simulator.new_state()
     masks = np.zeros((frames, camera.height, camera.width), dtype=bool)
     for t in range(frames):
-        simulator.step(state)
+        state, _ = simulator.step(state)
         uv, depth = camera.project_numpy(state.positions[state.alive].numpy())
         col, row = uv[:, 0].astype(int), uv[:, 1].astype(int)
         ok = (depth > 0) & (col >= 0) & (row >= 0) & (col < camera.width) & (row < camera.height)
@@ -230,9 +233,9 @@ def test_misfit_is_averaged_over_source_seedings(rising: synth.SynthScene) -> No
     candidate = _truth(rising, source)
     scene = search.scene(candidate)
     curves = [search._age_scores(search._simulate(replace(scene, source=replace(scene.source, seed=scene.source.seed + k))))
-              for k in range(ROLLOUT_SEEDS)]
+              for k in range(ROLLOUT_SEEDS["paper"])]
     misfit, age = search.misfit(candidate)
-    assert ROLLOUT_SEEDS > 1 and age == int(np.argmin(np.mean(curves, axis=0)))
+    assert ROLLOUT_SEEDS["paper"] > 1 and age == int(np.argmin(np.mean(curves, axis=0)))
     assert misfit == pytest.approx(float(np.mean([c[age] for c in curves])))
     assert len({round(float(c[age]), 9) for c in curves}) > 1  # the seedings differ: the mean is not one of them
     later = _search(rising, observation, replace(source, seed=source.seed + 1)).misfit(candidate)
@@ -299,7 +302,7 @@ def test_the_same_plume_filmed_at_15_24_30_and_60_fps_gets_the_same_buoyancy() -
         spec = synth.SynthSpec(frames=round(1.5 * fps), width=72, height=96, views=1, buoyancy_scale=1.7, fps=fps,
                                particles_per_step=max(1, round(12 * 30 / fps)))
         scene = synth.generate(spec)
-        quality = get("preview").with_overrides(long_side=96, particles_per_frame=12, symmetry_views=0)
+        quality = get("preview").with_overrides(long_side=96, particles_per_frame=12, symmetry_views=0, motion="paper")
         inputs = read_inputs(scene.cameras, {INPUT: scene.videos[INPUT]}, frame_range=(0, spec.frames), quality=quality)
         box = spec.box()
         rec = prepare(scene.cameras, inputs, fps=fps, quality=quality, box=(np.array(box.lo), np.array(box.hi)), physics="auto")

@@ -37,9 +37,11 @@ def scene() -> synth.SynthScene:
 
 
 def _prepare(scene: synth.SynthScene, frames: int = FRAMES, source: SourceHint | None = None, **overrides):
+    """The synthetic plume's reconstruction prepared under the paper model, the model that made it
+    (its velocities are the truth the tests score), unless `overrides` name another."""
     spec = scene.spec
     per_30th = max(1, round(spec.particles_per_step * spec.fps / 30))  # the budget is per 1/30 s (scene_physics.frame_budget)
-    quality = get("preview").with_overrides(long_side=64, particles_per_frame=per_30th, **overrides)
+    quality = get("preview").with_overrides(long_side=64, particles_per_frame=per_30th, **{"motion": "paper", **overrides})
     box = spec.box()
     return prepare(
         scene.cameras,

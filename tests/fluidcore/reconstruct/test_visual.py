@@ -15,12 +15,13 @@ import pytest
 import torch
 
 from fluidcore.cameras import Camera
-from fluidcore.physics import Box, ParticleState, PBFConfig, Simulator, Source
+from fluidcore.physics import Box, ParticleState, PBFConfig, Source
 from fluidcore.predict.rollout import Rollout
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance
 from fluidcore.render import Gaussians, render
 from fluidcore.smoke import Appearance, SmokeState, concentration
 from fluidcore.spec.reconstruct import LossWeights, PresetError, ReconstructConfig, VisualSettings, get, quality_fields
+from tests.support.simulators import paper
 
 RATES = {"color": 0.05, "scale": 0.2, "opacity": 0.05, "rotation": 0.01}
 
@@ -115,7 +116,7 @@ def _expanding_rollout(opacity_concentration: bool) -> tuple[SmokeState, SmokeSt
     Gaussian at its centre: the start and the state 10 frames later."""
     positions = _cloud(300, H)
     state = ParticleState.from_positions(positions, 0.5 * positions / H)  # each moves away from the centre
-    simulator = Simulator(CONFIG, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), Source((0.0, -0.9, 0.0), 0.01, rate=0))
+    simulator = paper(CONFIG, Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0)), Source((0.0, -0.9, 0.0), 0.01, rate=0))
     one = _one_gaussian(0.6)
     rollout = Rollout(simulator, one.select(torch.zeros(0, dtype=torch.long)), velocity_radius=2 * H, per_physical=0,
                       seed=0, opacity_concentration=opacity_concentration)

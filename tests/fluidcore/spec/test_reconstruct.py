@@ -62,7 +62,7 @@ def test_flat_names_and_dotted_paths_reach_the_same_field() -> None:
     ({"weights": {"flow": -1}}, "weights.flow"),
     ({"weights": {"colour": 1}}, "weights.colour"),
     ({"air_cells": 4}, "air_cells must be 0 (still air) or 8..128"),
-    ({"air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
+    ({"motion": "paper", "air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
     ({"seed": 1.5}, "seed"),
     ({"name": ""}, "name"),
     ({"visual_per_physical": 4}, "unknown field 'visual_per_physical'"),

@@ -14,11 +14,13 @@ import pytest
 import torch
 from tests.support.predict_scenes import SPEC, plume_run, scene_of
 from tests.support.run_folder import _create, _scene
+from tests.support.simulators import paper, run
 
-from fluidcore.spec.controls import WindParams
-from fluidcore.physics import wind_air, wind_force
 from fluidcore.physics.air import AirGrid
 from fluidcore.physics.build import build_simulator
+from fluidcore.physics.carrier import BuoyantAirCarrier
+from fluidcore.physics.motion import NO_CONTROLS
+from fluidcore.physics.paper import PositionBasedFluid
 from fluidcore.physics.simulator import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.reconstruct.identify import Candidate, Observation, ScenePrior, _Search
@@ -35,9 +37,9 @@ def _steps_seen(monkeypatch: pytest.MonkeyPatch) -> list[object]:
     seen: list[object] = []
     step = Simulator.step
 
-    def recording(self: Simulator, state):  # noqa: ANN001, ANN202 - the patched method's own signature
-        seen.append(self.air)
-        return step(self, state)
+    def recording(self: Simulator, state, controls=NO_CONTROLS):  # noqa: ANN001, ANN202 - the patched method's own signature
+        seen.append(self.integrator.air)
+        return step(self, state, controls)
 
     monkeypatch.setattr(Simulator, "step", recording)
     return seen
@@ -58,6 +60,9 @@ def test_a_scene_is_checked_where_it_is_made() -> None:
             Air(cells)
     with pytest.raises(SceneError, match="air.vorticity"):
         Air(16, -0.1)
+    for viscosity in (-1e-3, float("inf"), True):
+        with pytest.raises(SceneError, match="air.viscosity"):
+            Air(16, 0.0, viscosity)
     with pytest.raises(SceneError, match="source.radius"):
         SourcePlace((0.0, 0.0, 0.0), 0.0)
     assert Air(AIR_CELLS[0]).simulated and not Air().simulated
@@ -67,10 +72,13 @@ def test_a_scene_is_checked_where_it_is_made() -> None:
 def test_the_scene_record_round_trips_and_keeps_its_layout() -> None:
     scene = replace(_scene(), air=Air(16, 0.3))
     record = scene.to_json()
-    assert sorted(record) == ["air", "box", "physics", "source", "up"]  # the manifest's layout
-    assert record["air"] == {"cells": 16, "vorticity": 0.3}
+    assert sorted(record) == ["air", "box", "motion", "physics", "source", "up"]  # the manifest's layout
+    assert record["air"] == {"cells": 16, "vorticity": 0.3, "viscosity": 0.0, "diffusivity": 0.0} and record["motion"] == "paper"
     assert Scene.from_json(json.loads(json.dumps(record))) == scene
     assert Scene.from_json({k: v for k, v in record.items() if k != "air"}).air == Air()  # no air recorded: still air
+    assert Scene.from_json({k: v for k, v in record.items() if k != "motion"}).motion == "paper"  # written before the carrier
+    carried = replace(scene, motion="carrier", air=Air(16, 0.0, 0.002))
+    assert Scene.from_json(json.loads(json.dumps(carried.to_json()))) == carried
     with pytest.raises(SceneError, match="scene: malformed"):
         Scene.from_json({**record, "up": [0.0, 0.0]})
     with pytest.raises(SceneError, match="air.cells must be 0"):
@@ -83,7 +91,7 @@ def test_a_runs_scene_is_the_air_it_records(tmp_path: Path) -> None:
     quality = get("preview").with_overrides(air_cells=16, air_vorticity=0.3)
     reconstruction = _create(tmp_path / "r", scene=replace(_scene(), air=Air(16, 0.3)),
                              settings=ReconstructSettings(quality=quality))
-    assert reconstruction.manifest["scene"]["air"] == {"cells": 16, "vorticity": 0.3}
+    assert reconstruction.manifest["scene"]["air"] == {"cells": 16, "vorticity": 0.3, "viscosity": 0.0, "diffusivity": 0.0}
     assert Run.open(reconstruction.path).scene.air == Air(16, 0.3)
     visual = VisualSettings(velocity_radius=2.0, per_physical=1, seed=0)
     continuation = _create(tmp_path / "c", kind="predict", scene=replace(_scene(), air=Air(24)), settings=ContinuationSettings(
@@ -94,19 +102,21 @@ def test_a_runs_scene_is_the_air_it_records(tmp_path: Path) -> None:
         assert Run.open(OLD_RUNS / kind).scene.air == Air()
 
 
-def test_the_builder_gives_a_scene_with_air_its_grid() -> None:
-    scene = replace(_scene(), air=Air(8, 0.2))
-    force = wind_force(WindParams(direction=(1.0, 0.0, 0.0), strength=1.0), blowing=lambda time: True)
-    simulator = build_simulator(scene, force=force)
-    grid = simulator.air
-    assert isinstance(grid, AirGrid) and grid.cells == 8 and grid.vorticity == 0.2 and grid.force is force
+def test_the_builder_gives_each_motion_model_its_integrator_and_a_scene_with_air_its_grid() -> None:
+    scene = replace(_scene(), air=Air(8, 0.2, 0.001))
+    simulator = build_simulator(scene)
+    grid = simulator.integrator.air
+    assert isinstance(simulator.integrator, PositionBasedFluid) and simulator.motion == "paper"
+    assert isinstance(grid, AirGrid) and grid.cells == 8 and grid.vorticity == 0.2
     assert simulator.config == scene.physics and simulator.source == scene.source and simulator.box == scene.box
-    assert simulator.force is force
-    still = build_simulator(_scene())
-    assert still.air is None and still.force is None
-    wind = wind_air(WindParams(direction=(1.0, 0.0, 0.0), strength=1.0), lambda time: time, 0.0, (0.0, 1.0, 0.0))
-    assert build_simulator(_scene(), still_air=wind).air is wind  # a prescribed air where the scene simulates none
-    assert isinstance(build_simulator(scene, still_air=wind).air, AirGrid)  # the scene's own air comes first
+    assert build_simulator(_scene()).integrator.air is None  # still air
+    carried = build_simulator(replace(scene, motion="carrier"))
+    assert isinstance(carried.integrator, BuoyantAirCarrier) and carried.motion == "carrier"
+    assert carried.integrator.air.cells == 8 and carried.integrator.viscosity == 0.001
+    with pytest.raises(SceneError, match="air.cells"):  # the carrier is its air: still air cannot carry smoke
+        replace(_scene(), motion="carrier")
+    with pytest.raises(SceneError, match="scene.motion"):
+        replace(_scene(), motion="lagrangian")
 
 
 def test_the_identifications_rollouts_simulate_the_scenes_air(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -140,11 +150,8 @@ def test_the_buoyancy_calibration_simulates_the_runs_air(tmp_path: Path, monkeyp
 def test_a_built_simulator_steps_as_one_made_by_hand() -> None:
     """The builder adds nothing to a still-air scene: the same particles, bit for bit."""
     scene = scene_of()
-    built, by_hand = build_simulator(scene), Simulator(scene.physics, scene.box, scene.source)
-    states = [built.new_state(), by_hand.new_state()]
-    for _ in range(5):
-        built.step(states[0])
-        by_hand.step(states[1])
+    built, by_hand = build_simulator(scene), paper(scene.physics, scene.box, scene.source)
+    states = [run(built, built.new_state(), 5)[0], run(by_hand, by_hand.new_state(), 5)[0]]
     assert states[0].n_alive > 0
     assert torch.equal(states[0].positions, states[1].positions) and torch.equal(states[0].alive, states[1].alive)
 

@@ -9,7 +9,7 @@ from fluidcore.errors import InputError
 from fluidcore.physics import Box, PhysicsInputError
 from fluidcore.physics.air import AirGrid
 from fluidcore.spec.reconstruct import PRESETS, get
-from fluidcore.spec.simulation import AIR_CELLS, SimulationConfig, simulation_config
+from fluidcore.spec.simulation import AIR_CELLS, CARRIER_CELLS, SimulationConfig, simulation_config
 
 
 @pytest.mark.parametrize("name", list(PRESETS))
@@ -20,14 +20,23 @@ def test_the_defaults_leave_every_preset_as_it_is(name: str) -> None:
 
 
 def test_the_options_replace_the_presets_air_and_spreading() -> None:
-    quality = get("preview").with_simulation(SimulationConfig(air_cells=32, air_vorticity=0.3, entrainment=True))
-    assert quality.simulation == SimulationConfig(air_cells=32, air_vorticity=0.3, entrainment=True)
+    chosen = SimulationConfig(motion="paper", air_cells=32, air_vorticity=0.3, entrainment=True)
+    quality = get("preview").with_simulation(chosen)
+    assert quality.simulation == chosen
     assert quality.model_copy(update={"simulation": SimulationConfig()}) == get("preview")  # nothing else moves
 
 
-@pytest.mark.parametrize("cells", [0, AIR_CELLS[0], AIR_CELLS[1]])
-def test_still_air_and_the_ends_of_the_grid_range_are_accepted(cells: int) -> None:
-    assert SimulationConfig(air_cells=cells).air_cells == cells
+@pytest.mark.parametrize("cells", [AIR_CELLS[0], AIR_CELLS[1]])
+def test_the_ends_of_the_grid_range_are_accepted_for_both_models(cells: int) -> None:
+    for motion in ("carrier", "paper"):
+        assert SimulationConfig(motion=motion, air_cells=cells).cells == cells
+
+
+def test_each_model_has_its_own_air_when_none_is_given() -> None:
+    """The carrier is its air (48 cells unless told); the paper model's air is still unless asked
+    for, and may be still when asked (0)."""
+    assert SimulationConfig().motion == "carrier" and SimulationConfig().cells == CARRIER_CELLS
+    assert SimulationConfig(motion="paper").cells == 0 and SimulationConfig(motion="paper", air_cells=0).cells == 0
 
 
 @pytest.mark.parametrize(("fields", "message"), [
@@ -36,7 +45,10 @@ def test_still_air_and_the_ends_of_the_grid_range_are_accepted(cells: int) -> No
     ({"air_cells": -1}, "air_cells: Input should be greater than or equal to 0"),
     ({"air_cells": 32, "air_vorticity": float("nan")}, "air_vorticity"),
     ({"air_cells": 32, "air_vorticity": 2.5}, "air_vorticity: Input should be less than or equal to 2"),
-    ({"air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
+    ({"motion": "paper", "air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
+    ({"air_cells": 0}, "air_cells 0 is still air, which cannot carry the smoke"),
+    ({"entrainment": True}, "entrainment is the paper model's spreading"),
+    ({"motion": "eulerian"}, "motion: Input should be 'carrier' or 'paper'"),
     ({"entrainment": "perhaps"}, "entrainment"),
     ({"air": 32}, "air: Extra inputs are not permitted"),
 ])
