@@ -39,6 +39,7 @@ torch-free, so the worker can export without the simulator.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import tempfile
@@ -111,8 +112,8 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
     mass = (h / 2) ** 3
     points = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     reach = np.arange(-int(np.ceil(h / spacing)), int(np.ceil(h / spacing)) + 2)  # voxels a kernel can touch
-    grid = np.zeros(int(np.prod(shape)))
-    momentum = None if velocities is None else np.zeros((int(np.prod(shape)), 3))
+    grid = np.zeros(voxel_count(tuple(shape)))
+    momentum = None if velocities is None else np.zeros((voxel_count(tuple(shape)), 3))
     for first in range(0, len(points), PARTICLE_CHUNK):
         chunk = points[first : first + PARTICLE_CHUNK]
         cells = np.floor((chunk - origin) / spacing).astype(int)[:, :, None] + reach  # (n, 3, reach) per axis
@@ -139,19 +140,35 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
 
 
 def _shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[int, int, int]:
-    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 2 * h
-    return tuple(int(n) for n in np.ceil(extent / spacing).astype(int) + 1)  # type: ignore[return-value]
+    """Voxels per axis, in Python ints: numpy's int64 product of a 1e-9 voxel's shape overflowed to
+    a negative count that passed the cap (issue 49); an extent over the spacing that is not a
+    finite number is refused here."""
+    with np.errstate(over="ignore", divide="ignore"):
+        extent = (np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 2 * h) / spacing
+    if not np.all(np.isfinite(extent)):
+        raise ExportError(f"voxel size {spacing:g}: the box over it is not a finite number of voxels")
+    return tuple(math.ceil(float(n)) + 1 for n in extent)  # type: ignore[return-value]
+
+
+def voxel_count(shape: tuple[int, ...]) -> int:
+    """Voxels of a grid, as an exact Python int (never numpy's int64, which wraps)."""
+    return math.prod(shape)
+
+
+def shape_text(shape: tuple[int, ...]) -> str:
+    """A grid's shape for a message: 55x80x55, or 1.08e+300x... for a voxel size far too small."""
+    return "x".join(str(n) if n < 10**7 else f"{n:.3g}" for n in shape)
 
 
 def _smallest_fitting(h: float, lo: np.ndarray, hi: np.ndarray, too_small: float) -> float:
     """The smallest voxel size whose grid holds at most MAX_VOXELS, rounded up to 3 digits:
     bisection, the voxel count falling as the size grows."""
     fits = 2 * too_small
-    while int(np.prod(_shape(h, lo, hi, fits))) > MAX_VOXELS:
+    while voxel_count(_shape(h, lo, hi, fits)) > MAX_VOXELS:
         fits *= 2
     for _ in range(40):
         middle = (too_small + fits) / 2
-        too_small, fits = (too_small, middle) if int(np.prod(_shape(h, lo, hi, middle))) <= MAX_VOXELS else (middle, fits)
+        too_small, fits = (too_small, middle) if voxel_count(_shape(h, lo, hi, middle)) <= MAX_VOXELS else (middle, fits)
     scale = 10.0 ** (2 - int(np.floor(np.log10(fits))))
     return float(np.ceil(fits * scale) / scale)
 
@@ -163,11 +180,11 @@ def grid_shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tupl
     if not 0 < spacing <= h:
         raise ExportError(f"voxel size must be in (0, {h:g}] world units (the kernel radius h), got {spacing:g}")
     shape = _shape(h, lo, hi, spacing)
-    if int(np.prod(shape)) <= MAX_VOXELS:
+    if voxel_count(shape) <= MAX_VOXELS:
         return shape
     fits = _smallest_fitting(h, lo, hi, spacing)
     hint = f"the smallest that fits this box is {fits:g}" if fits <= h else "even the kernel radius does not fit this box"
-    raise ExportError(f"voxel size {spacing:g}: a {'x'.join(map(str, shape))} grid exceeds {MAX_VOXELS} voxels (256^3); {hint}")
+    raise ExportError(f"voxel size {spacing:g}: a {shape_text(shape)} grid exceeds {MAX_VOXELS} voxels (256^3); {hint}")
 
 
 def frame_density(run: Run, state: FrameState, spacing: float | None = None) -> DensityGrid:

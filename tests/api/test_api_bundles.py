@@ -109,6 +109,11 @@ def artifact_key(service: Service, name: str, job: str) -> str:
     ({"format": "vdb", "frames": [0, 9]}, "frames 0:9: frame 4 is not a finished frame of job"),
     ({"format": "vdb", "voxel_size": 5.0}, "voxel size must be in (0, "),
     ({"format": "vdb", "voxel_size": 0.0001}, "the smallest that fits this box is"),
+    ({"format": "vdb", "voxel_size": 1e-9}, "the smallest that fits this box is"),  # issue 49: int64 overflow, a 202
+    ({"format": "density", "voxel_size": 1e-300}, "the smallest that fits this box is"),
+    ({"format": "vdb", "voxel_size": "0.01"}, "Input should be a valid number"),  # issue 49: coerced, a 202
+    ({"format": "vdb", "voxel_size": True}, "Input should be a valid number"),
+    ({"format": "vdb", "frames": ["0", "2"]}, "Input should be a valid integer"),
     ({"format": "ply", "voxel_size": 0.01}, "ply holds particles, not a grid"),
     ({"format": "vdb", "frames": [3, 1]}, "frames must satisfy 0 <= START < END"),
     ({"format": "vdb", "shape": 1}, "Extra inputs are not permitted"),

@@ -253,6 +253,16 @@ def test_a_grid_over_the_voxel_cap_names_the_smallest_voxel_that_fits():
         grid_shape(h, lo, hi, fits * 0.98)
 
 
+@pytest.mark.parametrize("voxel", [1e-9, 1e-300, 5e-324])
+def test_a_voxel_far_too_small_is_refused_not_overflowed(voxel):
+    """Issue 49 item 4: at 1e-9 numpy's int64 product of the shape wrapped to a negative count,
+    which passed the cap; the bundle job then failed with an internal error."""
+    from fluidcore.exports import grid_shape
+
+    with pytest.raises(ExportError, match=r"exceeds 16777216 voxels|not a finite number of voxels"):
+        grid_shape(0.04, np.zeros(3), np.array([1.0, 1.5, 1.0]), voxel)
+
+
 def _bundle(run_dir, out, *args):
     return json.loads(_ok(["export", str(run_dir), "--bundle", "--out", str(out), "--json", *args]))
 
