@@ -168,14 +168,15 @@ def validate_scene(
     folder: Path, cameras_file: str, video_sizes: dict[str, int], settings: Settings
 ) -> ValidatedScene:
     """Check the spooled cameras file and videos in `folder`; raise UploadRejected naming the problem."""
-    from fluidcore.cameras import CameraError, declared_fps, load
+    from fluidcore.cameras import CameraError, declared_fps, load, scene_box
     from fluidcore.cameras.world_up import declared_up
     from fluidcore.video import VideoError, common_rate, read_header, verify
 
     try:
         cameras = load(folder / cameras_file)
-        declared_up(folder / cameras_file)  # the file's own `up` and `fps`, checked here, read by the job
+        declared_up(folder / cameras_file)  # the file's own `up`, `fps` and box, checked here, read by the job
         declared_fps(folder / cameras_file)
+        scene_box(folder / cameras_file)  # before issue 49 a box the worker could not use was found by the job
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
     _check_file_paths(cameras)
