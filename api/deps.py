@@ -11,10 +11,10 @@ from typing import Annotated
 
 from fastapi import Depends, HTTPException, Query, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from api.auth import owner_for_key
-from api.uploads import OwnerUploads, Validators
+from api.uploads import Validators
 from service.queue import JobQueue
 from service.settings import Settings
 from service.storage import Storage
@@ -49,10 +49,6 @@ def get_validators(request: Request) -> Validators:
     return request.app.state.validators
 
 
-def get_owner_uploads(request: Request) -> OwnerUploads:
-    return request.app.state.owner_uploads
-
-
 def unauthorized() -> HTTPException:
     return HTTPException(
         status.HTTP_401_UNAUTHORIZED,
@@ -68,14 +64,29 @@ def optional_owner(
     """The owner of the Bearer key; None without one; 401 for a key that is not valid.
 
     The key is checked in a session of its own, closed before this returns, so no pooled
-    connection is held while the request waits for a thread to run its route."""
+    connection is held while the request waits for a thread to run its route. A scene upload's
+    was checked before it was admitted (api.middleware.AdmissionLimit), which left its owner."""
     if credentials is None:
         return None
-    with request.app.state.sessionmaker() as session:
-        owner = owner_for_key(session, credentials.credentials)
+    owner = getattr(request.state, "owner", None) or owner_of_key(request.app.state.sessionmaker, credentials.credentials)
     if owner is None:
         raise unauthorized()
     return owner
+
+
+def owner_of_key(sessions: sessionmaker[Session], key: str) -> str | None:
+    """The owner of a valid, unrevoked key, else None, in a session of its own (closed on return)."""
+    with sessions() as session:
+        return owner_for_key(session, key)
+
+
+def owner_of_header(sessions: sessionmaker[Session], authorization: bytes | None) -> str | None:
+    """The owner of an `Authorization: Bearer KEY` header as sent (raw bytes, from the ASGI scope,
+    before any route runs), else None: a missing header, another scheme or a key not valid."""
+    scheme, _, key = (authorization or b"").decode("latin-1").strip().partition(" ")
+    if scheme.lower() != "bearer" or not key.strip():
+        return None
+    return owner_of_key(sessions, key.strip())
 
 
 def current_owner(owner: Annotated[str | None, Depends(optional_owner)]) -> str:
@@ -94,6 +105,5 @@ StorageDep = Annotated[Storage, Depends(get_storage)]
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ValidatorsDep = Annotated[Validators, Depends(get_validators)]
-OwnerUploadsDep = Annotated[OwnerUploads, Depends(get_owner_uploads)]
 OwnerDep = Annotated[str, Depends(current_owner)]
 OptionalOwnerDep = Annotated[str | None, Depends(optional_owner)]

@@ -17,7 +17,7 @@ from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from api.deps import (
-    OptionalOwnerDep, OwnerDep, OwnerUploadsDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep,
+    OptionalOwnerDep, OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep,
 )
 from api.downloads import STREAMED, download_links, signed_in, stream
 from api.errors import error_responses, strict_json
@@ -56,7 +56,6 @@ def create_scene(
     settings: SettingsDep,
     queue: QueueDep,
     validators: ValidatorsDep,
-    owner_uploads: OwnerUploadsDep,
     request: Request,
     response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
@@ -96,7 +95,7 @@ def create_scene(
         raise HTTPException(422, "cameras: give a cameras file or fov, not both: fov makes the cameras file of a "
                                  "video without calibration")
     params = None if reconstruct is None else parse_reconstruct(reconstruct)
-    with owner_uploads.enter(owner), tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
         folder = Path(tmp)
         cameras_name = None
         if cameras is not None:

@@ -29,7 +29,7 @@ def test_health_answers_while_every_pooled_connection_is_taken(small_pool: Servi
     with ExitStack() as held:
         for _ in range(engine.pool.size()):
             held.enter_context(engine.connect())
-        assert engine.pool.checkedout() == engine.pool.size() == 4  # 2 requests + 1 upload admitted at once + the reaper
+        assert engine.pool.checkedout() == engine.pool.size() == 5  # 2 requests + 1 upload admitted, 1 upload key check, the reaper
         start = time.monotonic()
         assert client.get("/healthz").status_code == 200
         ready = client.get("/readyz")  # 503 only for want of a worker heartbeat (none runs here)

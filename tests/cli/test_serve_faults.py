@@ -17,9 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.support.service import free_port
-
-FLUIDNEXUS = Path(sys.executable).with_name("fluidnexus")
+from tests.support.service import FLUIDNEXUS, start_serve
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
 
@@ -47,25 +45,6 @@ def alive(pid: int) -> bool:
         return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]) != "Z"
     except OSError:
         return False
-
-
-def start_serve(data_dir: Path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen[str], str]:
-    port = free_port()
-    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", **(env or {})}
-    process = subprocess.Popen(
-        [FLUIDNEXUS, "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data_dir), *extra],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
-                return process, base
-        except httpx.TransportError:
-            time.sleep(0.3)
-    process.kill()
-    raise AssertionError(f"serve did not come up: {process.communicate()[0][-3000:]}")
 
 
 def colmap_zip() -> bytes:
