@@ -222,3 +222,62 @@ def wait_until(predicate, timeout: float, what: str) -> None:  # type: ignore[no
     while not predicate():
         assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
         time.sleep(0.2)
+
+
+def test_serve_replaces_a_worker_whose_main_process_froze_and_its_job_runs_once(tmp_path: Path) -> None:
+    """Issue 49 item 2: SIGSTOP of the embedded worker's Celery main process. Its pool child beat
+    on, so nothing noticed: a job sent then stayed queued 5 min+, /readyz said "worker ok" and the
+    reaper sent the job again 19 times. Now the child beats only while the main process keeps
+    time (service.worker_beats.MainClock): serve kills the frozen worker and a new one runs the
+    job, once. Lease 8 s and FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS 12 here; with
+    FROZEN_MAIN_DEFAULTS=1 the defaults (16 s, 60 s), the issue's 90 s bound. Set
+    RELIABILITY_JSON to a path to record the timings."""
+    from tests.support.service import scene_files, upload_parts
+
+    defaults = os.environ.get("FROZEN_MAIN_DEFAULTS") == "1"
+    unresponsive = 60 if defaults else 12
+    root = str(Path(__file__).resolve().parents[2])
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    env = {"FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "0.5",
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
+    if not defaults:
+        env |= {"FLUIDNEXUS_JOB_LEASE_SECONDS": "8", "FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS": str(unresponsive)}
+    process, base = start_serve(tmp_path / "data", env=env)
+    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    workers: set[int] = set()
+    try:
+        wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
+        scene = client.post("/v1/scenes", files=upload_parts(scene_files(tmp_path / "scene")), data={"name": "s"}).json()["id"]
+        workers = descendants(process.pid)
+        (celery,) = direct_children(process.pid)
+        os.kill(celery, signal.SIGSTOP)
+        frozen = time.monotonic()
+        job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene, "params": {"frames": [0, 4]}}).json()["id"]
+        wait_until(lambda: client.get("/readyz").status_code == 503, 90, "/readyz to see no live worker")
+        not_ready = time.monotonic() - frozen
+        wait_until(lambda: not alive(celery), 90, "serve to kill the frozen worker")
+        killed = time.monotonic() - frozen
+        assert killed < 90
+        wait_until(lambda: client.get(f"/v1/jobs/{job}").json()["state"] == "succeeded", 120, "the job to run")
+        done = client.get(f"/v1/jobs/{job}").json()
+        ran = time.monotonic() - frozen
+        assert done["attempts"] == 1 and done["progress"] == 1.0  # run once, by the new worker
+        new_celery = direct_children(process.pid)
+        assert new_celery and celery not in new_celery
+        timings = {"unresponsive_seconds": unresponsive, "readyz_503_after_s": round(not_ready, 1),
+                   "frozen_worker_killed_after_s": round(killed, 1), "job_succeeded_after_s": round(ran, 1),
+                   "job_attempts": done["attempts"]}
+        print(timings)
+        if os.environ.get("RELIABILITY_JSON"):
+            Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
+    finally:
+        client.close()
+        process.terminate()
+        try:
+            output = process.communicate(timeout=40)[0]
+        finally:
+            for pid in [process.pid, *workers, *descendants(process.pid)]:
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+    assert f"embedded worker {celery} stopped responding (no heartbeat for {unresponsive} s); killing it" in output, output[-3000:]
