@@ -114,6 +114,31 @@ def _parent(pid: int) -> int | None:
         return None
 
 
+def serve_with_fake_runners(tmp_path: Path, frame_seconds: float, **settings: str) -> tuple[subprocess.Popen[str], httpx.Client]:
+    """`fluidnexus serve` with its embedded worker running test-double runners (a frame every
+    `frame_seconds`) in place of fluidcore, FLUIDNEXUS_* `settings`, and a client with a key."""
+    root = str(Path(__file__).resolve().parents[2])
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    env = {"FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": str(frame_seconds),
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
+           **{f"FLUIDNEXUS_{name.upper()}": value for name, value in settings.items()}}
+    process, base = start_serve(tmp_path / "data", env=env)
+    return process, httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+
+
+def stop_serve(process: subprocess.Popen[str], client: httpx.Client, workers: set[int]) -> str:
+    """Stop serve as systemd would, then SIGKILL whatever of it and its `workers` is left; its output."""
+    client.close()
+    process.terminate()
+    try:
+        return process.communicate(timeout=40)[0]
+    finally:
+        for pid in [process.pid, *workers, *descendants(process.pid)]:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -> None:
     """Issue 20 item 3: SIGKILL of the embedded Celery main process while one job runs and one is
     queued. serve starts a new worker, /readyz answers 503 until it beats, and both jobs succeed,
@@ -121,14 +146,7 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
     second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
     from tests.support.service import scene_files, upload_parts
 
-    root = str(Path(__file__).resolve().parents[2])
-    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    process, base = start_serve(tmp_path / "data", env={
-        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
-        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
-    })
-    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    process, client = serve_with_fake_runners(tmp_path, 1.0)
     workers: set[int] = set()
     try:
         wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
@@ -157,14 +175,7 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
         if os.environ.get("RELIABILITY_JSON"):
             Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
     finally:
-        client.close()
-        process.terminate()
-        try:
-            process.wait(40)
-        finally:
-            for pid in [process.pid, *workers, *descendants(process.pid)]:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        stop_serve(process, client, workers)
 
 
 def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: Path) -> None:
@@ -177,15 +188,7 @@ def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: 
     from service.job_states import RESUME_STAGE
     from tests.support.service import scene_files, upload_parts
 
-    root = str(Path(__file__).resolve().parents[2])
-    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    process, base = start_serve(tmp_path / "data", env={
-        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
-        "FLUIDNEXUS_JOB_LEASE_SECONDS": "8", "FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS": "12",
-        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
-    })
-    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    process, client = serve_with_fake_runners(tmp_path, 1.0, job_lease_seconds="8", worker_unresponsive_seconds="12")
     workers: set[int] = set()
     try:
         wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
@@ -206,14 +209,7 @@ def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: 
         new_celery = direct_children(process.pid)
         assert new_celery and celery not in new_celery
     finally:
-        client.close()
-        process.terminate()
-        try:
-            output = process.communicate(timeout=40)[0]
-        finally:
-            for pid in [process.pid, *workers, *descendants(process.pid)]:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        output = stop_serve(process, client, workers)
     assert f"embedded worker {celery} stopped responding (no heartbeat for 12 s); killing it" in output, output[-3000:]
 
 
@@ -236,15 +232,8 @@ def test_serve_replaces_a_worker_whose_main_process_froze_and_its_job_runs_once(
 
     defaults = os.environ.get("FROZEN_MAIN_DEFAULTS") == "1"
     unresponsive = 60 if defaults else 12
-    root = str(Path(__file__).resolve().parents[2])
-    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    env = {"FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "0.5",
-           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")])}
-    if not defaults:
-        env |= {"FLUIDNEXUS_JOB_LEASE_SECONDS": "8", "FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS": str(unresponsive)}
-    process, base = start_serve(tmp_path / "data", env=env)
-    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    shorter = {} if defaults else {"job_lease_seconds": "8", "worker_unresponsive_seconds": str(unresponsive)}
+    process, client = serve_with_fake_runners(tmp_path, 0.5, **shorter)
     workers: set[int] = set()
     try:
         wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
@@ -267,17 +256,10 @@ def test_serve_replaces_a_worker_whose_main_process_froze_and_its_job_runs_once(
         assert new_celery and celery not in new_celery
         timings = {"unresponsive_seconds": unresponsive, "readyz_503_after_s": round(not_ready, 1),
                    "frozen_worker_killed_after_s": round(killed, 1), "job_succeeded_after_s": round(ran, 1),
-                   "job_attempts": done["attempts"]}
+                   "job_attempts": done["attempts"], "load_average_1min": round(os.getloadavg()[0], 2)}
         print(timings)
         if os.environ.get("RELIABILITY_JSON"):
             Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
     finally:
-        client.close()
-        process.terminate()
-        try:
-            output = process.communicate(timeout=40)[0]
-        finally:
-            for pid in [process.pid, *workers, *descendants(process.pid)]:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        output = stop_serve(process, client, workers)
     assert f"embedded worker {celery} stopped responding (no heartbeat for {unresponsive} s); killing it" in output, output[-3000:]
