@@ -15,6 +15,7 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
+from api.deps import KeyCache
 from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodyLimit
@@ -67,6 +68,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.queue = queue or CeleryQueue(settings)
     app.state.validators = Validators(settings.max_concurrent_uploads)
     app.state.owner_uploads = OwnerUploads(settings.max_uploads_per_owner)
+    app.state.keys = KeyCache(settings.key_cache_seconds)
 
     app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes,
                        min_rate=settings.min_body_rate, grace=settings.body_grace_seconds)

@@ -90,6 +90,10 @@ class Settings(BaseSettings):
     body_grace_seconds: float = Field(
         default=5.0, gt=0, description="how long a request body may take before min_body_rate applies"
     )
+    key_cache_seconds: float = Field(
+        default=2.0, ge=0, description="an API key found valid is trusted this long without a database lookup "
+        "(per API process; a revoked key is refused within it); 0: every request looks its key up"
+    )
     max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")
     max_cameras_bytes: int = Field(default=4 * 1024**2, gt=0, description="the uploaded cameras file")
     max_cameras: int = Field(default=64, gt=0, description="cameras in one cameras file")

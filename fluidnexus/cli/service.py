@@ -266,7 +266,7 @@ def keys_revoke(
     key_id: Annotated[str, typer.Argument(help="the id shown by `keys list` (the part after fnx_)")],
     data_dir: DataDir = None,
 ) -> None:
-    """Revoke a key: requests with it answer 401 from now on."""
+    """Revoke a key: requests with it answer 401 from now on (within key_cache_seconds, 2 s, on a running server)."""
     from api.auth import UnknownKey, revoke_key
     from service.database import session_scope
 

@@ -59,6 +59,27 @@ def test_the_key_check_holds_no_connection_while_the_route_runs(small_pool: Serv
     assert engine.pool.checkedout() == 0
 
 
+def test_a_key_checked_moments_ago_is_not_looked_up_again(small_pool: Service) -> None:
+    """Issue 49 item 9: each poll paid a thread hop and a database lookup for its key. A key
+    found valid is trusted for `key_cache_seconds` (2 s) from then; a wrong key is looked up (and
+    refused) every time, and fills no cache."""
+    alice = small_pool.key("alice")
+    lookups: list[int] = []
+    original = small_pool.app.state.sessionmaker
+
+    def counting_sessionmaker():  # type: ignore[no-untyped-def]
+        lookups.append(1)
+        return original()
+
+    small_pool.app.state.sessionmaker = counting_sessionmaker
+    for _ in range(5):
+        assert small_pool.client.get("/v1/jobs", headers=alice).status_code == 200
+    assert len(lookups) == 1 + 5  # the key once, the route's session each time
+    wrong = {"Authorization": "Bearer fnx_0000000000000000_" + "x" * 43}
+    assert [small_pool.client.get("/v1/jobs", headers=wrong).status_code for _ in range(3)] == [401] * 3
+    assert len(lookups) == 6 + 3 and len(small_pool.app.state.keys._owners) == 1
+
+
 def test_a_short_burst_of_200_clients_gets_no_server_error(tmp_path: Path) -> None:
     with live_server("sqlite", log=tmp_path / "server.log") as server:
         result = run_load(server, seconds=6, clients=200, uploads=4, timeout=30)
