@@ -64,6 +64,9 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     app.state.engine = make_engine(url, pool_size=admitted + settings.max_concurrent_uploads + 1)
     app.state.probe_engine = health.probe_engine(app.state.engine)  # /readyz's own connections
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    # GET routes only read: without a transaction a poll on PostgreSQL is its query alone, not BEGIN,
+    # the query and ROLLBACK (issue 49: each round trip waits for a database process on busy cores)
+    app.state.read_sessionmaker = make_sessionmaker(app.state.engine.execution_options(isolation_level="AUTOCOMMIT"))
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
     app.state.validators = Validators(settings.max_concurrent_uploads)

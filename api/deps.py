@@ -35,11 +35,15 @@ async def get_session(request: Request) -> AsyncIterator[Session]:
     """The route's session. Async so that closing it (returning its connection to the pool) runs
     on the event loop the moment the response is ready, instead of queueing for a worker thread
     while the connection stays checked out (issue 16: under load that wait emptied the pool)."""
-    session = request.app.state.sessionmaker()
+    factory = request.app.state.read_sessionmaker if request.method in READS else request.app.state.sessionmaker
+    session = factory()
     try:
         yield session
     finally:
         session.close()
+
+
+READS = frozenset({"GET", "HEAD"})  # routes that only read: their sessions run without a transaction (create_app)
 
 
 def get_storage(request: Request) -> Storage:
