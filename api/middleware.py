@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import anyio.to_thread
 from fastapi import HTTPException, status
@@ -52,7 +52,6 @@ class AdmissionLimit:
     requests: int
     uploads: int
     upload_wait: float = 5.0
-    _key_checks: asyncio.Semaphore = field(init=False)
 
     def __post_init__(self) -> None:
         self._requests = asyncio.Semaphore(self.requests)
@@ -67,6 +66,10 @@ class AdmissionLimit:
             async with self._requests:
                 await self.app(scope, receive, send)
             return
+        await self._upload(scope, receive, send)
+
+    async def _upload(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The key (401), the owner's share (429), then a place (429 after `upload_wait`)."""
         state = scope["app"].state
         async with self._key_checks:
             owner = await anyio.to_thread.run_sync(owner_of_header, state.sessionmaker, dict(scope["headers"]).get(b"authorization"))
