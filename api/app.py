@@ -15,9 +15,10 @@ from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 
+from api.deps import KeyCache
 from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
-from api.middleware import AdmissionLimit, BodySizeLimit
+from api.middleware import AdmissionLimit, BodyLimit
 from api.routers import artifacts, bundles, health, jobs, limits, particles, scenes, videos, webhooks, wind
 from api.uploads import OwnerUploads, Validators
 from service.chaining import release_stranded
@@ -59,15 +60,21 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     )
     add_redoc(app, app.title)
     app.state.settings = settings
-    app.state.engine = make_engine(url, pool_size=admitted + 1)  # + the reaper's
+    # + an upload's key check before it is admitted (at most max_concurrent_uploads at once) + the reaper's
+    app.state.engine = make_engine(url, pool_size=admitted + settings.max_concurrent_uploads + 1)
     app.state.probe_engine = health.probe_engine(app.state.engine)  # /readyz's own connections
     app.state.sessionmaker = make_sessionmaker(app.state.engine)
+    # GET routes only read: without a transaction a poll on PostgreSQL is its query alone, not BEGIN,
+    # the query and ROLLBACK (issue 49: each round trip waits for a database process on busy cores)
+    app.state.read_sessionmaker = make_sessionmaker(app.state.engine.execution_options(isolation_level="AUTOCOMMIT"))
     app.state.storage = make_storage(settings)
     app.state.queue = queue or CeleryQueue(settings)
     app.state.validators = Validators(settings.max_concurrent_uploads)
     app.state.owner_uploads = OwnerUploads(settings.max_uploads_per_owner)
+    app.state.keys = KeyCache(settings.key_cache_seconds)
 
-    app.add_middleware(BodySizeLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes)
+    app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes, json_limit=settings.max_json_bytes,
+                       min_rate=settings.min_body_rate, grace=settings.body_grace_seconds)
     app.add_middleware(
         AdmissionLimit, requests=settings.max_concurrent_requests, uploads=settings.max_concurrent_uploads,
         upload_wait=settings.upload_wait_seconds,

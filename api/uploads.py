@@ -17,8 +17,7 @@ import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from concurrent.futures.process import BrokenProcessPool
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any, BinaryIO
@@ -41,18 +40,19 @@ class ClientGone(Exception):
 
 
 class OwnerUploads:
-    """At most `limit` uploads of one owner inside the upload route at once, in this API process;
-    one more is a 429 with `Retry-After` before its files are checked. A key whose uploads time
-    out and are sent again cannot fill every checker (issue 36: 20 clients of one key timed out
-    on 120 of 124 uploads, each still checked and stored)."""
+    """At most `limit` uploads of one owner admitted at once, in this API process (taken by
+    api.middleware.AdmissionLimit once the key is checked, before the upload waits for a place);
+    one more is a 429 with `Retry-After` before its body is read. A key whose uploads time out and
+    are sent again cannot fill every checker (issue 36: 20 clients of one key timed out on 120 of
+    124 uploads, each still checked and stored)."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
         self._counts: dict[str, int] = {}
         self._lock = threading.Lock()
 
-    @contextmanager
-    def enter(self, owner: str) -> Iterator[None]:
+    def take(self, owner: str) -> None:
+        """One of `owner`'s places, or OverLimit; `release` gives it back."""
         from service.errors import OverLimit
 
         with self._lock:
@@ -60,13 +60,12 @@ class OwnerUploads:
                 raise OverLimit(f"uploads: {self.limit} of your uploads are being checked already; send the next one when "
                                 "one of them is answered", retry_after=UPLOAD_RETRY_AFTER_S)
             self._counts[owner] = self._counts.get(owner, 0) + 1
-        try:
-            yield
-        finally:
-            with self._lock:
-                self._counts[owner] -= 1
-                if not self._counts[owner]:
-                    del self._counts[owner]
+
+    def release(self, owner: str) -> None:
+        with self._lock:
+            self._counts[owner] -= 1
+            if not self._counts[owner]:
+                del self._counts[owner]
 
 
 class UploadRejected(ValueError):
@@ -168,14 +167,15 @@ def validate_scene(
     folder: Path, cameras_file: str, video_sizes: dict[str, int], settings: Settings
 ) -> ValidatedScene:
     """Check the spooled cameras file and videos in `folder`; raise UploadRejected naming the problem."""
-    from fluidcore.cameras import CameraError, declared_fps, load
+    from fluidcore.cameras import CameraError, declared_fps, load, scene_box
     from fluidcore.cameras.world_up import declared_up
     from fluidcore.video import VideoError, common_rate, read_header, verify
 
     try:
         cameras = load(folder / cameras_file)
-        declared_up(folder / cameras_file)  # the file's own `up` and `fps`, checked here, read by the job
+        declared_up(folder / cameras_file)  # the file's own `up`, `fps` and box, checked here, read by the job
         declared_fps(folder / cameras_file)
+        scene_box(folder / cameras_file)  # before issue 49 a box the worker could not use was found by the job
     except CameraError as exc:
         raise UploadRejected(f"cameras: {exc}") from None
     _check_file_paths(cameras)

@@ -13,7 +13,11 @@ Redis, both removed afterwards), creates a key, a scene and one job, then for `-
     (../shared/devdata/phiflow_D/D/videos/view_02.mp4, 95 kB), or a synthesized clip of the same
     size and length when ../shared is absent; `--scene tiny` two 6-frame 32x24 clips;
   - one health probe (GET /healthz, then GET /readyz) every 0.25 s, on a thread of its own;
-  - with `--computing`, serve's embedded worker reconstructs the job meanwhile (issue 20).
+  - with `--computing`, the same load twice on one server with its embedded worker (issue 49):
+    first a quiet baseline, polling a job that was cancelled before it computed (the worker
+    idle), then polling a job the worker reconstructs meanwhile (issue 20), so the GET p99 with
+    and without a computing job come from one run on one machine state; both are reported, each
+    with the load average after it.
 Every request has a total `--timeout` (10 s). Reported per route: requests/s, p50/p99/max latency,
 answers by class (2xx/4xx/5xx), timeouts and connection errors; and for the uploads, how many were
 answered, refused, abandoned by their client, and stored although their client had left. Everything is bounded: the
@@ -37,7 +41,7 @@ import uuid
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +72,7 @@ class Server:
     backend: str
     pid: int  # the server's process
     worker: bool = False  # without one, /readyz answers 503 "no worker" by design (NO_WORKER)
+    plume_id: str | None = None  # with the worker: the scene a computing job reconstructs (`computing_job`)
 
 
 @dataclass
@@ -270,12 +275,11 @@ def live_server(
                 created.raise_for_status()
                 job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": created.json()["id"]})
                 job.raise_for_status()
-                deadline = time.monotonic() + STARTUP_TIMEOUT_S
-                while worker and client.get(f"/v1/jobs/{job.json()['id']}").json()["state"] == "queued":
-                    if time.monotonic() > deadline:  # the load must start with the job computing
-                        raise UserError(f"the embedded worker did not start the job within {STARTUP_TIMEOUT_S:g} s")
-                    time.sleep(0.2)
-            yield Server(base_url, key, job.json()["id"], parts, backend, process.pid, worker)
+                if worker:  # the quiet baseline polls a job that computes nothing, the worker idle
+                    client.post(f"/v1/jobs/{job.json()['id']}/cancel").raise_for_status()
+                    _wait_for_state(client, job.json()["id"], ("cancelled",), "the first job to be cancelled")
+            plume = created.json()["id"] if worker else None
+            yield Server(base_url, key, job.json()["id"], parts, backend, process.pid, worker, plume)
         finally:
             process.send_signal(signal.SIGINT)
             try:
@@ -284,6 +288,26 @@ def live_server(
                 process.kill()
                 process.wait()
             out.close()
+
+
+def computing_job(server: Server) -> Server:
+    """`server` polling a new reconstruction of its plume, once the embedded worker runs it
+    (the load must start with the job computing)."""
+    import httpx
+
+    with httpx.Client(base_url=server.base_url, headers={"Authorization": f"Bearer {server.key}"}, timeout=30) as client:
+        job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": server.plume_id})
+        job.raise_for_status()
+        _wait_for_state(client, job.json()["id"], ("running",), "the embedded worker to start the job")
+    return replace(server, job_id=job.json()["id"])
+
+
+def _wait_for_state(client: Any, job_id: str, states: tuple[str, ...], what: str) -> None:
+    deadline = time.monotonic() + STARTUP_TIMEOUT_S
+    while client.get(f"/v1/jobs/{job_id}").json()["state"] not in states:
+        if time.monotonic() > deadline:
+            raise UserError(f"timed out after {STARTUP_TIMEOUT_S:g} s waiting for {what}")
+        time.sleep(0.2)
 
 
 def _wait_healthy(base_url: str, process: subprocess.Popen[bytes]) -> None:
@@ -442,28 +466,34 @@ def _only_the_worker_missing(response: Any) -> bool:
 SETTLE_S = 60.0  # how long the uploads a client gave up on may take to finish (or not) after the load
 
 
-def _uploads_after(server: Server, uploads: dict[str, Any] | None) -> dict[str, int]:
+def scene_count(server: Server) -> int:
+    """How many scenes the server holds (its key's)."""
+    import httpx
+
+    answer = httpx.get(f"{server.base_url}/v1/scenes", params={"limit": 1}, headers={"Authorization": f"Bearer {server.key}"},
+                       timeout=30)
+    return int(answer.json()["total"])
+
+
+def _uploads_after(server: Server, uploads: dict[str, Any] | None, before: int) -> dict[str, int]:
     """What became of the uploads: answered (2xx), told busy (429 with Retry-After: no checking
     place free in time), refused (another 4xx: a limit), failed (5xx), abandoned
     (the client timed out), and how many scenes were stored for clients that had given up, counted
-    once the server's scene count stops changing (the first scene is live_server's own)."""
-    import httpx
-
+    once the server's scene count stops changing (`before`: the scenes it held before the load)."""
     answered = 0 if uploads is None else uploads["2xx"]
     counts: list[int] = []
     deadline = time.monotonic() + SETTLE_S
-    with httpx.Client(base_url=server.base_url, headers={"Authorization": f"Bearer {server.key}"}, timeout=30) as client:
-        while time.monotonic() < deadline and not (len(counts) >= 3 and len(set(counts[-3:])) == 1):  # 6 s unchanged
-            counts.append(client.get("/v1/scenes", params={"limit": 1}).json()["total"])
-            time.sleep(2.0)
-    previous = counts[-1] if counts else 1
+    while time.monotonic() < deadline and not (len(counts) >= 3 and len(set(counts[-3:])) == 1):  # 6 s unchanged
+        counts.append(scene_count(server))
+        time.sleep(2.0)
+    previous = counts[-1] if counts else before
     return {
         "answered": answered,
         "busy_429": 0 if uploads is None else uploads["busy_429"],
         "refused_4xx": 0 if uploads is None else uploads["4xx"] - uploads["busy_429"],
         "failed_5xx": 0 if uploads is None else uploads["5xx"],
         "abandoned": 0 if uploads is None else uploads["timeout"] + uploads["error"],
-        "stored_after_abandon": max(0, previous - 1 - answered),
+        "stored_after_abandon": max(0, previous - before - answered),
     }
 
 
@@ -472,13 +502,56 @@ def run_load(server: Server, seconds: float, clients: int, uploads: int, timeout
     (with `--computing`, "running" shows the worker computed through the whole load)."""
     import httpx
 
+    before, worker_cpu = scene_count(server), worker_cpu_seconds(server.pid)
     result = asyncio.run(_load(server, seconds, clients, uploads, timeout))
     result["load_average"] = os.getloadavg()
-    result["uploads_after"] = _uploads_after(server, result["routes"].get("POST /v1/scenes"))
+    result["worker_cpu_s"] = round(worker_cpu_seconds(server.pid) - worker_cpu, 2)  # what the job got meanwhile
+    result["uploads_after"] = _uploads_after(server, result["routes"].get("POST /v1/scenes"), before)
     result["cpus"] = os.cpu_count()
     job = httpx.get(f"{server.base_url}/v1/jobs/{server.job_id}", headers={"Authorization": f"Bearer {server.key}"},
                     timeout=30).json()
     result["job_after"] = {"state": job["state"], "stage": job["stage"], "progress": job["progress"]}
+    result["get_p99_s"] = max(route["p99_s"] or 0.0 for name, route in result["routes"].items() if name in GET_ROUTES)
+    return result
+
+
+def worker_cpu_seconds(server_pid: int) -> float:
+    """CPU seconds used so far by the server's embedded Celery worker and its pool child (Linux
+    /proc; 0 elsewhere or without a worker): whether a "computing" job got the CPU to compute."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    children: dict[int, tuple[int, float, bool]] = {}  # pid -> (parent, CPU seconds, a Celery process)
+    for entry in Path("/proc").glob("[0-9]*"):
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            children[int(entry.name)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / ticks,
+                                         b"celery" in (entry / "cmdline").read_bytes())
+        except (OSError, ValueError, IndexError):  # a process that just ended
+            continue
+    below, todo = set(), [server_pid]
+    while todo:
+        parent = todo.pop()
+        for pid, (ppid, _, _) in children.items():
+            if ppid == parent and pid not in below:
+                below.add(pid)
+                todo.append(pid)
+    return sum(cpu for pid, (_, cpu, celery) in children.items() if pid in below and celery)
+
+
+GET_ROUTES = ("GET /v1/jobs/{id}", "GET /v1/jobs/{id}/artifacts", "GET /v1/jobs")  # what clients poll
+
+
+def run_with_baseline(server: Server, seconds: float, clients: int, uploads: int, timeout: float) -> dict[str, Any]:
+    """`--computing`: the load against a quiet server (its worker idle), then the same load while
+    the worker reconstructs the polled job; the second's result, with the first as `baseline`
+    and the GET p99 (worst polled route) and slowest health answer of both side by side."""
+    baseline = run_load(server, seconds, clients, uploads, timeout)
+    result = run_load(computing_job(server), seconds, clients, uploads, timeout)
+    result["baseline"] = baseline
+    result["compared"] = {phase: {"get_p99_s": r["get_p99_s"], "health_max_s": r["health_max_s"],
+                                  "get_requests_per_s": sum(r["routes"][name]["requests_per_s"] for name in GET_ROUTES),
+                                  "load_average": r["load_average"], "worker_cpu_s": r["worker_cpu_s"],
+                                  "job_after": r["job_after"]}
+                          for phase, r in (("quiet", baseline), ("computing", result))}
     return result
 
 
@@ -503,13 +576,27 @@ def command(
         if scene not in SCENES:
             raise UserError(f"--scene must be one of {', '.join(SCENES)}, got {scene!r}")
         with live_server(backend, server_log, worker=computing, scene=scene) as server:
-            result = run_load(server, seconds, clients, uploads, timeout)
+            load = run_with_baseline if computing else run_load
+            result = load(server, seconds, clients, uploads, timeout)
     if json_out:
         echo_json(result)
         return
-    computed = f", job {result['job_after']['state']} at {result['job_after']['progress']:.2f}" if computing else ""
-    print(f"{backend}: {clients} clients + {uploads} uploaders ({result['upload_bytes']} bytes each, --scene {scene}) "
-          f"for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
+    if computing:
+        _print_phase(result["baseline"], "quiet baseline (worker idle)", clients, uploads, scene, timeout)
+        print()
+    _print_phase(result, "job computing" if computing else backend, clients, uploads, scene, timeout)
+    if computing:
+        quiet, busy = result["compared"]["quiet"], result["compared"]["computing"]
+        print(f"GET p99 (worst polled route): quiet {quiet['get_p99_s']:.3f} s, computing {busy['get_p99_s']:.3f} s; "
+              f"slowest health answer: quiet {quiet['health_max_s']:.3f} s, computing {busy['health_max_s']:.3f} s")
+
+
+def _print_phase(result: dict[str, Any], phase: str, clients: int, uploads: int, scene: str, timeout: float) -> None:
+    """One phase's table: each route's rate, latencies and answers, then the uploads' fate."""
+    computed = (f", job {result['job_after']['state']} at {result['job_after']['progress']:.2f} "
+                f"(worker {result['worker_cpu_s']:.1f} CPU s)")
+    print(f"{result['backend']}, {phase}: {clients} clients + {uploads} uploaders ({result['upload_bytes']} bytes each, "
+          f"--scene {scene}) for {result['seconds']:.0f} s{computed}, timeout {timeout:g} s, "
           f"{result['cpus']} CPUs, load {result['load_average'][0]:.2f}")
     print(f"{'route':<30} {'req/s':>7} {'p50 s':>7} {'p99 s':>7} {'max s':>7} {'2xx':>6} {'4xx':>5} {'5xx':>5} {'t/o':>4} {'err':>4}")
     for route, r in result["routes"].items():

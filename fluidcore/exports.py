@@ -39,11 +39,12 @@ torch-free, so the worker can export without the simulator.
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import tempfile
 import zipfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
@@ -54,7 +55,7 @@ from fluidcore.errors import InputError
 from fluidcore.files import atomic_output
 from fluidcore.runs import FrameState, Run, RunRecord
 from fluidcore.spec.jobs import BUNDLE_FORMATS
-from fluidcore.vdb import write_vdb
+from fluidcore.vdb import max_file_bytes, write_vdb
 
 SH_C0 = 0.28209479177387814  # the degree-0 spherical harmonic, Y_0^0 = 1 / (2 sqrt(pi))
 MAX_VOXELS = 256**3  # a density grid larger than this (64 MiB of float32) is refused
@@ -66,7 +67,16 @@ MAX_SEQUENCE_FRAMES = 600  # 20 s at 30 fps; a ScalarFlow-preset run measured 50
 # h = 0.04 (one core): h/2 is 55x80x55 voxels, 0.08 s to splat, 0.03 s to write as VDB, 0.5 MB;
 # h/4 is 109x159x109, 0.37 s, 0.15 s, 3.8 MB a frame.
 BUNDLE_SPACING = 0.25
-MAX_BUNDLE_VOXELS = MAX_SEQUENCE_FRAMES * 2_000_000  # voxels over all of a bundle's frames: 600 frames at h/4 of that box
+# The most a bundle may declare (`BundlePlan.bytes`): 600 frames of that box at h/4, 2 M voxels of
+# density and velocity (16 B) a frame. Its files' sizes are bounded before anything is written
+# (`frame_bytes`); before issue 49 the cap counted voxels, whatever a voxel cost in the format.
+MAX_BUNDLE_BYTES = 20 * 1024**3
+DENSITY_VOXEL_BYTES = 16  # a density npz's float32 density and velocity (3) per voxel
+PLY_VERTEX_BYTES = 68  # 17 float32 columns a Gaussian (`splat_vertices`)
+# A state file holds at least 12 float32 of each Gaussian (runs.GAUSSIAN_FIELDS: means 3, log
+# scales 3, quaternion 4, opacity 1, colour 1 or 3), so a frame has at most its state's bytes / 48.
+STATE_GAUSSIAN_BYTES = 48
+FILE_SLACK = 4096  # a file's own header (npz directory 1.9 kB, ply header, VDB's in max_file_bytes) and zip entry
 BUNDLE_MANIFEST = "bundle.json"
 BUNDLE_NAME = re.compile(r"(?P<fmt>[a-z]+)_f(?P<start>\d{6,})-(?P<end>\d{6,})(?:_v(?P<voxel>[0-9.e+-]+))?\.zip")
 
@@ -111,8 +121,8 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
     mass = (h / 2) ** 3
     points = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     reach = np.arange(-int(np.ceil(h / spacing)), int(np.ceil(h / spacing)) + 2)  # voxels a kernel can touch
-    grid = np.zeros(int(np.prod(shape)))
-    momentum = None if velocities is None else np.zeros((int(np.prod(shape)), 3))
+    grid = np.zeros(voxel_count(tuple(shape)))
+    momentum = None if velocities is None else np.zeros((voxel_count(tuple(shape)), 3))
     for first in range(0, len(points), PARTICLE_CHUNK):
         chunk = points[first : first + PARTICLE_CHUNK]
         cells = np.floor((chunk - origin) / spacing).astype(int)[:, :, None] + reach  # (n, 3, reach) per axis
@@ -139,19 +149,35 @@ def density_grid(positions: np.ndarray, h: float, lo: np.ndarray, hi: np.ndarray
 
 
 def _shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tuple[int, int, int]:
-    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 2 * h
-    return tuple(int(n) for n in np.ceil(extent / spacing).astype(int) + 1)  # type: ignore[return-value]
+    """Voxels per axis, in Python ints: numpy's int64 product of a 1e-9 voxel's shape overflowed to
+    a negative count that passed the cap (issue 49); an extent over the spacing that is not a
+    finite number is refused here."""
+    with np.errstate(over="ignore", divide="ignore"):
+        extent = (np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64) + 2 * h) / spacing
+    if not np.all(np.isfinite(extent)):
+        raise ExportError(f"voxel size {spacing:g}: the box over it is not a finite number of voxels")
+    return tuple(math.ceil(float(n)) + 1 for n in extent)  # type: ignore[return-value]
+
+
+def voxel_count(shape: tuple[int, ...]) -> int:
+    """Voxels of a grid, as an exact Python int (never numpy's int64, which wraps)."""
+    return math.prod(shape)
+
+
+def shape_text(shape: tuple[int, ...]) -> str:
+    """A grid's shape for a message: 55x80x55, or 1.08e+300x... for a voxel size far too small."""
+    return "x".join(str(n) if n < 10**7 else f"{n:.3g}" for n in shape)
 
 
 def _smallest_fitting(h: float, lo: np.ndarray, hi: np.ndarray, too_small: float) -> float:
     """The smallest voxel size whose grid holds at most MAX_VOXELS, rounded up to 3 digits:
     bisection, the voxel count falling as the size grows."""
     fits = 2 * too_small
-    while int(np.prod(_shape(h, lo, hi, fits))) > MAX_VOXELS:
+    while voxel_count(_shape(h, lo, hi, fits)) > MAX_VOXELS:
         fits *= 2
     for _ in range(40):
         middle = (too_small + fits) / 2
-        too_small, fits = (too_small, middle) if int(np.prod(_shape(h, lo, hi, middle))) <= MAX_VOXELS else (middle, fits)
+        too_small, fits = (too_small, middle) if voxel_count(_shape(h, lo, hi, middle)) <= MAX_VOXELS else (middle, fits)
     scale = 10.0 ** (2 - int(np.floor(np.log10(fits))))
     return float(np.ceil(fits * scale) / scale)
 
@@ -163,11 +189,11 @@ def grid_shape(h: float, lo: np.ndarray, hi: np.ndarray, spacing: float) -> tupl
     if not 0 < spacing <= h:
         raise ExportError(f"voxel size must be in (0, {h:g}] world units (the kernel radius h), got {spacing:g}")
     shape = _shape(h, lo, hi, spacing)
-    if int(np.prod(shape)) <= MAX_VOXELS:
+    if voxel_count(shape) <= MAX_VOXELS:
         return shape
     fits = _smallest_fitting(h, lo, hi, spacing)
     hint = f"the smallest that fits this box is {fits:g}" if fits <= h else "even the kernel radius does not fit this box"
-    raise ExportError(f"voxel size {spacing:g}: a {'x'.join(map(str, shape))} grid exceeds {MAX_VOXELS} voxels (256^3); {hint}")
+    raise ExportError(f"voxel size {spacing:g}: a {shape_text(shape)} grid exceeds {MAX_VOXELS} voxels (256^3); {hint}")
 
 
 def frame_density(run: Run, state: FrameState, spacing: float | None = None) -> DensityGrid:
@@ -398,6 +424,7 @@ class BundlePlan:
     frames: tuple[int, int]
     voxel_size: float | None
     shape: tuple[int, int, int] | None
+    bytes: int | None = None  # the most its zip can take (`frame_bytes` over the frames); None: not planned
 
     @property
     def name(self) -> str:
@@ -429,26 +456,57 @@ def bundle_voxel_size(h: float, asked: float | None = None) -> float:
     return float(f"{BUNDLE_SPACING * h if asked is None else asked:.4g}")
 
 
+def frame_bytes(fmt: str, shape: tuple[int, int, int] | None, state_bytes: int) -> int:
+    """The most bytes one frame of a bundle of `fmt` can take in its zip: a grid of `shape`, or
+    for ply the Gaussians a state file of `state_bytes` can hold. Upper bounds that hold for any
+    smoke (every voxel filled), so a bundle is refused before work, never cut short."""
+    if fmt == "ply":
+        return -(-state_bytes // STATE_GAUSSIAN_BYTES) * PLY_VERTEX_BYTES + FILE_SLACK
+    assert shape is not None, "a grid format has a shape"
+    if fmt == "vdb":
+        return max_file_bytes(shape, {"density": 4, "velocity": 12}) + FILE_SLACK
+    return voxel_count(shape) * DENSITY_VOXEL_BYTES + FILE_SLACK
+
+
 def plan_bundle(run: RunRecord, fmt: str, frames: tuple[int, int] | None = None, voxel_size: float | None = None,
-                label: str = "the run") -> BundlePlan:
-    """Check a bundle against the run's manifest alone (torch-free and reading no frame, so the
-    API refuses a bad request before queueing it): a format of BUNDLE_FORMATS, finished frames,
-    a voxel size for the grid formats (`bundle_voxel_size`) whose grid fits MAX_VOXELS a frame and
-    MAX_BUNDLE_VOXELS over the frames."""
+                label: str = "the run", state_bytes: Mapping[int, int] | None = None) -> BundlePlan:
+    """Check a bundle against the run's manifest (torch-free and reading no frame, so the API
+    refuses a bad request before queueing it): a format of BUNDLE_FORMATS, finished frames, a
+    voxel size for the grid formats (`bundle_voxel_size`) whose grid fits MAX_VOXELS a frame, and
+    at most MAX_BUNDLE_BYTES declared over the frames (`frame_bytes`). A ply bundle's size needs
+    the frames' state file sizes: `state_bytes` by frame (the API lists them in storage), read
+    from the run folder when `run` is one."""
     _check_format(fmt, voxel_size, BUNDLE_FORMATS)
     frames = default_frames(run) if frames is None else (int(frames[0]), int(frames[1]))
     _check_frames(run, frames, label)
-    if not EXPORTERS[fmt].gridded:
-        return BundlePlan(fmt, frames, None, None)
-    scene = run.scene
-    h = scene.physics.h
-    spacing = bundle_voxel_size(h, voxel_size)
-    shape = grid_shape(h, np.asarray(scene.box_lo), np.asarray(scene.box_hi), spacing)
-    voxels = int(np.prod(shape)) * (frames[1] - frames[0])
-    if voxels > MAX_BUNDLE_VOXELS:
-        raise ExportError(f"{frames[1] - frames[0]} frames of {'x'.join(map(str, shape))} voxels exceed a bundle's "
-                          f"{MAX_BUNDLE_VOXELS:.3g} voxels; choose fewer frames or a larger voxel size")
-    return BundlePlan(fmt, frames, spacing, shape)
+    spacing = shape = None
+    if EXPORTERS[fmt].gridded:
+        h = run.scene.physics.h
+        spacing = bundle_voxel_size(h, voxel_size)
+        shape = grid_shape(h, np.asarray(run.scene.box_lo), np.asarray(run.scene.box_hi), spacing)
+    sizes = _state_sizes(run, frames, state_bytes, label) if fmt == "ply" else {}
+    declared = BUNDLE_SLACK + sum(frame_bytes(fmt, shape, sizes.get(t, 0)) for t in range(*frames))
+    if declared > MAX_BUNDLE_BYTES:
+        grid = "" if shape is None else f" of {shape_text(shape)} voxels"
+        raise ExportError(f"{frames[1] - frames[0]} frames{grid} as {fmt} may take {declared / 1024**3:.3g} GiB, more "
+                          f"than a bundle's {MAX_BUNDLE_BYTES / 1024**3:.3g} GiB; choose fewer frames"
+                          f"{' or a larger voxel size' if shape is not None else ''}")
+    return BundlePlan(fmt, frames, spacing, shape, declared)
+
+
+BUNDLE_SLACK = 64 * 1024  # BUNDLE_MANIFEST (its list of up to 600 file names) and the zip's directory end
+
+
+def _state_sizes(run: RunRecord, frames: tuple[int, int], given: Mapping[int, int] | None, label: str) -> Mapping[int, int]:
+    """The frames' state file sizes: `given`, else read from the run folder."""
+    if given is None:
+        if not isinstance(run, Run):
+            raise TypeError("a ply bundle of a run record needs its state file sizes")
+        return {t: run.state_path(t).stat().st_size for t in range(*frames)}
+    missing = [t for t in range(*frames) if t not in given]
+    if missing:
+        raise ExportError(f"frames {frames[0]}:{frames[1]}: frame {missing[0]}'s state is missing from {label}")
+    return given
 
 
 def export_bundle(run_dir: str | os.PathLike[str], plan: BundlePlan, out: str | os.PathLike[str],
@@ -461,11 +519,16 @@ def export_bundle(run_dir: str | os.PathLike[str], plan: BundlePlan, out: str | 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     names = [export_name(t, plan.fmt) for t in range(*plan.frames)]
+    written = 0
     with (atomic_output(out, suffix=".zip") as temporary, tempfile.TemporaryDirectory(dir=out.parent) as scratch,
           zipfile.ZipFile(temporary, "w", zipfile.ZIP_STORED) as bundle):
         for done, (t, name) in enumerate(zip(range(*plan.frames), names, strict=True), start=1):
-            bundle.write(_write(ExportFrame(run, run.read_frame(t), plan.voxel_size), plan.fmt, Path(scratch) / name), name)
-            (Path(scratch) / name).unlink()
+            file = _write(ExportFrame(run, run.read_frame(t), plan.voxel_size), plan.fmt, Path(scratch) / name)
+            written += file.stat().st_size
+            if written > (plan.bytes or 0):  # the declared bound is what the owner's quota reserved: never past it
+                raise RuntimeError(f"bundle {plan.name}: {written} bytes by frame {t}, past the {plan.bytes} it declared")
+            bundle.write(file, name)
+            file.unlink()
             if on_frame is not None:
                 on_frame(done, len(names))
         scene = run.scene

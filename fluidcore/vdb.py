@@ -20,6 +20,7 @@ A (X, Y, Z) array becomes a `Tree_float_5_4_3` fog volume; a (X, Y, Z, 3) array 
 from __future__ import annotations
 
 import io
+import math
 import struct
 import uuid
 from collections.abc import Mapping
@@ -59,6 +60,28 @@ def write_vdb(path: str | Path, grids: Mapping[str, np.ndarray], origin: np.ndar
         block_pos = grid_pos + len(head)
         out.write(descriptor + struct.pack("<qqq", grid_pos, block_pos, block_pos + len(body)) + head + body)
     Path(path).write_bytes(out.getvalue())
+
+
+# What `write_vdb` writes besides the active values, for `max_file_bytes`: per leaf its value mask
+# twice (topology, then buffers) and a flag; per internal node its child and value masks and a
+# flag (an upper node also its origin); per grid its descriptor, metadata and transform (< 1 KiB).
+LEAF_BYTES = 2 * (LEAF_WIDTH**3 // 8) + 1
+LOWER_BYTES = 2 * ((1 << 3 * LOWER) // 8) + 1
+UPPER_BYTES = 2 * ((1 << 3 * UPPER) // 8) + 1 + 12
+GRID_BYTES = 1024
+FILE_BYTES = 128  # magic, versions, uuid, metadata, grid count
+
+
+def max_file_bytes(shape: tuple[int, int, int], value_bytes: Mapping[str, int]) -> int:
+    """The most bytes `write_vdb` writes for grids of `shape` voxels, one per name in
+    `value_bytes` (4 a float voxel, 12 a vec3): every voxel active, every node present. Exact
+    Python ints (what a bundle declares before it is made, fluidcore.exports.plan_bundle)."""
+    def nodes(span: int) -> int:
+        return math.prod(-(-n // span) for n in shape)
+
+    structure = nodes(LEAF_WIDTH) * LEAF_BYTES + nodes(LOWER_SPAN) * LOWER_BYTES + nodes(UPPER_SPAN) * UPPER_BYTES
+    per_grid = [math.prod(shape) * size + structure + GRID_BYTES for size in value_bytes.values()]
+    return FILE_BYTES + sum(per_grid)
 
 
 def _tree_type(values: np.ndarray) -> str:

@@ -5,6 +5,7 @@ state change goes through `service.job_states`; every send through `service.queu
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 from pydantic import BaseModel
@@ -15,8 +16,8 @@ from sqlalchemy.orm import Session
 
 from fluidcore.runs import RunError
 from fluidcore.spec.controls import InteractionError, branch_frame
-from fluidcore.spec.jobs import InteractParams, ReconstructParams
-from service import scenes
+from fluidcore.spec.jobs import BundleParams, InteractParams, ReconstructParams
+from service import bundles, scenes, videos
 from service.chaining import job_ended, release_children
 from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
@@ -158,14 +159,36 @@ def create(session: Session, queue: JobQueue, settings: Settings, job: Job, wait
         deleted = _deleted_reference(session, job)
         if deleted is not None:
             raise Conflict(f"{deleted} was deleted while this job was being created; nothing was queued") from None
-        if job.idempotency_key is None:
-            raise
-        raise DuplicateRequest(f"job with Idempotency-Key {job.idempotency_key!r}") from None
+        if job.idempotency_key is not None:
+            raise DuplicateRequest(f"job with Idempotency-Key {job.idempotency_key!r}") from None
+        if not JobType(job.type).writes_run:  # uq_jobs_file_in_the_making: another job makes this file now
+            raise DuplicateRequest(f"{job.type} of {made_file(job)} of job {job.parent_job_id}") from None
+        raise
     if waits_for:
         release_children(session, waits_for, queue, Actor.API, settings)
         session.refresh(job)
     else:
         send(session, job, queue)
+
+
+def made_file(job: Job) -> str | None:
+    """The artifact name of the file a render or bundle job publishes with its parent's
+    artifacts (`service.videos`, `service.bundles`); None for a job that writes a run."""
+    if job.type == JobType.RENDER:
+        return videos.artifact_name(job.params["video"])
+    if job.type == JobType.BUNDLE:
+        return bundles.artifact_name(bundles.params_plan(BundleParams.model_validate(job.params)))
+    return None
+
+
+def file_job(owner: str, job_type: JobType, parent_id: str, params: BaseModel, reserved_bytes: int = 0) -> Job:
+    """A new render or bundle job of `parent_id`'s run. Its `request_hash` is the hash of the file
+    it makes, which the database allows one unfinished job at a time (`models.FILE_IN_THE_MAKING`):
+    requests racing each other make it once (`create` raises DuplicateRequest for the others)."""
+    job = Job(owner=owner, type=job_type, parent_job_id=parent_id, params=params.model_dump(mode="json"),
+              reserved_bytes=reserved_bytes)
+    job.request_hash = hashlib.sha256(f"{parent_id}/{made_file(job)}".encode()).hexdigest()
+    return job
 
 
 def _deleted_reference(session: Session, job: Job) -> str | None:
@@ -209,6 +232,9 @@ def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
     if rendering:
         raise Conflict(f"job {job_id} has videos or bundles being made in jobs {', '.join(rendering)}; cancel them first")
     session.execute(delete_rows(Artifact).where(Artifact.job_id == job.id))
+    made = _made_artifact(session, job)
+    if made is not None:  # issue 49: a deleted bundle job's bundle stayed listed and stored
+        session.delete(made)
     for child in below:
         session.delete(child)
     session.flush()  # the renders and bundles before the job they name
@@ -216,6 +242,17 @@ def delete(session: Session, storage: Storage, job_id: str, owner: str) -> None:
     # rows first: a failed file removal leaves garbage, never a dangling row
     commit_or_conflict(session, f"job {job_id} was named by a new job while it was being deleted; nothing was deleted")
     storage.delete_prefix(f"{job_prefix(job.id)}/")
+    if made is not None:
+        storage.delete(made.key)
+
+
+def _made_artifact(session: Session, job: Job) -> Artifact | None:
+    """The file a succeeded render or bundle job published with its parent's artifacts: it goes
+    with the job (a failed or cancelled one made none; the file then is another job's)."""
+    name = made_file(job)
+    if name is None or job.state != JobState.SUCCEEDED or job.parent_job_id is None:
+        return None
+    return artifact(session, job.parent_job_id, name)
 
 
 def log_lines(storage: Storage, job_id: str) -> list[str]:

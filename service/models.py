@@ -8,7 +8,7 @@ import uuid
 from datetime import UTC, datetime
 from typing import Any
 
-from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint
+from sqlalchemy import JSON, BigInteger, Boolean, DateTime, Float, ForeignKey, Index, Integer, String, Text, UniqueConstraint, text
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 from sqlalchemy.types import TypeDecorator
 
@@ -99,6 +99,12 @@ UNSENT = "unsent"
 HELD = "held"
 
 
+# The render and bundle jobs still making their file: at most one per file of a job (issue 49: ten
+# identical bundle requests at once started six jobs). Their `request_hash` is the hash of the
+# file's artifact name (service.jobs.file_hash), so the database refuses a second one.
+FILE_IN_THE_MAKING = "type IN ('render', 'bundle') AND state IN ('queued', 'running')"
+
+
 class Job(Base):
     """One reconstruct / predict / interact / resimulate run and everything the API reports about it."""
 
@@ -106,6 +112,8 @@ class Job(Base):
     __table_args__ = (
         UniqueConstraint("owner", "idempotency_key", name="uq_jobs_owner_idempotency_key"),
         Index("ix_jobs_owner_created", "owner", "created_at"),
+        Index("uq_jobs_file_in_the_making", "parent_job_id", "request_hash", unique=True,
+              sqlite_where=text(FILE_IN_THE_MAKING), postgresql_where=text(FILE_IN_THE_MAKING)),
     )
 
     id: Mapped[str] = mapped_column(String(32), primary_key=True, default=new_id)
@@ -132,6 +140,9 @@ class Job(Base):
     # the token it claimed with, so a runner whose lease was taken over stops instead of racing.
     lease_token: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     webhook_url: Mapped[str | None] = mapped_column(String(2048), default=None)  # service.webhooks
+    # Bytes the job may write, counted against its owner's stored bytes while it is unfinished
+    # (service.quotas): a bundle's declared size, so bundles asked at once cannot each fit the quota.
+    reserved_bytes: Mapped[int] = mapped_column(BigInteger, default=0, server_default="0")
 
     created_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(UTCDateTime(), default=None)

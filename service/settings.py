@@ -82,6 +82,18 @@ class Settings(BaseSettings):
     max_uploads_per_owner: int = Field(
         default=2, gt=0, description="one owner's uploads being checked at once (per API process); one more is a 429"
     )
+    # Issue 49: a body sent slowly held an upload place for 40 s; now it must keep up this rate.
+    min_body_rate: float = Field(
+        default=64 * 1024, gt=0,
+        description="bytes a second a request body must average once body_grace_seconds have passed; slower is a 408",
+    )
+    body_grace_seconds: float = Field(
+        default=5.0, gt=0, description="how long a request body may take before min_body_rate applies"
+    )
+    key_cache_seconds: float = Field(
+        default=2.0, ge=0, description="an API key found valid is trusted this long without a database lookup "
+        "(per API process; a revoked key is refused within it); 0: every request looks its key up"
+    )
     max_json_bytes: int = Field(default=64 * 1024, gt=0, description="a JSON request body (job requests)")
     max_cameras_bytes: int = Field(default=4 * 1024**2, gt=0, description="the uploaded cameras file")
     max_cameras: int = Field(default=64, gt=0, description="cameras in one cameras file")

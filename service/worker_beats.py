@@ -8,7 +8,11 @@
   `worker_unresponsive_seconds` (`BeatWatch`): a frozen worker is replaced like a dead one.
 
 One row per Celery main process (`host:pid`), written by a thread in each pool child every
-quarter lease; a stopped or restarted worker's row is removed (`forget`) or simply goes stale.
+quarter lease, but only while the main process itself keeps time (`MainClock`): a frozen main
+process (SIGSTOP, a hung consumer loop) takes no task, and its pool child, which beat on, kept
+it "alive" for ever (issue 49: a job queued 5 min+, `/readyz` "worker ok", 22 broker messages
+from the reaper's resends). A stopped or restarted worker's row is removed (`forget`) or simply
+goes stale.
 """
 
 from __future__ import annotations
@@ -16,7 +20,8 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timedelta
@@ -30,16 +35,38 @@ from service.models import WorkerBeat, utcnow
 log = logging.getLogger(__name__)
 
 
+class MainClock:
+    """When the Celery main process last kept time, readable by its pool children: a double in
+    shared memory, made in the main process before its pool forks (children inherit the mapping),
+    set by a timer of the main process (`tick`, worker.tasks.MainTick) and read by each child's
+    beacon (`age`). CLOCK_MONOTONIC is one clock for every process of the machine."""
+
+    def __init__(self) -> None:
+        import multiprocessing
+
+        self._last = multiprocessing.RawValue("d", time.monotonic())
+
+    def tick(self) -> None:
+        self._last.value = time.monotonic()
+
+    def age(self) -> float:
+        """Seconds since the main process last ticked."""
+        return time.monotonic() - self._last.value
+
+
 def worker_name(pid: int) -> str:
     """The row name of the Celery main process `pid` on this host (a pool child passes its parent's)."""
     return f"{os.uname().nodename}:{pid}"
 
 
 class WorkerBeacon:
-    """Beats for one worker from a daemon thread; `working()` marks the time a job runs."""
+    """Beats for one worker from a daemon thread; `working()` marks the time a job runs. It beats
+    only while `alive()` says the worker's main process answers (`MainClock`); otherwise the row
+    goes stale, as a dead worker's does, and its supervisor replaces it."""
 
-    def __init__(self, sessions: sessionmaker[Session], name: str, period_s: float) -> None:
-        self.sessions, self.name, self.period_s = sessions, name, period_s
+    def __init__(self, sessions: sessionmaker[Session], name: str, period_s: float,
+                 alive: Callable[[], bool] = lambda: True) -> None:
+        self.sessions, self.name, self.period_s, self.alive = sessions, name, period_s, alive
         self._idle_since: datetime | None = utcnow()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._beat_forever, name="worker-beat", daemon=True)
@@ -67,11 +94,18 @@ class WorkerBeacon:
         forget(self.sessions, self.name)
 
     def _beat_forever(self) -> None:
+        silent = False
         while not self._stop.is_set():
-            try:
-                self.beat()
-            except Exception:  # database unreachable: keep trying; readers see the row go stale
-                log.warning("worker heartbeat failed", exc_info=True)
+            if not self.alive():
+                if not silent:
+                    log.warning("worker %s: its main process stopped keeping time; no heartbeat until it does", self.name)
+                silent = True
+            else:
+                silent = False
+                try:
+                    self.beat()
+                except Exception:  # database unreachable: keep trying; readers see the row go stale
+                    log.warning("worker heartbeat failed", exc_info=True)
             self._stop.wait(self.period_s)
 
 

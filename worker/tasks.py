@@ -13,7 +13,7 @@ import os
 import warnings
 from functools import lru_cache
 
-from celery import Task
+from celery import Task, bootsteps
 from celery.exceptions import SecurityWarning
 from celery.signals import worker_process_init, worker_process_shutdown
 
@@ -26,7 +26,7 @@ from service.models import JobState
 from service.queue import CeleryQueue
 from service.settings import get_settings
 from service.storage import make_storage
-from service.worker_beats import WorkerBeacon, worker_name
+from service.worker_beats import MainClock, WorkerBeacon, worker_name
 from worker.execution import TRANSIENT_ERRORS, JobExecutor
 from worker.runners import load_runners
 
@@ -38,6 +38,34 @@ if os.environ.get(EMBEDDED) == "1":
     # The embedded worker runs as whoever ran the server (root in a container); Celery's
     # running-as-root warning tells them nothing they did not choose. A standalone worker keeps it.
     warnings.filterwarnings("ignore", category=SecurityWarning)
+
+
+# The main process's clock, shared with the pool children it forks (made here, at import, in the
+# main process: `celery -A worker.tasks` imports this module before it starts the pool).
+MAIN_CLOCK = MainClock()
+MAIN_TICK_S = settings.job_lease_seconds / 8  # how often the main process ticks
+MAIN_SILENT_S = settings.job_lease_seconds / 2  # a child stops beating once the main has not ticked this long
+
+
+class MainTick(bootsteps.StartStopStep):
+    """Ticks `MAIN_CLOCK` from the worker's own timer in the main process (the event loop's
+    timer with Redis, Celery's timer thread with the filesystem broker): it stops when the main
+    process does, and the children's heartbeats stop with it (service.worker_beats). Worst case
+    from a freeze to serve's kill: MAIN_SILENT_S + a beat period + worker_unresponsive_seconds
+    + a watch period = 8 + 4 + 60 + 4 = 76 s at the defaults (issue 49: within 90 s)."""
+
+    requires = {"celery.worker.components:Timer"}
+
+    def start(self, worker: object) -> None:
+        MAIN_CLOCK.tick()
+        self.entry = worker.timer.call_repeatedly(MAIN_TICK_S, MAIN_CLOCK.tick)  # type: ignore[attr-defined]
+
+    def stop(self, worker: object) -> None:
+        if getattr(self, "entry", None) is not None:
+            self.entry.cancel()
+
+
+app.steps["worker"].add(MainTick)
 
 
 @worker_process_init.connect
@@ -58,8 +86,10 @@ def _stop_child(**_: object) -> None:
 
 @lru_cache(maxsize=1)
 def beacon() -> WorkerBeacon:
-    """This worker's heartbeat, named after the Celery main process (the pool child's parent)."""
-    return WorkerBeacon(executor().sessions, worker_name(os.getppid()), settings.job_lease_seconds / 4)
+    """This worker's heartbeat, named after the Celery main process (the pool child's parent),
+    beating while that process keeps time."""
+    return WorkerBeacon(executor().sessions, worker_name(os.getppid()), settings.job_lease_seconds / 4,
+                        alive=lambda: MAIN_CLOCK.age() <= MAIN_SILENT_S)
 
 
 @lru_cache(maxsize=1)

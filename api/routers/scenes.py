@@ -2,34 +2,26 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import mimetypes
-import tempfile
-from pathlib import Path
 from typing import Annotated
 from urllib.parse import quote
 
 import anyio
 from fastapi import APIRouter, Depends, File, Form, Header, HTTPException, Request, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
-from pydantic import ValidationError
 from sqlalchemy.orm import Session
 
 from api.deps import (
-    OptionalOwnerDep, OwnerDep, OwnerUploadsDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep,
+    OptionalOwnerDep, OwnerDep, PageLimit, PageOffset, QueueDep, SessionDep, SettingsDep, StorageDep, ValidatorsDep,
 )
 from api.downloads import STREAMED, download_links, signed_in, stream
-from api.errors import error_responses, strict_json
-from api.idempotency import replay
+from api.errors import error_responses
+from api.scene_uploads import Part, UploadForm, receive_scene
 from api.schemas import Page, SceneGeometry, SceneOut, SceneVideo, SceneVideoLink, SceneVideoLinks
-from api.uploads import ClientGone, ValidatedScene, safe_filename, spool, store_scene
-from fluidcore.names import check_name, safe_join
-from fluidcore.spec.jobs import ReconstructParams
-from service import quotas, scenes
-from service.errors import DuplicateRequest
-from service.models import Job, Scene, new_id
-from service.storage import Storage, scene_prefix
+from fluidcore.names import check_name
+from service import scenes
+from service.models import Job, Scene
+from service.storage import Storage
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"], responses=error_responses(401, 422, 503))
 
@@ -56,7 +48,6 @@ def create_scene(
     settings: SettingsDep,
     queue: QueueDep,
     validators: ValidatorsDep,
-    owner_uploads: OwnerUploadsDep,
     request: Request,
     response: Response,
     video: Annotated[list[UploadFile], File(description="one per camera; file name stem = camera name")],
@@ -86,57 +77,20 @@ def create_scene(
     reconstruction are stored together: a refused reconstruction (422) leaves no scene behind,
     so a retry never piles up copies. 429 when the owner has too many scenes, stores too much, or
     (with `reconstruct`) has too many unfinished jobs (`service.quotas`), checked before the
-    upload is validated. While the job broker is down the reconstruction waits
-    queued ("waiting for the queue") and is sent when the broker answers (`service.queue.send`)."""
-    idempotency_key = idempotency_key or None  # an empty header is no key
-    if cameras is None and fov is None:
-        raise HTTPException(422, "cameras: give a cameras file (transforms.json, info.json or a zipped COLMAP model), "
-                                 "or fov (the horizontal field of view in degrees) for one video without calibration")
-    if cameras is not None and fov is not None:
-        raise HTTPException(422, "cameras: give a cameras file or fov, not both: fov makes the cameras file of a "
-                                 "video without calibration")
-    params = None if reconstruct is None else parse_reconstruct(reconstruct)
-    with owner_uploads.enter(owner), tempfile.TemporaryDirectory(prefix="fluidnexus-upload-") as tmp:
-        folder = Path(tmp)
-        cameras_name = None
-        if cameras is not None:
-            cameras_name = safe_filename(cameras.filename, "cameras")
-            spool(cameras.file, safe_join(folder, cameras_name), settings.max_cameras_bytes, "cameras")
-        sizes: dict[str, int] = {}
-        for part in video:
-            filename = safe_filename(part.filename, "video")
-            if filename in sizes or filename == cameras_name:
-                raise HTTPException(422, f"video: file name {filename!r} is used twice in this upload")
-            sizes[filename] = spool(part.file, safe_join(folder, filename), settings.max_video_bytes, "video")
-        request_hash = None
-        if idempotency_key is not None:
-            request_hash = _upload_hash(folder, cameras_name, list(sizes), [fov, distance, up, name, reconstruct])
-            if (existing := replay(session, Scene, owner, idempotency_key, request_hash)) is not None:
-                response.headers["Idempotent-Replayed"] = "true"
-                return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
-        quotas.check_new_scene(session, owner, settings, sum(sizes.values()))  # the videos, as stored_bytes counts
-        if params is not None:
-            quotas.check_new_job(session, owner, settings)
-        single = None if fov is None else (fov, distance, up)
-        validated, geometry = validators.check(folder, cameras_name, sizes, single, settings, gone=lambda: client_gone(request))
-        if params is not None:
-            scenes.check_reconstruct_params(params, validated.n_frames, geometry["box"], "reconstruct")
-        if client_gone(request):  # the last moment nothing is stored yet
-            raise ClientGone()
-
-        scene_id = new_id()
-        keys = store_scene(storage, f"{scene_prefix(scene_id)}/input", validated)
-        scene = _scene_row(scene_id, owner, name, validated, keys)
-        scene.idempotency_key, scene.request_hash = idempotency_key, request_hash
-        try:
-            job = scenes.store(session, storage, queue, scene, list(keys.values()), params)
-        except DuplicateRequest:  # a concurrent upload with the same key won the race: answer with its scene
-            existing = replay(session, Scene, owner, idempotency_key or "", request_hash or "")
-            if existing is None:
-                raise
-            response.headers["Idempotent-Replayed"] = "true"
-            return scene_out(existing, scene_geometry(session, storage, existing), _queued_with(session, existing, reconstruct))
-    return scene_out(scene, SceneGeometry.model_validate(geometry), job)
+    upload is validated, or has too many uploads in progress. A key that is not valid is a 401
+    before the body is read; a body sent slower than the server reads it is a 408. While the job
+    broker is down the reconstruction waits queued ("waiting for the queue") and is sent when the
+    broker answers (`service.queue.send`). The work is `api.scene_uploads.receive_scene`'s."""
+    form = UploadForm(
+        videos=[Part(part.filename, part.file) for part in video],
+        cameras=None if cameras is None else Part(cameras.filename, cameras.file),
+        fov=fov, distance=distance, up=up, name=name, reconstruct=reconstruct,
+        idempotency_key=idempotency_key or None,  # an empty header is no key
+    )
+    received = receive_scene(session, storage, queue, settings, validators, owner, form, gone=lambda: client_gone(request))
+    if received.replayed:
+        response.headers["Idempotent-Replayed"] = "true"
+    return scene_out(received.scene, SceneGeometry.model_validate(received.geometry), received.job)
 
 
 # uvicorn stops reading a connection once the request's body is in; the first ask resumes reading
@@ -157,33 +111,6 @@ def client_gone(request: Request) -> bool:
         return await request.is_disconnected()
 
     return anyio.from_thread.run(gone)
-
-
-def parse_reconstruct(text: str) -> ReconstructParams:
-    """The `reconstruct` form field: a reconstruction's params as JSON; 422 naming the field."""
-    try:
-        return ReconstructParams.model_validate(strict_json(text.encode()))  # no NaN, no deep nesting
-    except json.JSONDecodeError as exc:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"reconstruct: not JSON ({exc.msg})") from None
-    except ValidationError as exc:
-        where = "; ".join(f"reconstruct.{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, where) from None
-
-
-def _upload_hash(folder: Path, cameras_name: str | None, videos: list[str], fields: list[object]) -> str:
-    """SHA-256 over the spooled parts (names and bytes, in order) and the form fields: what
-    tells a retried upload from a different one under the same Idempotency-Key."""
-    digest = hashlib.sha256(json.dumps([cameras_name, videos, fields]).encode())
-    for filename in ([cameras_name] if cameras_name else []) + videos:
-        with safe_join(folder, filename).open("rb") as handle:
-            digest.update(hashlib.file_digest(handle, "sha256").digest())
-    return digest.hexdigest()
-
-
-def _queued_with(session: Session, scene: Scene, reconstruct: str | None) -> Job | None:
-    """The reconstruction an upload with a `reconstruct` field queued with its scene (a replayed
-    upload answers with it); None for an upload without one."""
-    return None if reconstruct is None else scenes.reconstruction_of(session, scene)
 
 
 @router.get("", response_model=Page[SceneOut])
@@ -263,32 +190,6 @@ def scene_geometry(session: Session, storage: Storage, scene: Scene) -> SceneGeo
 def delete_scene(scene_id: str, owner: OwnerDep, session: SessionDep, storage: StorageDep) -> None:
     """Delete a scene and its files; refused (409) while jobs made from it still exist."""
     scenes.delete(session, storage, scene_id, owner)
-
-
-def _scene_row(scene_id: str, owner: str, name: str, validated: ValidatedScene, keys: dict[str, str]) -> Scene:
-    videos = {
-        camera: {
-            "key": keys[v.filename],
-            "filename": v.filename,
-            "size": v.size,
-            "width": v.width,
-            "height": v.height,
-            "fps": v.fps,
-            "n_frames": v.n_frames,
-            "codec": v.codec,
-        }
-        for camera, v in validated.videos.items()
-    }
-    return Scene(
-        id=scene_id,
-        owner=owner,
-        name=name,
-        cameras_key=keys[validated.cameras_path.name],
-        cameras=validated.camera_names,
-        videos=videos,
-        n_frames=validated.n_frames,
-        fps=validated.fps,
-    )
 
 
 def scene_out(scene: Scene, geometry: SceneGeometry | None = None, job: Job | None = None) -> SceneOut:

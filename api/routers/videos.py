@@ -22,6 +22,7 @@ from api.views import artifact_out, job_out
 from fluidcore.artifacts import video_names
 from service import jobs, quotas
 from fluidcore.spec.jobs import RenderParams
+from service.errors import DuplicateRequest
 from service.job_types import JobType
 from service.models import Artifact, Job, JobState
 from service.runs import stored_run
@@ -74,8 +75,11 @@ def request_video(
     if render is not None and not JobState(render.state).finished:
         return _video_out(video, None, render, storage, settings)
     quotas.check_new_job(session, owner, settings)
-    render = Job(owner=owner, type=JobType.RENDER, parent_job_id=job.id, params={"video": video})
-    jobs.create(session, queue, settings, render, waits_for=None)
+    render = jobs.file_job(owner, JobType.RENDER, job.id, RenderParams(video=video))
+    try:
+        jobs.create(session, queue, settings, render, waits_for=None)
+    except DuplicateRequest:  # an identical request stored its render first: answer with that one
+        render = render_jobs(session, job.id)[video]
     return _video_out(video, None, render, storage, settings)
 
 

@@ -27,10 +27,18 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fluidcore.cameras.camera import Camera, CameraError
+from fluidcore.cameras.camera import MAX_CAMERA_DISTANCE, Camera, CameraError
 from fluidcore.cameras.json_formats import top_level_fields
 
 Box = tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) float64, world coordinates
+# A box a reconstruction can simulate in (`check_box`): its corners as far out as a camera may be,
+# its sides at least MIN_BOX_SIDE world units and MIN_SIDE_PER_REACH of its farthest corner's
+# distance, so the single-precision particle positions resolve its kernel radius (the box's
+# height / 37.5) to about a thousand steps. Past them a box of +-1e308 overflowed to infinite
+# sides and one of 1e-300 underflowed to a zero kernel, each a failed job after a 201 (issue 49).
+MAX_BOX_REACH = MAX_CAMERA_DISTANCE
+MIN_BOX_SIDE = 1e-4
+MIN_SIDE_PER_REACH = 1e-3
 
 
 def scene_box(path: str | Path) -> Box | None:
@@ -55,15 +63,32 @@ def capture_box(path: str | Path, cameras: Sequence[Camera] | dict[str, Camera])
 
 
 def bounds_box(value: Any, source: str) -> Box:
-    """A box from {"min": [x, y, z], "max": [x, y, z]}, min < max on every axis."""
+    """A box from {"min": [x, y, z], "max": [x, y, z]}, checked by `check_box`."""
     try:
         lo, hi = (np.asarray(value[key], dtype=np.float64) for key in ("min", "max"))
     except (KeyError, TypeError, ValueError):
         raise CameraError(f"{source} must be {{\"min\": [x, y, z], \"max\": [x, y, z]}}, got {value!r}") from None
-    if lo.shape != (3,) or hi.shape != (3,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+    if lo.shape != (3,) or hi.shape != (3,):
+        raise CameraError(f"{source}: min and max must be 3 finite numbers each")
+    return check_box((lo, hi), source)
+
+
+def check_box(box: Box, source: str) -> Box:
+    """`box` if a reconstruction can simulate in it: finite, min < max on every axis, within
+    MAX_BOX_REACH of the origin, no side below MIN_BOX_SIDE or MIN_SIDE_PER_REACH of that reach;
+    else a CameraError naming `source` (the field, or the option the box came from)."""
+    lo, hi = box
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise CameraError(f"{source}: min and max must be 3 finite numbers each")
     if not np.all(lo < hi):
         raise CameraError(f"{source}: min {lo.tolist()} must be below max {hi.tolist()} on every axis")
+    reach = float(max(np.abs(lo).max(), np.abs(hi).max()))
+    if reach > MAX_BOX_REACH:
+        raise CameraError(f"{source}: a corner is {reach:.3g} world units from the origin; at most {MAX_BOX_REACH:g}")
+    side, least = float(np.min(hi - lo)), max(MIN_BOX_SIDE, MIN_SIDE_PER_REACH * reach)
+    if side < least:
+        raise CameraError(f"{source}: its smallest side is {side:.3g} world units; a box reaching {reach:.3g} from the "
+                          f"origin needs sides of at least {least:.3g}")
     return lo, hi
 
 
@@ -80,8 +105,9 @@ def voxel_box(data: dict[str, Any], source: str) -> Box:
     if abs(np.linalg.det(rotation)) < 1e-9:
         raise CameraError(f"{source}: voxel_matrix is singular")
     corners = np.array(list(itertools.product((0.0, 1.0), repeat=3)))
-    world = (corners * scale) @ rotation.T + matrix[:3, 3]
-    return world.min(axis=0), world.max(axis=0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        world = (corners * scale) @ rotation.T + matrix[:3, 3]
+    return check_box((world.min(axis=0), world.max(axis=0)), f"{source}: voxel_scale and voxel_matrix")
 
 
 def _voxel_scale(value: Any, source: str) -> np.ndarray:

@@ -20,6 +20,7 @@ images, cameras and points the model files declare are capped before pycolmap re
 from __future__ import annotations
 
 import ctypes
+import re
 import shutil
 import signal
 import sys
@@ -70,18 +71,38 @@ def _is_model_dir(folder: Path) -> bool:
     return all(any((folder / f"{stem}.{ext}").is_file() for ext in ("bin", "txt")) for stem in MODEL_FILES)
 
 
-def load_colmap_dir(folder: Path) -> dict[str, Camera]:
-    """Cameras by name from a folder that is (or contains) one COLMAP sparse model."""
+def load_colmap_dir(folder: Path, label: str | None = None) -> dict[str, Camera]:
+    """Cameras by name from a folder that is (or contains) one COLMAP sparse model; `label` names
+    it in errors (a zip's own name, not the temporary folder it was unpacked into)."""
+    label = label or folder.name
     model_dir = find_model_dir(folder)
     if model_dir is None:
-        raise CameraError(f"{folder.name}: no COLMAP model (cameras.bin/.txt and images.bin/.txt) found")
+        raise CameraError(f"{label}: no COLMAP model (cameras.bin/.txt and images.bin/.txt) found")
     check_model_sizes(model_dir)
     pycolmap = _import_pycolmap()
     try:
         reconstruction = pycolmap.Reconstruction(str(model_dir))
-    except (ValueError, RuntimeError) as error:
-        raise CameraError(f"{folder.name}: unreadable COLMAP model: {error}") from None
-    return cameras_from_reconstruction(reconstruction, folder.name)
+    except PYCOLMAP_REFUSALS as error:
+        raise CameraError(f"{label}: unreadable COLMAP model: {pycolmap_reason(error)}") from None
+    return cameras_from_reconstruction(reconstruction, label)
+
+
+# What pycolmap raises for a model it cannot read: its checks (RuntimeError, ValueError) and a
+# reference to a missing record (C++ out_of_range as IndexError: "Rig with ID 7 does not exist",
+# which was an internal error before issue 49).
+PYCOLMAP_REFUSALS = (ValueError, RuntimeError, IndexError, KeyError)
+_SOURCE_LINE = re.compile(r"\[[\w./-]+\.(?:cc|h|cpp):\d+\]\s*")
+
+
+def pycolmap_reason(error: Exception) -> str:
+    """pycolmap's message without what is the server's own business (issue 49): the C++ source
+    line and the failed check's expression ("[reconstruction_io_text.cc:246] Check failed:
+    line_stream1 >> image_id >> ...") become "a line or record it could not parse", and no path is
+    kept."""
+    text = _SOURCE_LINE.sub("", str(error).strip())
+    if text.startswith("Check failed"):
+        return "a line or record it could not parse"
+    return re.sub(r"(/[^\s/]+)+/?", "<path>", text).splitlines()[0][:200] if text else type(error).__name__
 
 
 # glog's failure handler, which importing pycolmap installs, takes these over from the process.
@@ -118,7 +139,7 @@ def load_colmap_zip(path: Path) -> dict[str, Camera]:
     """Cameras by name from a .zip holding one COLMAP sparse model (at any depth)."""
     with tempfile.TemporaryDirectory(prefix="fluidnexus-colmap-") as tmp:
         _safe_extract(path, Path(tmp))
-        return load_colmap_dir(Path(tmp))
+        return load_colmap_dir(Path(tmp), path.name)
 
 
 def _safe_extract(path: Path, target: Path) -> None:

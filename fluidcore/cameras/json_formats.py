@@ -86,12 +86,17 @@ def load_json_cameras(path: Path, data: dict[str, Any]) -> dict[str, Camera]:
     if not entries:
         raise CameraError(f"{path.name}: frames is empty (no cameras)")
     cameras: dict[str, Camera] = {}
+    listed_in: dict[str, str] = {}  # camera name -> the list that first gave it
     for where, entry in entries:
         camera = _entry_camera(path, data, where, entry)
-        if camera == cameras.get(camera.name):  # PINF lists the same video in train and test
+        in_list = where.split("[", 1)[0]
+        # PINF lists the same video in train and test; within one list a repeat is a mistake (issue 49:
+        # 5 cameras repeated to 65 entries were accepted as 5)
+        if camera == cameras.get(camera.name) and listed_in[camera.name] != in_list:
             continue
         check_new_camera(cameras, camera.name, f"{path.name}: {where}")
         cameras[camera.name] = camera
+        listed_in[camera.name] = in_list
     return cameras
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fluidcore.cameras.boxes import Box
+from fluidcore.cameras.boxes import Box, check_box
 from fluidcore.cameras.camera import Camera, CameraError, check_camera_name
 from fluidcore.cameras.json_formats import write_transforms
 from fluidcore.cameras.world_up import DEFAULT_UP
@@ -52,7 +52,7 @@ def single_camera(
     half_along_up = distance * (height if du == 0 else width) / (2 * focal)
     half_across = distance * (width if du == 0 else height) / (2 * focal)
     half = np.array([half_across, half_along_up, half_across])
-    return camera, (-half, half)
+    return camera, check_box((-half, half), f"distance {distance:g} (with fov {fov_deg:g}): its scene box")
 
 
 def write_single_camera(

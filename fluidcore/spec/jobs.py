@@ -116,8 +116,9 @@ class BundleParams(BaseModel):
 
     model_config = _STRICT
     format: BundleFormat
-    frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
-    voxel_size: Annotated[float, Field(gt=0, allow_inf_nan=False)] | None = None
+    # strict: a string "0.01" or a `true` is refused, not coerced (issue 49); a JSON integer is a number
+    frames: tuple[Annotated[int, Field(ge=0, strict=True)], Annotated[int, Field(ge=1, strict=True)]] | None = None
+    voxel_size: Annotated[float, Field(gt=0, allow_inf_nan=False, strict=True)] | None = None
 
 
 class JobParamsError(InputError):

@@ -92,8 +92,9 @@ class WorkerSupervisor:
     """Starts the embedded worker and starts it again, with back-off, whenever it dies (a SIGKILL,
     an out-of-memory kill) or stops responding: otherwise its jobs would wait forever while the
     API looks healthy. A worker that stops responding (its heartbeat row, beaten by its pool child
-    every quarter lease, has not moved for `worker_unresponsive_seconds`: a SIGSTOP, a hung
-    driver call) is SIGKILLed with its pool children, and then handled like a dead one; the job
+    every quarter lease while the Celery main process keeps time, has not moved for
+    `worker_unresponsive_seconds`: a SIGSTOP of either process, a hung driver call) is SIGKILLed
+    with its pool children, and then handled like a dead one; the job
     it ran was queued again by the API's reaper once its lease expired ("waiting to resume"),
     and the fence in service.leases keeps the frozen runner from writing anything if it wakes.
 
@@ -265,7 +266,7 @@ def keys_revoke(
     key_id: Annotated[str, typer.Argument(help="the id shown by `keys list` (the part after fnx_)")],
     data_dir: DataDir = None,
 ) -> None:
-    """Revoke a key: requests with it answer 401 from now on."""
+    """Revoke a key: requests with it answer 401 from now on (within key_cache_seconds, 2 s, on a running server)."""
     from api.auth import UnknownKey, revoke_key
     from service.database import session_scope
 

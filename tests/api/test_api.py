@@ -406,6 +406,10 @@ def test_artifacts_list_and_download_with_ranges(service: Service, scene_id: str
     assert open_end.content == data[-5:]
     beyond = service.client.get(item["url"], headers={**alice, "Range": f"bytes={len(data)}-"})
     assert beyond.status_code == 416 and beyond.headers["content-range"] == f"bytes */{len(data)}"
+    for overflowing in (f"bytes=0-{'9' * 4301}", f"bytes={'9' * 4301}-"):  # issue 49: a 500 before
+        for target, headers in ((item["url"], alice), (signed, {})):
+            refused = service.client.get(target, headers={**headers, "Range": overflowing})
+            assert refused.status_code == 416 and refused.headers["content-range"] == f"bytes */{len(data)}"
     assert service.client.get(f"/v1/jobs/{job}/artifacts/videos/nope.mp4", headers=alice).status_code == 404
 
 

@@ -109,6 +109,11 @@ def artifact_key(service: Service, name: str, job: str) -> str:
     ({"format": "vdb", "frames": [0, 9]}, "frames 0:9: frame 4 is not a finished frame of job"),
     ({"format": "vdb", "voxel_size": 5.0}, "voxel size must be in (0, "),
     ({"format": "vdb", "voxel_size": 0.0001}, "the smallest that fits this box is"),
+    ({"format": "vdb", "voxel_size": 1e-9}, "the smallest that fits this box is"),  # issue 49: int64 overflow, a 202
+    ({"format": "density", "voxel_size": 1e-300}, "the smallest that fits this box is"),
+    ({"format": "vdb", "voxel_size": "0.01"}, "Input should be a valid number"),  # issue 49: coerced, a 202
+    ({"format": "vdb", "voxel_size": True}, "Input should be a valid number"),
+    ({"format": "vdb", "frames": ["0", "2"]}, "Input should be a valid integer"),
     ({"format": "ply", "voxel_size": 0.01}, "ply holds particles, not a grid"),
     ({"format": "vdb", "frames": [3, 1]}, "frames must satisfy 0 <= START < END"),
     ({"format": "vdb", "shape": 1}, "Extra inputs are not permitted"),
@@ -155,3 +160,79 @@ def test_a_bundle_body_that_is_not_json_is_a_422(service: Service, plume: tuple[
         refused = service.client.post(f"/v1/jobs/{job}/bundles", content=body, headers=alice)
         assert refused.status_code == 422, refused.text
     assert _bundle_jobs(service, job) == []
+
+
+def test_a_bundles_declared_size_is_reserved_against_its_owners_quota_before_work(
+    service: Service, plume: tuple[str, Run]
+) -> None:
+    """Issue 49 item 5: the quota was checked only before a job started (stored < limit), so a
+    bundle of any size, and any number of them asked at once, passed it. Now each declares its
+    size (`BundlePlan.bytes`) and an unfinished one's counts as stored until it ends."""
+    from fluidcore.exports import plan_bundle
+
+    job, run = plume
+    alice = service.key("alice")
+    declared = plan_bundle(run, "density").bytes
+    service.app.state.settings.max_stored_bytes_per_owner = declared + declared // 2  # one fits, two do not
+    first = service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "density"}, headers=alice)
+    assert first.status_code == 202, first.text
+    with service.sessions() as session:
+        assert session.get(Job, first.json()["bundle_job"]["id"]).reserved_bytes == declared
+    second = service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "density", "frames": [0, 3]}, headers=alice)
+    assert second.status_code == 429, second.text
+    assert "this job may write" in second.json()["detail"] and "delete jobs or scenes" in second.json()["detail"]
+    assert [j.id for j in _bundle_jobs(service, job)] == [first.json()["bundle_job"]["id"]]
+    assert service.client.post(f"/v1/jobs/{first.json()['bundle_job']['id']}/cancel", headers=alice).status_code == 202
+    again = service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "density", "frames": [0, 3]}, headers=alice)
+    assert again.status_code == 202, again.text  # a cancelled job's reservation is released
+
+
+def test_identical_bundle_requests_at_once_make_one_job(service: Service, plume: tuple[str, Run],
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 49 item 6: ten parallel identical requests started six bundle jobs. Each request here
+    is held after its checks until all ten have made them (or 3 s have passed), the race made sure."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from service import quotas
+
+    job, _ = plume
+    alice = service.key("alice")
+    barrier, checked = threading.Barrier(10, timeout=3), quotas.check_new_job
+
+    def held(*args, **kwargs):  # type: ignore[no-untyped-def]
+        checked(*args, **kwargs)
+        try:
+            barrier.wait()
+        except threading.BrokenBarrierError:  # PostgreSQL's row lock lets one through at a time
+            pass
+
+    monkeypatch.setattr(quotas, "check_new_job", held)
+    with ThreadPoolExecutor(10) as pool:
+        answers = list(pool.map(lambda _: service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "vdb"},
+                                                               headers=alice), range(10)))
+    assert [a.status_code for a in answers] == [202] * 10, [a.text for a in answers if a.status_code != 202]
+    made = _bundle_jobs(service, job)
+    assert len(made) == 1 and {a.json()["bundle_job"]["id"] for a in answers} == {made[0].id}
+    assert [sent for sent in service.queue.sent if sent[1] == "bundle"] == [(made[0].id, "bundle")]
+
+
+def test_deleting_a_bundle_job_deletes_its_bundle(service: Service, plume: tuple[str, Run], tmp_path: Path) -> None:
+    """Issue 49 item 5: DELETE of a bundle job answered 204 and the bundle stayed listed and stored."""
+    job, _ = plume
+    alice = service.key("alice")
+    made = service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "ply"}, headers=alice).json()
+    worker = executor(service, tmp_path / "worker")
+    worker.runners = FLUIDCORE_RUNNERS
+    assert worker.run(made["bundle_job"]["id"]) == "succeeded"
+    stored = service.client.get(f"/v1/jobs/{job}/bundles", headers=alice).json()["items"]
+    assert [item["name"] for item in stored] == [made["name"]] and stored[0]["artifact"]["size"] > 0
+    assert service.storage.exists(artifact_key(service, made["name"], job))
+
+    assert service.client.delete(f"/v1/jobs/{made['bundle_job']['id']}", headers=alice).status_code == 204
+    assert service.client.get(f"/v1/jobs/{job}/bundles", headers=alice).json()["items"] == []
+    assert not service.storage.exists(artifact_key(service, made["name"], job))
+    assert [item["name"] for item in service.client.get(f"/v1/jobs/{job}/artifacts", headers=alice).json()["items"]
+            if item["kind"] == "bundle"] == []
+    asked = service.client.post(f"/v1/jobs/{job}/bundles", json={"format": "ply"}, headers=alice)
+    assert asked.status_code == 202 and asked.json()["bundle_job"]["id"] != made["bundle_job"]["id"]  # made afresh

@@ -57,6 +57,8 @@ def test_upload_with_fov_instead_of_a_camera_file(client, tmp_path: Path) -> Non
         ({"fov": "0.1"}, 1, "cameras: fov must be between"),
         ({"fov": "50", "up": "north"}, 1, "cameras: up must be one of"),
         ({"fov": "50"}, 2, "exactly one video"),
+        ({"fov": "60", "distance": "1e-300"}, 1, "cameras: distance 1e-300 (with fov 60): its scene box: its smallest side is"),
+        ({"fov": "60", "distance": "1e300"}, 1, "cameras: distance 1e+300 (with fov 60): its scene box: a corner is"),
     ],
 )
 def test_fov_upload_errors_are_422(client, tmp_path: Path, data: dict, videos: int, message: str) -> None:
@@ -64,6 +66,26 @@ def test_fov_upload_errors_are_422(client, tmp_path: Path, data: dict, videos: i
     parts = [_clip(tmp_path, f"v{i}.mp4") for i in range(videos)]
     response = http.post("/v1/scenes", files=parts, data=data, headers=auth)
     assert response.status_code == 422 and message in response.text, response.text
+
+
+@pytest.mark.parametrize(("box", "message"), [
+    ({"min": [0, 0, 0], "max": [1, 0, 1]}, "scene_box: min [0.0, 0.0, 0.0] must be below max [1.0, 0.0, 1.0] on every axis"),
+    ({"min": [1, 1, 1], "max": [0, 2, 2]}, "must be below max"),
+    ({"min": [-1e308] * 3, "max": [1e308] * 3}, "scene_box: a corner is 1e+308 world units from the origin; at most 1e+06"),
+    ({"min": [0, 0, 0], "max": [1e-300] * 3}, "scene_box: its smallest side is 1e-300 world units"),
+    ({"min": [1000, 0, 0], "max": [1000.5, 1, 1]}, "needs sides of at least 1"),  # too thin to resolve so far out
+])
+def test_a_declared_box_the_worker_cannot_use_is_refused_at_upload(client, tmp_path: Path, box: dict, message: str) -> None:
+    """Issue 49 item 7: each was a 201 whose reconstruction then failed (min >= max, +-1e308:
+    "source.radius ..."; 1e-300: "internal error", a ZeroDivisionError)."""
+    http, auth = client
+    files = scene_files(tmp_path / "scene")
+    declared = json.loads(files["cameras"].read_text())
+    files["cameras"].write_text(json.dumps({**declared, "scene_box": box}))
+    response = http.post("/v1/scenes", files=upload_parts(files), headers=auth)
+    assert response.status_code == 422 and response.json()["detail"].startswith("cameras: transforms.json: scene_box: ")
+    assert message in response.json()["detail"], response.text
+    assert http.get("/v1/scenes", headers=auth).json()["total"] == 0 and http.app.state.storage.list("") == []
 
 
 def test_scene_geometry_over_http(client, tmp_path: Path) -> None:

@@ -78,3 +78,22 @@ def test_the_scenes_presigned_url_plays_without_a_key_and_only_that_video(servic
     assert service.client.get(other).status_code == 403
     assert service.client.get(links["cam1"]["presigned_url"]).content == scene_dir["cam1"].read_bytes()
     assert service.client.get(f"/v1/scenes/{scene_id}/videos", headers=service.key("bob")).status_code == 404
+
+
+def test_a_range_of_thousands_of_digits_is_416_and_the_video_still_plays(service: Service, scene_dir: dict[str, Path]) -> None:
+    """Issue 49 item 3: a 4,301-digit position was a 500 (Python's int() digit limit) on the
+    scene's videos and their presigned URLs, which need no key. Past 2^63-1 bytes it is a 416."""
+    alice = service.key("alice")
+    scene_id = upload(service, alice, scene_dir).json()["id"]
+    data = scene_dir["cam0"].read_bytes()
+    url = f"/v1/scenes/{scene_id}/videos/cam0"
+    signed = service.client.get(f"/v1/scenes/{scene_id}/videos", headers=alice).json()["items"][0]["presigned_url"]
+    huge = "9" * 4301
+    for header in (f"bytes={huge}-", f"bytes=0-{huge}", f"bytes=-{huge}", f"bytes={2**63}-"):
+        for target, headers in ((url, alice), (signed, {})):
+            answer = service.client.get(target, headers={**headers, "Range": header})
+            assert answer.status_code == 416, (header[:20], answer.text[:200])
+            assert answer.headers["content-range"] == f"bytes */{len(data)}" and len(answer.json()["detail"]) < 200
+    leading_zeros = service.client.get(url, headers={**alice, "Range": f"bytes={'0' * 5000}3-{'0' * 5000}9"})
+    assert leading_zeros.status_code == 206 and leading_zeros.content == data[3:10]
+    assert service.client.get(url, headers=alice).content == data

@@ -84,6 +84,12 @@ def test_a_what_if_renders_its_orbit_once_on_request_and_serves_it_from_storage(
     listed = service.client.get(f"/v1/jobs/{what_if}/artifacts", headers=alice).json()["items"]
     assert "videos/orbit.mp4" in {item["name"] for item in listed}
 
+    # deleting the render job deletes the video it made, as a bundle job's bundle (issue 49)
+    assert service.client.delete(f"/v1/jobs/{render['id']}", headers=alice).status_code == 204
+    assert not service.storage.exists(video_key(what_if, "orbit"))
+    listed = service.client.get(f"/v1/jobs/{what_if}/artifacts", headers=alice).json()["items"]
+    assert "videos/orbit.mp4" not in {item["name"] for item in listed}
+
     # the record of the render goes with the what-if
     assert service.client.delete(f"/v1/jobs/{what_if}", headers=alice).status_code == 204
     assert service.client.get(f"/v1/jobs/{render['id']}", headers=alice).status_code == 404

@@ -149,6 +149,32 @@ def test_colmap_models_declaring_too_many_images_are_422_before_pycolmap(
     assert stored(service) == (0, 0, [])
 
 
+def _text_model_zip(path: Path, images: str, points: str = "") -> Path:
+    with zipfile.ZipFile(path, "w") as archive:
+        archive.writestr("sparse/0/cameras.txt", "1 PINHOLE 32 24 38.4 38.4 16 12\n")
+        archive.writestr("sparse/0/images.txt", images)
+        archive.writestr("sparse/0/points3D.txt", points)
+    return path
+
+
+def test_a_colmap_model_pycolmap_cannot_read_is_a_422_that_keeps_the_servers_own_details(
+    service: Service, scene_dir: dict[str, Path], tmp_path: Path
+) -> None:
+    """Issue 49 item 8: the message named the server's temporary folder (fluidnexus-colmap-...)
+    and pycolmap's C++ source line and failed expression; an image of a camera the model lacks
+    was not a 422 at all (pycolmap's IndexError)."""
+    alice = service.key("alice")
+    for archive, reason in [
+        (_text_model_zip(tmp_path / "a.zip", "1 x y\n\n"), "a line or record it could not parse"),
+        (_text_model_zip(tmp_path / "b.zip", "1 1 0 0 0 0 0 4 1 cam0.png\n\n", "1 a b c\n"), "a line or record it could not parse"),
+        (_text_model_zip(tmp_path / "c.zip", "1 1 0 0 0 0 0 4 7 cam0.png\n\n"), "Rig with ID 7 does not exist"),
+    ]:
+        response = post(service, alice, _colmap_parts(archive, scene_dir))
+        assert response.status_code == 422, response.text
+        assert response.json()["detail"] == f"cameras: cameras.zip: unreadable COLMAP model: {reason}"
+    assert stored(service) == (0, 0, [])
+
+
 def test_several_models_in_one_zip_are_refused_before_unpacking(tmp_path: Path) -> None:
     archive = many_member_zip(tmp_path / "two.zip", 2)
     with pytest.raises(CameraError, match=r"several COLMAP models \(sparse/0, sparse/1\)"):

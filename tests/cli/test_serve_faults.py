@@ -17,9 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.support.service import free_port
-
-FLUIDNEXUS = Path(sys.executable).with_name("fluidnexus")
+from tests.support.service import FLUIDNEXUS, start_serve
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 
 
@@ -47,25 +45,6 @@ def alive(pid: int) -> bool:
         return (Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]) != "Z"
     except OSError:
         return False
-
-
-def start_serve(data_dir: Path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen[str], str]:
-    port = free_port()
-    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", **(env or {})}
-    process = subprocess.Popen(
-        [FLUIDNEXUS, "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data_dir), *extra],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    base = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline and process.poll() is None:
-        try:
-            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
-                return process, base
-        except httpx.TransportError:
-            time.sleep(0.3)
-    process.kill()
-    raise AssertionError(f"serve did not come up: {process.communicate()[0][-3000:]}")
 
 
 def colmap_zip() -> bytes:
@@ -135,6 +114,31 @@ def _parent(pid: int) -> int | None:
         return None
 
 
+def serve_with_fake_runners(tmp_path: Path, frame_seconds: float, **settings: str) -> tuple[subprocess.Popen[str], httpx.Client]:
+    """`fluidnexus serve` with its embedded worker running test-double runners (a frame every
+    `frame_seconds`) in place of fluidcore, FLUIDNEXUS_* `settings`, and a client with a key."""
+    root = str(Path(__file__).resolve().parents[2])
+    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
+                         capture_output=True, text=True, check=True).stdout.strip()
+    env = {"FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": str(frame_seconds),
+           "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
+           **{f"FLUIDNEXUS_{name.upper()}": value for name, value in settings.items()}}
+    process, base = start_serve(tmp_path / "data", env=env)
+    return process, httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+
+
+def stop_serve(process: subprocess.Popen[str], client: httpx.Client, workers: set[int]) -> str:
+    """Stop serve as systemd would, then SIGKILL whatever of it and its `workers` is left; its output."""
+    client.close()
+    process.terminate()
+    try:
+        return process.communicate(timeout=40)[0]
+    finally:
+        for pid in [process.pid, *workers, *descendants(process.pid)]:
+            if alive(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
 def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -> None:
     """Issue 20 item 3: SIGKILL of the embedded Celery main process while one job runs and one is
     queued. serve starts a new worker, /readyz answers 503 until it beats, and both jobs succeed,
@@ -142,14 +146,7 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
     second) stand in for fluidcore. Set RELIABILITY_JSON to a path to record the timings."""
     from tests.support.service import scene_files, upload_parts
 
-    root = str(Path(__file__).resolve().parents[2])
-    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    process, base = start_serve(tmp_path / "data", env={
-        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
-        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
-    })
-    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    process, client = serve_with_fake_runners(tmp_path, 1.0)
     workers: set[int] = set()
     try:
         wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
@@ -178,14 +175,7 @@ def test_serve_restarts_its_killed_worker_and_the_jobs_succeed(tmp_path: Path) -
         if os.environ.get("RELIABILITY_JSON"):
             Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
     finally:
-        client.close()
-        process.terminate()
-        try:
-            process.wait(40)
-        finally:
-            for pid in [process.pid, *workers, *descendants(process.pid)]:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        stop_serve(process, client, workers)
 
 
 def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: Path) -> None:
@@ -198,15 +188,7 @@ def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: 
     from service.job_states import RESUME_STAGE
     from tests.support.service import scene_files, upload_parts
 
-    root = str(Path(__file__).resolve().parents[2])
-    key = subprocess.run([FLUIDNEXUS, "keys", "create", "--owner", "a", "--data-dir", str(tmp_path / "data")],
-                         capture_output=True, text=True, check=True).stdout.strip()
-    process, base = start_serve(tmp_path / "data", env={
-        "FLUIDNEXUS_RUNNERS": "tests.support.service:FAKE_RUNNERS", "FAKE_FRAME_SECONDS": "1.0",
-        "FLUIDNEXUS_JOB_LEASE_SECONDS": "8", "FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS": "12",
-        "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]),
-    })
-    client = httpx.Client(base_url=base, headers={"Authorization": f"Bearer {key}"}, timeout=30)
+    process, client = serve_with_fake_runners(tmp_path, 1.0, job_lease_seconds="8", worker_unresponsive_seconds="12")
     workers: set[int] = set()
     try:
         wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
@@ -227,14 +209,7 @@ def test_serve_kills_and_replaces_a_frozen_worker_and_its_job_resumes(tmp_path: 
         new_celery = direct_children(process.pid)
         assert new_celery and celery not in new_celery
     finally:
-        client.close()
-        process.terminate()
-        try:
-            output = process.communicate(timeout=40)[0]
-        finally:
-            for pid in [process.pid, *workers, *descendants(process.pid)]:
-                if alive(pid):
-                    os.kill(pid, signal.SIGKILL)
+        output = stop_serve(process, client, workers)
     assert f"embedded worker {celery} stopped responding (no heartbeat for 12 s); killing it" in output, output[-3000:]
 
 
@@ -243,3 +218,48 @@ def wait_until(predicate, timeout: float, what: str) -> None:  # type: ignore[no
     while not predicate():
         assert time.monotonic() < deadline, f"timed out after {timeout} s waiting for {what}"
         time.sleep(0.2)
+
+
+def test_serve_replaces_a_worker_whose_main_process_froze_and_its_job_runs_once(tmp_path: Path) -> None:
+    """Issue 49 item 2: SIGSTOP of the embedded worker's Celery main process. Its pool child beat
+    on, so nothing noticed: a job sent then stayed queued 5 min+, /readyz said "worker ok" and the
+    reaper sent the job again 19 times. Now the child beats only while the main process keeps
+    time (service.worker_beats.MainClock): serve kills the frozen worker and a new one runs the
+    job, once. Lease 8 s and FLUIDNEXUS_WORKER_UNRESPONSIVE_SECONDS 12 here; with
+    FROZEN_MAIN_DEFAULTS=1 the defaults (16 s, 60 s), the issue's 90 s bound. Set
+    RELIABILITY_JSON to a path to record the timings."""
+    from tests.support.service import scene_files, upload_parts
+
+    defaults = os.environ.get("FROZEN_MAIN_DEFAULTS") == "1"
+    unresponsive = 60 if defaults else 12
+    shorter = {} if defaults else {"job_lease_seconds": "8", "worker_unresponsive_seconds": str(unresponsive)}
+    process, client = serve_with_fake_runners(tmp_path, 0.5, **shorter)
+    workers: set[int] = set()
+    try:
+        wait_until(lambda: client.get("/readyz").status_code == 200, 120, "the worker's first heartbeat")
+        scene = client.post("/v1/scenes", files=upload_parts(scene_files(tmp_path / "scene")), data={"name": "s"}).json()["id"]
+        workers = descendants(process.pid)
+        (celery,) = direct_children(process.pid)
+        os.kill(celery, signal.SIGSTOP)
+        frozen = time.monotonic()
+        job = client.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene, "params": {"frames": [0, 4]}}).json()["id"]
+        wait_until(lambda: client.get("/readyz").status_code == 503, 90, "/readyz to see no live worker")
+        not_ready = time.monotonic() - frozen
+        wait_until(lambda: not alive(celery), 90, "serve to kill the frozen worker")
+        killed = time.monotonic() - frozen
+        assert killed < 90
+        wait_until(lambda: client.get(f"/v1/jobs/{job}").json()["state"] == "succeeded", 120, "the job to run")
+        done = client.get(f"/v1/jobs/{job}").json()
+        ran = time.monotonic() - frozen
+        assert done["attempts"] == 1 and done["progress"] == 1.0  # run once, by the new worker
+        new_celery = direct_children(process.pid)
+        assert new_celery and celery not in new_celery
+        timings = {"unresponsive_seconds": unresponsive, "readyz_503_after_s": round(not_ready, 1),
+                   "frozen_worker_killed_after_s": round(killed, 1), "job_succeeded_after_s": round(ran, 1),
+                   "job_attempts": done["attempts"], "load_average_1min": round(os.getloadavg()[0], 2)}
+        print(timings)
+        if os.environ.get("RELIABILITY_JSON"):
+            Path(os.environ["RELIABILITY_JSON"]).write_text(json.dumps(timings, indent=1) + "\n")
+    finally:
+        output = stop_serve(process, client, workers)
+    assert f"embedded worker {celery} stopped responding (no heartbeat for {unresponsive} s); killing it" in output, output[-3000:]

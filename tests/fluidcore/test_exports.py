@@ -254,6 +254,16 @@ def test_a_grid_over_the_voxel_cap_names_the_smallest_voxel_that_fits():
         grid_shape(h, lo, hi, fits * 0.98)
 
 
+@pytest.mark.parametrize("voxel", [1e-9, 1e-300, 5e-324])
+def test_a_voxel_far_too_small_is_refused_not_overflowed(voxel):
+    """Issue 49 item 4: at 1e-9 numpy's int64 product of the shape wrapped to a negative count,
+    which passed the cap; the bundle job then failed with an internal error."""
+    from fluidcore.exports import grid_shape
+
+    with pytest.raises(ExportError, match=r"exceeds 16777216 voxels|not a finite number of voxels"):
+        grid_shape(0.04, np.zeros(3), np.array([1.0, 1.5, 1.0]), voxel)
+
+
 def _bundle(run_dir, out, *args):
     return json.loads(_ok(["export", str(run_dir), "--bundle", "--out", str(out), "--json", *args]))
 
@@ -302,13 +312,25 @@ def test_a_bundle_that_cannot_be_made_is_refused_before_writing(run_dir, tmp_pat
     assert not (tmp_path / "b.zip").exists()
 
 
-def test_a_bundle_over_the_voxel_budget_is_refused_from_the_manifest_alone(run_dir, monkeypatch):
+def test_a_bundle_over_the_byte_budget_is_refused_from_the_manifest_alone(run_dir, monkeypatch):
     from fluidcore import exports
 
-    monkeypatch.setattr(exports, "MAX_BUNDLE_VOXELS", 1000)
-    with pytest.raises(ExportError, match="exceed a bundle's 1e[+]03 voxels; choose fewer frames or a larger voxel size"):
+    monkeypatch.setattr(exports, "MAX_BUNDLE_BYTES", 1_000_000)
+    with pytest.raises(ExportError, match=r"2 frames of \d+x\d+x\d+ voxels as density may take .* GiB, more than a "
+                                          r"bundle's 0.000931 GiB; choose fewer frames or a larger voxel size"):
         exports.plan_bundle(Run.open(run_dir), "density")
     assert exports.plan_bundle(Run.open(run_dir), "ply").name == "ply_f000000-000002.zip"
+
+
+@pytest.mark.parametrize(("fmt", "voxel"), [("density", None), ("vdb", None), ("ply", None), ("density", 0.02)])
+def test_a_bundles_declared_bytes_bound_the_zip_it_writes(run_dir, tmp_path, fmt, voxel):
+    """Issue 49 item 5: the size is declared before work (what the owner's quota reserves), so
+    it must hold for what is then written."""
+    from fluidcore.exports import export_bundle, plan_bundle
+
+    plan = plan_bundle(Run.open(run_dir), fmt, voxel_size=voxel)
+    written = export_bundle(run_dir, plan, tmp_path / plan.name).stat().st_size
+    assert 0 < written <= plan.bytes
 
 
 @pytest.mark.parametrize("plan", [("vdb", (0, 30), 0.01), ("ply", (12, 600), None), ("density", (0, 1), 1.25e-05)])

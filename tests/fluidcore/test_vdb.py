@@ -136,3 +136,17 @@ def test_exported_vdb_sequence_is_the_density_grid_in_world_units(tmp_path, air_
         np.testing.assert_allclose(report["density"]["origin"], origin)
         h = Run.open(run_dir).scene.physics.h
         assert spacing == pytest.approx(h / 2)  # world units: the scene's kernel radius sets the voxel
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (9, 9, 9), (17, 3, 40), (64, 64, 64), (4100, 3, 3)])
+def test_the_size_bound_holds_for_every_voxel_filled(tmp_path, shape):
+    """What a VDB bundle declares before it is made (issue 49, fluidcore.exports.frame_bytes):
+    no grid of that shape writes more, and a full one comes within 6 % of it."""
+    from fluidcore.vdb import max_file_bytes
+
+    rng = np.random.default_rng(0)
+    density = rng.random(shape, dtype=np.float32) + 0.1
+    velocity = rng.random((*shape, 3), dtype=np.float32) + 0.1
+    write_vdb(tmp_path / "full.vdb", {"density": density, "velocity": velocity}, np.zeros(3), 0.01)
+    bound = max_file_bytes(shape, {"density": 4, "velocity": 12})
+    assert (tmp_path / "full.vdb").stat().st_size <= bound < 1.06 * (tmp_path / "full.vdb").stat().st_size

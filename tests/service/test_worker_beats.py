@@ -65,3 +65,44 @@ def test_last_beat_reads_the_workers_row(tmp_path: Path) -> None:
     with session_scope(sessions) as session:
         assert last_beat(session, "host:42") is None
     engine.dispose()
+
+
+def test_a_pool_child_beats_only_while_its_main_process_keeps_time(tmp_path: Path) -> None:
+    """Issue 49 item 2: the beacon thread runs in the pool child, which beat on while its Celery
+    main process was frozen. The main's clock is shared memory a forked child reads."""
+    import multiprocessing
+    import time
+
+    from service.worker_beats import MainClock
+
+    url = sqlite_url(tmp_path)
+    migrate(url)
+    engine = make_engine(url)
+    sessions = make_sessionmaker(engine)
+    clock = MainClock()
+    child_saw = multiprocessing.get_context("fork").Queue()
+    clock.tick()
+    child = multiprocessing.get_context("fork").Process(target=lambda: child_saw.put(clock.age()))
+    time.sleep(0.3)
+    child.start()
+    child.join(10)
+    assert 0.3 <= child_saw.get(timeout=5) < 5  # the child reads the tick its parent made before
+
+    beacon = WorkerBeacon(sessions, "host:7", period_s=0.05, alive=lambda: clock.age() < 0.2)
+    beacon.start()
+    time.sleep(0.5)  # the clock has not ticked for 0.8 s: silent
+    with session_scope(sessions) as session:
+        assert last_beat(session, "host:7") is None
+    clock.tick()
+    deadline = time.monotonic() + 5
+    while last_beat_of(sessions, "host:7") is None and time.monotonic() < deadline:
+        clock.tick()
+        time.sleep(0.05)
+    assert last_beat_of(sessions, "host:7") is not None  # beating again once the main keeps time
+    beacon.stop()
+    engine.dispose()
+
+
+def last_beat_of(sessions, name: str):  # type: ignore[no-untyped-def]
+    with session_scope(sessions) as session:
+        return last_beat(session, name)

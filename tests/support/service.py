@@ -391,6 +391,30 @@ def store_run(storage, job_id: str, positions: dict[int, np.ndarray] | None = No
 CLI = [sys.executable, "-c", "from fluidnexus.cli import main; main()"]
 
 
+FLUIDNEXUS = Path(sys.executable).with_name("fluidnexus")
+
+
+def start_serve(data_dir: Path, *extra: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen[str], str]:
+    """`fluidnexus serve` on a free loopback port (`extra`: its options, `env`: FLUIDNEXUS_* settings),
+    once `/healthz` answers: the process (its output piped) and its base URL. The caller stops it."""
+    port = free_port()
+    env = {**os.environ, "FLUIDNEXUS_WORKER_TORCH_THREADS": "1", **(env or {})}
+    process = subprocess.Popen(
+        [FLUIDNEXUS, "serve", "--host", "127.0.0.1", "--port", str(port), "--data-dir", str(data_dir), *extra],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    base = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline and process.poll() is None:
+        try:
+            if httpx.get(f"{base}/healthz", timeout=1).status_code == 200:
+                return process, base
+        except httpx.TransportError:
+            time.sleep(0.3)
+    process.kill()
+    raise AssertionError(f"serve did not come up: {process.communicate()[0][-3000:]}")
+
+
 class Server:
     def __init__(self, data_dir: Path) -> None:
         self.data_dir = data_dir

@@ -296,6 +296,15 @@ def test_nerfstudio_errors_name_the_field(tmp_path: Path, path: str, value, mess
         cameras.load(_write(tmp_path / "transforms.json", data))
 
 
+def test_a_camera_repeated_within_one_list_is_refused_not_folded(tmp_path: Path) -> None:
+    """Issue 49 item 8: 5 cameras repeated to 65 identical entries were accepted as 5 (only PINF's
+    train and test lists may list the same video twice, see test_pinf_info_json)."""
+    data = _transforms(_ring(3))
+    data["frames"] = data["frames"] * 4
+    with pytest.raises(CameraError, match=r"frames\[3\]: duplicated camera name 'cam0'"):
+        cameras.load(_write(tmp_path / "transforms.json", data))
+
+
 # --- PINF / HyFluid info.json -------------------------------------------------------------------------
 def _pinf_entry(camera: Camera, file_name: str, angle: float, hw: list[int] | None) -> dict:
     entry = {"file_name": file_name, "frame_rate": 30, "frame_num": 3, "camera_angle_x": angle}
