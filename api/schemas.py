@@ -12,6 +12,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
 from fluidcore.health import Level as HealthLevel
+from fluidcore.health import Remedy as HealthRemedy
 from fluidcore.spec.controls import WindParams
 from service.job_types import JobType
 from service.models import ARTIFACT_KINDS, JobState
@@ -108,7 +109,9 @@ class CameraPlace(BaseModel):
 class HealthCheck(BaseModel):
     name: str
     level: HealthLevel
-    message: str
+    message: str = Field(description="the finding and what to do, in the API's words")
+    finding: str = Field(description="what was found, without what to do")
+    advice: list[HealthRemedy] = Field(description="what to give next (the browser words these as its form's fields)")
     value: float | None = None
 
 

@@ -31,7 +31,6 @@ one does.
 
 from __future__ import annotations
 
-import math
 import random
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -52,6 +51,7 @@ from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
+from fluidcore.reconstruct.yardstick import input_fit, psnr_db
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import BackgroundRecord, CaptureRecord, PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
@@ -387,7 +387,7 @@ class Reconstructor:
         )
         state.positions[slots] = p
         state.velocities[slots] = velocities
-        losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
+        losses = {**terms, "appearance": app_loss, **self._input_fit(index, means, appearance), "forecast_psnr": forecast}
         smoke = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(smoke.means)), **step_record(step)})
         return smoke, losses
@@ -417,12 +417,22 @@ class Reconstructor:
     def _input_psnr(self, index: int, means: torch.Tensor, appearance: Appearance) -> float:
         """PSNR of the fitted frame on the (first) input view at working resolution: a progress
         signal, not a score (scores come from views never fed in)."""
+        image, target, _ = self._input_render(index, means, appearance)
+        return psnr_db(image, target)
+
+    def _input_fit(self, index: int, means: torch.Tensor, appearance: Appearance) -> dict[str, float]:
+        """The frame's record of the input view: its PSNR and its yardstick (fluidcore.reconstruct.yardstick)."""
+        image, target, background = self._input_render(index, means, appearance)
+        view, scene = self.rec.views[0], self.rec.scene
+        return input_fit(image, target, background, view.noise, view.camera, scene.source.center, scene.up)
+
+    def _input_render(self, index: int, means: torch.Tensor, appearance: Appearance) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(render, footage, background) of frame `index` in the (first) input view at working resolution."""
         view = self.rec.views[0]
         camera, target, background = view.at(index, (view.camera.width, view.camera.height))
         with torch.no_grad():
             image = render(appearance.gaussians(means), camera, background, depth=False).image
-        mse = float((image - target).pow(2).mean())
-        return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+        return image, target, background
 
     # -- checkpoints ---------------------------------------------------------------------
     def _resume(self, run: Run) -> SmokeState:

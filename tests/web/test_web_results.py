@@ -22,11 +22,15 @@ pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
 
 FIRST, END = 2, 6  # the run reconstructs frames 2..5 of the 6-frame clip
-LOSSES = {  # image falls to a fifth; sim is 0 on the first frame; incomp is 0 throughout
-    2: {"image": 0.05, "sim": 0.0, "incomp": 0.0, "input_psnr": 20.0, "forecast_psnr": 18.0, "particles": 10.0, "gaussians": 20.0},
-    3: {"image": 0.03, "sim": 0.002, "incomp": 0.0, "input_psnr": 22.0, "forecast_psnr": 19.0, "particles": 12.0, "gaussians": 24.0},
-    4: {"image": 0.02, "sim": 0.004, "incomp": 0.0, "input_psnr": 23.0, "forecast_psnr": 21.0, "particles": 14.0, "gaussians": 28.0},
-    5: {"image": 0.01, "sim": 0.001, "incomp": 0.0, "input_psnr": 24.0, "forecast_psnr": 22.0, "particles": 16.0, "gaussians": 32.0},
+LOSSES = {  # image falls to a fifth; sim is 0 on the first frame; incomp is 0 throughout; the fit within 2 dB of the background
+    2: {"image": 0.05, "sim": 0.0, "incomp": 0.0, "input_psnr": 20.0, "forecast_psnr": 18.0, "background_psnr": 19.0,
+        "explained": 0.2, "smoke_up": -0.3, "smoke_across": 0.0, "particles": 10.0, "gaussians": 20.0},
+    3: {"image": 0.03, "sim": 0.002, "incomp": 0.0, "input_psnr": 22.0, "forecast_psnr": 19.0, "background_psnr": 20.0,
+        "explained": 0.35, "smoke_up": -0.2, "smoke_across": 0.0, "particles": 12.0, "gaussians": 24.0},
+    4: {"image": 0.02, "sim": 0.004, "incomp": 0.0, "input_psnr": 23.0, "forecast_psnr": 21.0, "background_psnr": 21.0,
+        "explained": 0.35, "smoke_up": -0.1, "smoke_across": 0.0, "particles": 14.0, "gaussians": 28.0},
+    5: {"image": 0.01, "sim": 0.001, "incomp": 0.0, "input_psnr": 24.0, "forecast_psnr": 22.0, "background_psnr": 22.0,
+        "explained": 0.35, "smoke_up": 0.0, "smoke_across": 0.0, "particles": 16.0, "gaussians": 32.0},
 }
 # uPlot is loaded by a plain <script>: wrap its constructor to record what each chart was given
 RECORD_PLOTS = """(() => { let wrapped;
@@ -149,7 +153,8 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
     sync_api.expect(losses).to_have_count(1)
     plots = {p["title"]: p for p in page.evaluate("() => window.__plots")}
     loss_plot = plots["Loss per frame, relative to the first"]
-    assert loss_plot["distr"] == 3 and loss_plot["labels"] == ["image", "sim"]  # log; incomp (0 throughout) not drawn
+    # log; incomp (0 throughout) not drawn; the yardstick's records are no losses
+    assert loss_plot["distr"] == 3 and loss_plot["labels"] == ["image", "sim"]
     np.testing.assert_allclose(loss_plot["data"][0], [1.0, 0.6, 0.4, 0.2])  # image ÷ its first frame
     assert loss_plot["data"][1][0] is None  # sim's first frame is 0: a gap on a log axis, and sim ÷ its first non-zero
     np.testing.assert_allclose(loss_plot["data"][1][1:], [1.0, 2.0, 0.5])
@@ -160,8 +165,10 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
     assert legend == {"frame": f"{END - 1} (last)", "image": "0.2", "sim": "0.5"}, legend
     psnr = page.locator("#plots figure[aria-label='PSNR of the input view']")
     psnr_legend = [v.text_content() for v in psnr.locator(".u-legend .u-value").all()]
-    assert psnr_legend == [f"{END - 1} (last)", "24", "22"], psnr_legend
+    assert psnr_legend == [f"{END - 1} (last)", "24", "22", "22"], psnr_legend
     sync_api.expect(psnr).to_contain_text("forecast, before the fit")
+    sync_api.expect(psnr).to_contain_text("background alone")
+    sync_api.expect(psnr.locator("figcaption")).to_contain_text("Background alone: what an empty reconstruction scores")
     sync_api.expect(psnr.locator("figcaption")).to_contain_text("Forecast: before fitting a frame, the previous frame's smoke moved on")
     # hovering shows the frame under the pointer, leaving shows the last again
     plot_box = losses.locator(".u-over").bounding_box()
@@ -178,17 +185,23 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
 def test_the_health_report_says_what_to_do_when_the_fit_is_poor(  # type: ignore[no-untyped-def]
     static_web: str, browser, sqlite_service: Service, scene_dir: dict, tmp_path: Path, screens: Path,
 ) -> None:
-    """The run's input view is fitted at 20-24 dB (LOSSES): below the 30 dB healthy runs reach, so
-    the page warns and names the remedies (fluidcore.health)."""
+    """The run's input view is fitted at 20-24 dB (LOSSES): below the 30 dB healthy runs reach and
+    within 3 dB of the background alone, so the page warns twice and names the remedies
+    (fluidcore.health) as this page's form fields, not the command line's flags."""
     api = sqlite_service
     auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
     page = open_results(browser, static_web, api, auth, job_id, 700)
     # what the simulation used, said even when it is nothing
     sync_api.expect(page.locator("#results-summary")).to_contain_text("air: still; no spreading")
-    warning = page.locator("#results-health li.warning")
-    sync_api.expect(warning).to_have_count(1)
+    warnings = page.locator("#results-health li.warning")
+    sync_api.expect(warnings).to_have_count(2)
+    warning = warnings.first
     sync_api.expect(warning).to_contain_text("Warning (this reconstruction): the reconstruction fits its own input view at only 22.2 dB")
-    sync_api.expect(warning).to_contain_text("--background-frames")
+    sync_api.expect(warning).to_contain_text("give a background plate (the upload form's Background plate: frames without smoke)")
+    sync_api.expect(warnings.nth(1)).to_contain_text("the background alone scores 20.5 dB on the same frames")
+    sync_api.expect(warnings.nth(1)).to_contain_text("within 3 dB of the background")
+    for text in warnings.all_text_contents():
+        assert "--" not in text and "params." not in text, text  # neither the CLI's flags nor the API's fields
     box = warning.bounding_box()
     assert box is not None and box["x"] + box["width"] <= 700
     page.screenshot(path=screens / "results-health-700.png", full_page=True)

@@ -42,6 +42,11 @@ def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
     )
     run = Run.open(tmp_path / "run")
     assert run.frames() == [0, 1, 2] and run.manifest["complete"]
+    # each frame records its fit with its yardstick (fluidcore.reconstruct.yardstick), which the health report reads
+    for frame in run.manifest["frames"]:
+        record = frame["losses"]
+        assert {"input_psnr", "background_psnr", "explained", "smoke_up", "smoke_across"} <= set(record), record
+        assert record["explained"] <= 1.0 and record["input_psnr"] > record["background_psnr"]
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["input_views"] == ["view_01"]
 
 
@@ -79,7 +84,7 @@ def test_the_videos_frame_rate_is_the_runs_and_a_camera_file_that_disagrees_is_r
     run = Run.open(reconstruct_job.run_reconstruct(scene / "transforms.json", {"view_01": clip}, tmp_path / "run", quality=QUICK))
     assert run.fps == pytest.approx(fps, rel=1e-3) and run.settings.capture.declared_fps == 30.0
     assert run.settings.capture.up_axis == "+y" and run.settings.capture.up_found == "cameras"
-    checks = {check["name"]: check for check in report(run)["checks"]}
+    checks = {check["name"]: check for check in report(run, audience="cli")["checks"]}
     assert checks["frame rate"]["level"] == "warning"
     assert f"play at {fps:g} fps but the camera file says 30 fps" in checks["frame rate"]["message"]
     assert checks["world up"]["level"] == "ok"
