@@ -61,6 +61,7 @@ from scipy import ndimage, optimize
 
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
+from fluidcore.jobs import StepProgress
 from fluidcore.physics import Box, PBFConfig, Source
 from fluidcore.physics.build import build_simulator
 from fluidcore.runs import IdentificationPrior, IdentifiedRecord
@@ -269,8 +270,10 @@ class _Search:
     per candidate). Each rollout simulates the prior's scene (its air included) under the
     candidate's physics."""
 
-    def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str) -> None:
+    def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str,
+                 on_evaluation: StepProgress | None = None) -> None:
         self.observation, self.prior, self.budget, self.device = observation, prior, budget, device
+        self.on_evaluation = on_evaluation  # told (candidates rolled out, MAX_EVALUATIONS) after each
         self.up = prior.up_vector
         self.frames = min(len(observation.cells), prior.physics.frames_in(MAX_SECONDS))
         self.max_age = prior.physics.frames_in(MAX_AGE_SECONDS)
@@ -290,6 +293,8 @@ class _Search:
             scores = np.mean([self._age_scores(simulated) for simulated in rollouts], axis=0)
             age = int(np.argmin(scores))
             self.scores[key] = (float(scores[age]), age)
+            if self.on_evaluation is not None:
+                self.on_evaluation(min(len(self.scores), MAX_EVALUATIONS), MAX_EVALUATIONS)
         return self.scores[key]
 
     def tried(self) -> dict[str, tuple[float, float]]:
@@ -353,6 +358,7 @@ def identify(
     device: torch.device | str = "cpu",
     spreading: bool = False,
     keep: SourceKept = "nothing",
+    on_evaluation: StepProgress | None = None,
 ) -> IdentifiedRecord:
     """Buoyancy, inflow speed and rate, source and plume age for this scene (see the module
     docstring).
@@ -363,7 +369,9 @@ def identify(
     not pin it down. `prior` is the scene to start from (the preset in this scene's units, the
     estimated source's place); `budget` caps the particles seeded per step; `spreading`: whether
     the plume's spreading rate is searched too (else the paper's column). `keep`: what of the
-    prior's source the user gave and the search leaves as it is (`SourceKept`).
+    prior's source the user gave and the search leaves as it is (`SourceKept`). `on_evaluation`
+    hears of each candidate rolled out (done, MAX_EVALUATIONS): the slow part of a reconstruction's
+    prepare stage, which a job reports as its progress.
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
@@ -371,7 +379,7 @@ def identify(
     up_v = prior.up_vector
     speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
     space, held = search_space(prior, speed_obs, keep, spreading)
-    search = _Search(observation, prior, budget, device)
+    search = _Search(observation, prior, budget, device, on_evaluation)
     best = _minimise(search, space, held)
     misfit, age = search.misfit(best)
     fitted = search.scene(best).source

@@ -41,6 +41,7 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
+from fluidcore.jobs import StepProgress
 from fluidcore.physics import Box, interpolate_velocity, step_record
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
@@ -201,6 +202,7 @@ def prepare(
     extra_views: Sequence[ViewTarget] = (),
     pseudo_views: bool = True,
     device: str | torch.device = "cpu",
+    on_evaluation: StepProgress | None = None,
 ) -> Reconstruction:
     """Background, source and physics for reconstructing `inputs`, and every view it fits.
 
@@ -212,7 +214,7 @@ def prepare(
     source estimate's triangulation at their loss weight (`estimate_source`), so the
     identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
-    (a refinement fits its refined input views only).
+    (a refinement fits its refined input views only). `on_evaluation`: the identification's progress.
     """
     targets, channels = list(inputs.targets), inputs.channels
     def first_second(view: ViewTarget) -> np.ndarray:  # the smoke the source estimate and the smoke colour read
@@ -244,7 +246,8 @@ def prepare(
     first = targets[0]
     prior = scene_prior(physics, sim_box, up_v, fps, place, Air(quality.simulation.air_cells, quality.simulation.air_vorticity), quality.seed)
     chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
-                           keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device)
+                           keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device,
+                           on_evaluation=on_evaluation)
     center = np.asarray(chosen.scene.source.center)
     pseudo, symmetry = [], None
     priors = quality.priors

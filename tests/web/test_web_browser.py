@@ -232,6 +232,9 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     reconstruction = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["id"]
     air = server.client.get(f"/v1/jobs/{reconstruction}/particles").json()["air"]
     assert air is not None and max(abs(v) for v in air["velocities"]) > 0
+    # its prepare stage reported the identification's progress as a stage of its own (issue 48: no more 0 % throughout)
+    stages = server.client.get(f"/v1/jobs/{reconstruction}").json()["timings"]["stages"]
+    assert list(stages).index("prepare: identifying the physics") < list(stages).index("reconstruct"), stages
 
     # results: players of one length in sync, plots from the manifest, downloads of the MP4s too;
     # the job published its input view, the other camera and the orbit are rendered as the players ask
