@@ -206,3 +206,20 @@ def test_the_health_report_says_what_to_do_when_the_fit_is_poor(  # type: ignore
     assert box is not None and box["x"] + box["width"] <= 700
     page.screenshot(path=screens / "results-health-700.png", full_page=True)
     page.close()
+
+
+def test_the_results_page_states_the_scene_box_and_the_source(  # type: ignore[no-untyped-def]
+    static_web: str, browser, sqlite_service: Service, scene_dir: dict, tmp_path: Path,
+) -> None:
+    """Issue 48: the box and the source's size were on the what-if page only. The results page
+    states the run's own (its manifest's scene: box -0.5..0.5 x 0..1 x -0.5..0.5, source of
+    radius 0.05 at (0, 0.1, 0), tests.support.service.store_run) in the what-if page's words."""
+    api = sqlite_service
+    auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
+    page = open_results(browser, static_web, api, auth, job_id, 700)
+    scene = page.locator("#results-scene")
+    sync_api.expect(scene).to_have_text("Scene box: x from -0.5 to 0.5, y from 0 to 1, z from -0.5 to 0.5 (world units; up (0, 1, 0)). "
+                                        "Smoke source: centre (0, 0.1, 0), radius 0.05 (0.1 across).")
+    box = scene.bounding_box()
+    assert box is not None and box["x"] + box["width"] <= 700
+    page.close()

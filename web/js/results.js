@@ -11,7 +11,7 @@
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
-import { decimal } from "./format.js";
+import { boxText, decimal, point } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
 const SYNC_TOLERANCE_S = 0.08;
@@ -479,6 +479,16 @@ function advised(check) {
   return `${check.finding}: ${remedies.length ? `${remedies.join("; ")}; or ${last}` : last}`;
 }
 
+/** The run's scene (manifest.scene) in words: its box and up, and the smoke source's centre and size
+ * (world units), as the what-if page states them; empty before the manifest has a scene. */
+function sceneText(manifest) {
+  const scene = manifest.scene;
+  if (!scene || !scene.box || !scene.source) return ""; // an older manifest's layout: the rest of the page stands
+  const { center, radius } = scene.source;
+  return `${boxText(scene.box)} (world units; up ${point(scene.up)}). `
+    + `Smoke source: centre ${point(center)}, radius ${decimal(radius)} (${decimal(2 * radius)} across).`;
+}
+
 /** The health report of the reconstruction this job stands on (GET /v1/scenes/{id}: geometry.health,
  * fluidcore.health), worded for this page: warnings first, then notes; nothing before the scene
  * has a reconstruction. */
@@ -500,6 +510,7 @@ async function showHealth(job) {
 export async function showResults(jobId) {
   $("results-error").textContent = "";
   $("results-health").replaceChildren();
+  $("results-scene").textContent = "";
   $("results-title").textContent = "Results";
   $("results-summary").textContent = "Loading…";
   $("players").replaceChildren();
@@ -521,6 +532,7 @@ export async function showResults(jobId) {
           : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
             : "; no succeeded factual prediction with the same frames yet.");
     const rendered = () => refreshDownloads(jobId).catch(() => {});
+    $("results-scene").textContent = sceneText(manifest);
     $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual, footage).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
     downloads(jobId, own.items, videos.items);

@@ -10,7 +10,7 @@
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
-import { decimal } from "./format.js";
+import { boxText, decimal, point } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 import { bound, limitProblem, loadLimits } from "./limits.js";
 import { fractionAlong, hintText, insideBox, parseSource, pointAlong } from "./source.js";
@@ -259,8 +259,7 @@ async function drawWind(wind, lo, hi, size) {
 }
 
 function showLimits(box) {
-  $("box-limits").textContent = `Scene box: x from ${fmt(box.lo[0])} to ${fmt(box.hi[0])}, `
-    + `y from ${fmt(box.lo[1])} to ${fmt(box.hi[1])}, z from ${fmt(box.lo[2])} to ${fmt(box.hi[2])}.`;
+  $("box-limits").textContent = `${boxText(box)}.`;
   ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).min = String(box.lo[i]); $(id).max = String(box.hi[i]); });
   const centre = box.lo.map((l, i) => (l + box.hi[i]) / 2);
   if ($("ball-cx").dataset.placedFor !== run.jobId) { // a new run: start with the ball in the middle of its box
@@ -367,7 +366,6 @@ async function loadSourceDepth(job) {
   drawSource();
 }
 
-const point = (v) => `(${v.map(fmt).join(", ")})`;
 const showSourceError = (error) => { $("source-error").textContent = error.message; };
 
 /** The hint in the field, or null; its problems listed (and the button off) meanwhile. An empty
