@@ -83,6 +83,14 @@ class SceneBox(BaseModel):
     max: Vec3
 
 
+class SingleCameraView(BaseModel):
+    """The scene box of one video's camera made from a field of view (`GET /v1/cameras/single`)."""
+
+    box: SceneBox
+    edges: list[list[list[float]]] = Field(description="the box's edges as [[u, v], [u, v]] in the video's pixels "
+                                                       "(continuous: pixel (i, j) covers [i, i+1) x [j, j+1))")
+
+
 class SourceDepth(BaseModel):
     """How a reconstruction placed its source along the input ray (`fluidcore.scene_info`, from
     the run manifest's `settings.source_estimate`)."""
