@@ -175,7 +175,8 @@ def box_edges(camera: Camera, box: Box) -> list[Segment]:
             if depth[here] < near:  # depth is affine along the edge: cut it at `near`
                 ends[k] = corners[here] + (near - depth[here]) / (depth[there] - depth[here]) * (corners[there] - corners[here])
         uv, _ = camera.project_numpy(np.stack(ends))
-        segments.append(((float(uv[0, 0]), float(uv[0, 1])), (float(uv[1, 0]), float(uv[1, 1]))))
+        if np.isfinite(uv).all():  # a degenerate box (a distance of a few float steps) leaves nothing to draw
+            segments.append(((float(uv[0, 0]), float(uv[0, 1])), (float(uv[1, 0]), float(uv[1, 1]))))
     return segments
 
 
