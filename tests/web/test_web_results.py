@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests.support.api import Service, reconstruct, upload
-from tests.support.browser import in_process
+from tests.support.browser import signed_in
 
 pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
@@ -69,13 +69,7 @@ def published_reconstruction(api: Service, scene_dir: dict[str, Path], tmp_path:
 
 
 def open_results(browser, static_web: str, api: Service, auth: dict[str, str], job_id: str, width: int):  # type: ignore[no-untyped-def]
-    page = browser.new_page(viewport={"width": width, "height": 900})
-    page.add_init_script(RECORD_PLOTS)
-    page.route("**/v1/**", in_process(api))
-    page.goto(static_web)
-    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
-    page.keyboard.press("Enter")
-    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page, _ = signed_in(browser, static_web, api, auth, width, RECORD_PLOTS)
     page.evaluate(f"location.hash = '#results/{job_id}'")
     sync_api.expect(page.locator("#results-title")).to_contain_text("Results of reconstruct")
     return page

@@ -10,26 +10,19 @@ import json
 import numpy as np
 import pytest
 
+from tests.support.browser import canvas_pixels
+
 pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
 
 JOB = {"id": "job-view", "type": "predict", "state": "succeeded", "scene_id": None, "parent_job_id": "job-rec", "params": {}}
-# The smoke's pixels: the particles' near-white (0xe8edf3) drawn over the dark background, each channel
-# bright and none much redder than the others (the ball is red, the wind blue).
-SMOKE_PIXELS = """() => {
-    const source = document.getElementById('scene3d');
-    const copy = document.createElement('canvas');
-    copy.width = source.width; copy.height = source.height;
-    const context = copy.getContext('2d');
-    context.drawImage(source, 0, 0);
-    const data = context.getImageData(0, 0, copy.width, copy.height).data;
-    const rows = [], cols = [];
-    for (let i = 0; i < data.length; i += 4) {
-        const [r, g, b] = [data[i], data[i + 1], data[i + 2]];
-        if (r > 150 && g > 150 && b > 150 && r - b < 40) { rows.push(Math.floor(i / 4 / copy.width)); cols.push((i / 4) % copy.width); }
-    }
-    return { rows, cols, height: copy.height, width: copy.width };
-}"""
+
+
+def smoke(page) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """(H, W) bool: the view's smoke, the particles' near-white (0xe8edf3) over the dark background:
+    each channel bright and none much redder than the others (the ball is red, the wind blue)."""
+    rgb = canvas_pixels(page, "#scene3d").astype(int)
+    return (rgb > 150).all(axis=-1) & (rgb[..., 0] - rgb[..., 2] < 40)
 
 
 def open_view(browser, static_web: str, positions: np.ndarray, up: tuple[float, float, float]):  # type: ignore[no-untyped-def]
@@ -65,11 +58,11 @@ def test_the_view_looks_across_the_plume_whichever_axis_is_up(static_web: str, b
     short stub."""
     column = np.outer(np.linspace(-0.4, 0.4, 400), up)
     page, errors = open_view(browser, static_web, column, up)
-    pixels = page.evaluate(SMOKE_PIXELS)
-    rows, cols = np.array(pixels["rows"]), np.array(pixels["cols"])
+    seen = smoke(page)
+    rows, cols = np.nonzero(seen)
     assert len(rows) > 100, "the column is not drawn"
     tall, wide = np.ptp(rows) + 1, np.ptp(cols) + 1
-    assert tall > 0.25 * pixels["height"], (tall, pixels["height"])  # looked down, it spanned about 0.1 of it
+    assert tall > 0.25 * seen.shape[0], (tall, seen.shape)  # looked down its length, the column is a stub
     assert tall > 3 * wide, (tall, wide)  # upright on the screen
     assert not errors, errors
     page.close()
@@ -81,19 +74,17 @@ def test_the_ball_leaves_the_smoke_it_is_in_visible(static_web: str, browser) ->
     rng = np.random.default_rng(0)
     blob = rng.uniform(-0.12, 0.12, (600, 3))
     page, errors = open_view(browser, static_web, blob, (0.0, 1.0, 0.0))
-    smoke = len(page.evaluate(SMOKE_PIXELS)["rows"])
-    assert smoke > 200, "the blob is not drawn"
+    alone = int(smoke(page).sum())
+    assert alone > 200, "the blob is not drawn"
     page.get_by_label("Ball", exact=True).check()
     for field, value in (("ball centre x", "0"), ("ball centre y", "0"), ("ball centre z", "0")):
         page.get_by_label(field).fill(value)
     page.locator("#ball-radius").fill("0.2")
     sync_api.expect(page.locator("#whatif-problems")).to_be_empty()
-    red = """() => { const s = document.getElementById('scene3d'); const c = document.createElement('canvas');
-        c.width = s.width; c.height = s.height; const x = c.getContext('2d'); x.drawImage(s, 0, 0);
-        const d = x.getImageData(0, 0, c.width, c.height).data; let n = 0;
-        for (let i = 0; i < d.length; i += 4) if (d[i] > 120 && d[i + 1] < 90 && d[i + 2] < 90) n++; return n; }"""
-    assert page.evaluate(red) > 100, "the ball is not drawn"  # its wireframe and shell show where it is
-    with_ball = len(page.evaluate(SMOKE_PIXELS)["rows"])
-    assert with_ball > 0.9 * smoke, (with_ball, smoke)
+    rgb = canvas_pixels(page, "#scene3d").astype(int)
+    red = (rgb[..., 0] > 120) & (rgb[..., 1] < 90) & (rgb[..., 2] < 90)
+    assert red.sum() > 100, "the ball is not drawn"  # its wireframe and shell show where it is
+    with_ball = int(smoke(page).sum())
+    assert with_ball > 0.9 * alone, (with_ball, alone)
     assert not errors, errors
     page.close()
