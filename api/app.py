@@ -19,7 +19,7 @@ from api.deps import KeyCache
 from api.docs_pages import add_redoc
 from api.errors import HANDLERS, add_unmatched_routes
 from api.middleware import AdmissionLimit, BodyLimit
-from api.routers import artifacts, bundles, health, jobs, limits, particles, scenes, videos, webhooks, wind
+from api.routers import artifacts, bundles, cameras, health, jobs, limits, particles, scenes, videos, webhooks, wind
 from api.uploads import OwnerUploads, Validators
 from service.chaining import release_stranded
 from service.database import make_engine, make_sessionmaker, migrate
@@ -82,7 +82,7 @@ def create_app(settings: Settings | None = None, queue: JobQueue | None = None) 
     for exception, handler in HANDLERS.items():
         app.add_exception_handler(exception, handler)
     routers = (scenes.router, jobs.router, artifacts.router, videos.router, bundles.router, particles.router, webhooks.router, health.router,
-               limits.router, wind.router)
+               limits.router, wind.router, cameras.router)
     for router in routers:
         app.include_router(router)
     add_unmatched_routes(app, [route for router in routers for route in router.routes if isinstance(route, APIRoute)])

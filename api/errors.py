@@ -18,13 +18,17 @@ accepts the first and raises RecursionError on the second.
 
 from __future__ import annotations
 
+import difflib
 import json
 import logging
 import math
+import types
+import typing
 from collections.abc import Callable, Coroutine
 from typing import Any
 
 from fastapi import FastAPI, Request, Response
+from fastapi import params as fastapi_params
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
@@ -134,24 +138,139 @@ def _finite(value: Any) -> Any:
 
 async def validation_failed(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
-    return JSONResponse({"detail": _finite(jsonable_encoder([_explained(e) for e in exc.errors()]))}, status_code=422)
+    route = request.scope.get("route")
+    sent = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    explained = [_explained(e, route if isinstance(route, APIRoute) else None, sent) for e in exc.errors()]
+    return JSONResponse({"detail": _finite(jsonable_encoder(explained))}, status_code=422)
 
 
-def _explained(error: dict[str, Any]) -> dict[str, Any]:
+def _explained(error: dict[str, Any], route: APIRoute | None, sent: str) -> dict[str, Any]:
     """`error` (pydantic's) with a message a client can act on where pydantic's names its own
-    machinery: a body without its "type" ("Unable to extract tag using discriminator 'type'"),
-    and a JSON body sent as something else ("Input should be a valid dictionary ...", when the
-    client left out Content-Type: application/json)."""
-    from service.job_types import JobType
-
+    machinery: a body without its "type" ("Unable to extract tag using discriminator 'type'") or
+    with a type that is none ("Input tag ... does not match"), a JSON body sent as something else
+    ("Input should be a valid dictionary ...", when the client left out Content-Type:
+    application/json), JSON sent to a form route ("Field required" at body.video: the route takes
+    multipart/form-data), and a misspelt field ("Extra inputs are not permitted": which are
+    allowed there). `route` is the route that refused the request, `sent` the request's media type."""
     at_body = tuple(error.get("loc", ())) == ("body",)
-    if error.get("type") == "union_tag_not_found" and at_body:
-        kinds = ", ".join(member.value for member in JobType if member.writes_run)  # what POST /v1/jobs creates
-        return {**error, "msg": f'the job needs its "type": one of {kinds}'}
-    if error.get("type") == "model_attributes_type" and at_body and isinstance(error.get("input"), (str, bytes)):
+    kind = error.get("type")
+    if kind in ("union_tag_not_found", "union_tag_invalid") and at_body:
+        return {**error, "msg": _job_type_message(error)}
+    if kind == "model_attributes_type" and at_body and isinstance(error.get("input"), (str, bytes)):
         return {**error, "msg": "the body must be a JSON object, sent with the header Content-Type: application/json "
                                 "(curl: -H 'Content-Type: application/json', or --json)"}
+    form = _form_fields(route)
+    if form and sent not in FORM_MEDIA_TYPES and error.get("loc", ("",))[0] == "body":
+        return {**error, "msg": _form_message(route, form, sent)}
+    if kind == "extra_forbidden" and route is not None:
+        allowed = _allowed_fields(route, tuple(error.get("loc", ()))[:-1])
+        if allowed:
+            return {**error, "msg": f"{error['msg']}: {_unknown_field_message(str(error['loc'][-1]), allowed)}"}
     return error
+
+
+# The media types of a form body (what a route of Form and File parameters reads).
+FORM_MEDIA_TYPES = ("multipart/form-data", "application/x-www-form-urlencoded")
+
+
+def _job_type_message(error: dict[str, Any]) -> str:
+    """What a job request without a valid "type" should send: the types `POST /v1/jobs` creates,
+    and where the others (a render, a bundle) are asked for."""
+    from service.job_types import JobType
+
+    kinds = ", ".join(member.value for member in JobType if member.writes_run)
+    sent = (error.get("ctx") or {}).get("tag")
+    if sent is None:
+        return f'the job needs its "type": one of {kinds}'
+    others = [member.value for member in JobType if not member.writes_run]
+    return (f'"type" is {sent!r}, not a job type POST /v1/jobs creates: give one of {kinds} '
+            f"({' and '.join(others)} jobs are asked for at POST /v1/jobs/ID/videos/NAME and /bundles)")
+
+
+def _form_fields(route: APIRoute | None) -> dict[str, bool]:
+    """The form parts a route reads (name -> required), in its declared order; empty for a route
+    whose body is JSON (or that has none)."""
+    if route is None:
+        return {}
+    return {field.alias: field.field_info.is_required() for field in route.dependant.body_params
+            if isinstance(field.field_info, fastapi_params.Form)}
+
+
+def _form_message(route: APIRoute, form: dict[str, bool], sent: str) -> str:
+    """A form route sent something else (JSON, usually): what it takes instead, each part named."""
+    files = {field.alias for field in route.dependant.body_params if isinstance(field.field_info, fastapi_params.File)}
+
+    def part(name: str) -> str:
+        return f"{name} (a file)" if name in files else name
+
+    required = [part(name) for name, needed in form.items() if needed]
+    optional = [part(name) for name, needed in form.items() if not needed]
+    return (f"{', '.join(sorted(route.methods))} {route.path} takes multipart/form-data (one part per field; curl: -F NAME=VALUE, "
+            f"-F NAME=@FILE), not {sent or 'a body without Content-Type'}: required: {', '.join(required)}; "
+            f"optional: {', '.join(optional)}")
+
+
+def _unknown_field_message(name: str, allowed: list[str]) -> str:
+    """"'qualty' is not a field here (did you mean 'quality'?); allowed: ..."."""
+    close = difflib.get_close_matches(name, allowed, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{name!r} is not a field here{hint}; allowed: {', '.join(allowed)}"
+
+
+def _allowed_fields(route: APIRoute, loc: tuple[str | int, ...]) -> list[str]:
+    """The field names of the model at `loc` (a validation error's location, "body" first) in the
+    route's body: what may stand where a forbidden extra field was sent. Empty when `loc` does not
+    lead to one model."""
+    if not loc or loc[0] != "body":
+        return []
+    for field in route.dependant.body_params:
+        for path in (loc[1:], loc[2:] if loc[1:2] == (field.alias,) else None):
+            model = None if path is None else _model_at(field.field_info.annotation, path)
+            if model is not None:
+                return sorted(info.alias or name for name, info in model.model_fields.items())
+    return []
+
+
+def _model_at(annotation: Any, path: tuple[str | int, ...]) -> type[BaseModel] | None:
+    """The pydantic model reached from `annotation` along `path`: field names into models, the tag
+    of a discriminated union's member, indices into lists and tuples, keys into dicts."""
+    for step in path:
+        nexts = [found for member in _members(annotation) if (found := _step(member, step)) is not None]
+        if len(nexts) != 1:
+            return None
+        annotation = nexts[0]
+    models = [m for m in _members(annotation) if isinstance(m, type) and issubclass(m, BaseModel)]
+    return models[0] if len(models) == 1 else None
+
+
+def _members(annotation: Any) -> list[Any]:
+    """The types `annotation` may be: Annotated unwrapped, a union (an Optional too) split, None left out."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Annotated:
+        return _members(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType):
+        return [m for arg in typing.get_args(annotation) for m in _members(arg)]
+    return [] if annotation is type(None) else [annotation]
+
+
+def _step(member: Any, step: str | int) -> Any:
+    """One step of `_model_at` from one type: a model's field (by name or alias), or the model
+    itself when `step` is its discriminator's tag; a container's element type; else None."""
+    if isinstance(member, type) and issubclass(member, BaseModel):
+        for name, info in member.model_fields.items():
+            if step in (name, info.alias):
+                return info.annotation
+            if typing.get_origin(info.annotation) is typing.Literal and typing.get_args(info.annotation) == (step,):
+                return member
+        return None
+    origin, args = typing.get_origin(member), typing.get_args(member)
+    if isinstance(step, int) and origin in (list, set, frozenset) and args:
+        return args[0]
+    if isinstance(step, int) and origin is tuple and args:
+        return args[0] if args[-1] is Ellipsis else args[step] if step < len(args) else None
+    if isinstance(step, str) and origin is dict and len(args) == 2:
+        return args[1]
+    return None
 
 
 async def upload_rejected(request: Request, exc: Exception) -> JSONResponse:

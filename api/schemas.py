@@ -12,6 +12,7 @@ from typing import Annotated, Any, Generic, Literal, TypeVar, Union
 from pydantic import BaseModel, ConfigDict, Field, HttpUrl, UrlConstraints, create_model
 
 from fluidcore.health import Level as HealthLevel
+from fluidcore.health import Remedy as HealthRemedy
 from fluidcore.spec.controls import WindParams
 from service.job_types import JobType
 from service.models import ARTIFACT_KINDS, JobState
@@ -82,6 +83,14 @@ class SceneBox(BaseModel):
     max: Vec3
 
 
+class SingleCameraView(BaseModel):
+    """The scene box of one video's camera made from a field of view (`GET /v1/cameras/single`)."""
+
+    box: SceneBox
+    edges: list[list[list[float]]] = Field(description="the box's edges as [[u, v], [u, v]] in the video's pixels "
+                                                       "(continuous: pixel (i, j) covers [i, i+1) x [j, j+1))")
+
+
 class SourceDepth(BaseModel):
     """How a reconstruction placed its source along the input ray (`fluidcore.scene_info`, from
     the run manifest's `settings.source_estimate`)."""
@@ -108,7 +117,9 @@ class CameraPlace(BaseModel):
 class HealthCheck(BaseModel):
     name: str
     level: HealthLevel
-    message: str
+    message: str = Field(description="the finding and what to do, in the API's words")
+    finding: str = Field(description="what was found, without what to do")
+    advice: list[HealthRemedy] = Field(description="what to give next (the browser words these as its form's fields)")
     value: float | None = None
 
 

@@ -12,13 +12,14 @@ Torch-free, so the worker and the API can name these without loading the science
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from fluidcore.errors import InputError
 
 Progress = Callable[[float, str], None]
 ShouldCancel = Callable[[], bool]
 BatchProgress = Callable[[str, int, int], None]  # (stage, batches done, batches in the stage)
+StepProgress = Callable[[int, int], None]  # (steps done, steps in the stage) of a stage that knows no stage names
 
 
 class Cancelled(Exception):
@@ -46,6 +47,18 @@ class JobContext:
     device: str = "cpu"  # torch device of every tensor the job makes
     progress: Progress = no_progress
     should_cancel: ShouldCancel = never_cancel
+
+    def share(self, start: float, end: float) -> JobContext:
+        """This context for one part of a job that spans `start`..`end` of the job's progress: the
+        part reports its own 0..1 (a reconstruction's prepare stage, then its frames)."""
+        return replace(self, progress=lambda fraction, stage: self.progress(start + (end - start) * fraction, stage))
+
+    def step_progress(self, job: str, stage: str) -> StepProgress:
+        """For a stage of counted steps that names no stage itself (the identification's trial
+        simulations): each step reported under `stage` as the stage's fraction done, and
+        cancelling takes effect after it (`batch_progress`)."""
+        on_batch = self.batch_progress(job)
+        return lambda done, total: on_batch(stage, done, total)
 
     def batch_progress(self, job: str) -> BatchProgress:
         """For a stage that works in batches (the generative models): each finished batch is

@@ -19,7 +19,9 @@ from fluidcore.spec.controls import BallParams, InteractionParams, WindParams
 from fluidcore.runs import ContinuationSettings, RunRecord
 
 BALL_COLOR = (235, 120, 30)  # RGB; an orange no smoke colour is close to
-BALL_OPACITY = 0.6
+# The disc's tint over the frame: a light one, so the smoke in front of and behind the ball keeps its
+# look (issue 48: at 0.6 the disc hid the smoke it deflects); its rim says where the ball is.
+BALL_OPACITY = 0.2
 WIND_COLOR = (40, 170, 255)
 LABEL_COLOR = (255, 255, 255)
 
@@ -42,7 +44,8 @@ def draw_interventions(
 
 
 def _draw_ball(image: np.ndarray, camera: Camera, ball: BallParams, k: int, dt: float) -> None:
-    """The sphere's outline (a disc of the projected radius) blended over the frame, with a rim."""
+    """The sphere's outline (a disc of the projected radius) tinted lightly over the frame, with a
+    solid rim."""
     import cv2
 
     center = np.asarray(ball.center_at(k, dt))

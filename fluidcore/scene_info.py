@@ -20,6 +20,7 @@ from fluidcore.cameras import Camera, CameraError, capture_box, load
 from fluidcore.cameras.world_up import world_up
 
 if TYPE_CHECKING:
+    from fluidcore.health import Audience
     from fluidcore.runs import RunRecord
 
 WORLD_UP = (0.0, 1.0, 0.0)  # docs/architecture.md: up is +y unless a run says otherwise
@@ -56,11 +57,11 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     return describe(cameras, box, up=world_up(path, cameras).vector)
 
 
-def from_run(run: RunRecord) -> dict[str, Any]:
+def from_run(run: RunRecord, audience: Audience) -> dict[str, Any]:
     """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source,
     cameras; for a reconstruction whose source was estimated, how its depth was found and, from
     one view, the stretch of the input ray the centre could lie on (`source.depth`); for a
-    reconstruction, its health report (`fluidcore.health`)."""
+    reconstruction, its health report (`fluidcore.health`), its advice worded for `audience`."""
     from fluidcore.health import report
     from fluidcore.runs import RunKind
 
@@ -72,5 +73,5 @@ def from_run(run: RunRecord) -> dict[str, Any]:
         source["depth"] = {"cue": estimate.depth_cue,
                            "range": None if estimate.depth_range is None else [list(p) for p in estimate.depth_range]}
     found = describe(run.cameras(), box, up=scene.up, source=source)
-    health = report(run)
+    health = report(run, audience=audience)
     return found if health is None else {**found, "health": health}

@@ -77,7 +77,7 @@ def run_fields(path: object) -> dict[str, object]:
 
     run = Run.open(path)
     frames = run.frames()
-    health = report(run)
+    health = report(run, audience="cli")
     return {
         "run": str(path),
         "kind": run.kind,

@@ -134,7 +134,7 @@ def geometry(session: Session, storage: Storage, scene: Scene) -> dict[str, Any]
     ).first()
     if job is None:
         return capture_geometry(storage, scene)
-    found = scene_info.from_run(read_manifest(storage, job.id))
+    found = scene_info.from_run(read_manifest(storage, job.id), "api")
     found["source"]["job_id"] = job.id
     return found
 

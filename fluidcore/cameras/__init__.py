@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from fluidcore.cameras.boxes import Box, box_center, capture_box, check_box_visible, frusta_box, scene_box
+from fluidcore.cameras.boxes import Box, box_center, box_edges, capture_box, check_box_visible, frusta_box, scene_box
 from fluidcore.cameras.camera import Camera, CameraError, check_ranges, check_rigid, look_at, orbit, render_size, rotate_about_axis
 from fluidcore.cameras.colmap import find_model_dir, load_colmap_dir, load_colmap_zip
 from fluidcore.cameras.json_formats import declared_fps, is_camera_json, load_json_cameras, read_json, to_transforms, write_transforms
@@ -84,6 +84,7 @@ __all__ = [
     "Camera",
     "CameraError",
     "box_center",
+    "box_edges",
     "capture_box",
     "check_box_visible",
     "check_ranges",

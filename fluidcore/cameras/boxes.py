@@ -177,6 +177,35 @@ def box_center(box: Box) -> np.ndarray:
     return 0.5 * (box[0] + box[1])
 
 
+# A box edge is cut where it comes this close to the camera's plane (times the box's diagonal):
+# nearer, its pixels run off towards infinity.
+NEAR_SHARE = 1e-3
+
+Segment = tuple[tuple[float, float], tuple[float, float]]  # two continuous pixels (u, v)
+
+
+def box_edges(camera: Camera, box: Box) -> list[Segment]:
+    """The box's 12 edges as `camera` sees them: pixel segments, each cut to its part in front of
+    the camera (an edge wholly behind it is left out). What the upload form draws on a video's
+    first frame to check a guessed field of view against the footage."""
+    lo, hi = np.asarray(box[0], dtype=np.float64), np.asarray(box[1], dtype=np.float64)
+    corners = np.array([[(lo, hi)[bits >> axis & 1][axis] for axis in range(3)] for bits in range(8)])
+    _, depth = camera.project_numpy(corners)
+    near = NEAR_SHARE * float(np.linalg.norm(hi - lo))
+    segments = []
+    for a, b in ((a, a | 1 << axis) for a in range(8) for axis in range(3) if not a >> axis & 1):
+        if max(depth[a], depth[b]) < near:
+            continue
+        ends = [corners[a], corners[b]]
+        for k, (here, there) in enumerate(((a, b), (b, a))):
+            if depth[here] < near:  # depth is affine along the edge: cut it at `near`
+                ends[k] = corners[here] + (near - depth[here]) / (depth[there] - depth[here]) * (corners[there] - corners[here])
+        uv, _ = camera.project_numpy(np.stack(ends))
+        if np.isfinite(uv).all():  # a degenerate box (a distance of a few float steps) leaves nothing to draw
+            segments.append(((float(uv[0, 0]), float(uv[0, 1])), (float(uv[1, 0]), float(uv[1, 1]))))
+    return segments
+
+
 def check_box_visible(cameras: Sequence[Camera] | dict[str, Camera], box: Box) -> None:
     """Raise CameraError naming every camera that does not see the box centre in its frame.
 

@@ -61,6 +61,7 @@ from scipy import ndimage, optimize
 
 from fluidcore.cameras import Camera
 from fluidcore.errors import InputError
+from fluidcore.jobs import StepProgress
 from fluidcore.physics import Box, PBFConfig, Source
 from fluidcore.physics.build import build_simulator
 from fluidcore.physics.carrier import eddy_diffusivity, eddy_viscosity
@@ -85,7 +86,10 @@ MAX_EVALUATIONS = {"paper": 40, "carrier": 60}
 OCCUPIED = 0.3  # fraction of a cell's pixels that must be smoke for the cell to count as smoke
 FOOTPRINT = 1  # cells (about a kernel radius each) around a particle that its smoke covers
 # Seedings of the source each candidate's misfit is averaged over, per motion model (see _Search.misfit).
-# The carrier's markers only mark the air, whose motion the seeding barely changes: TODO measure
+# The carrier's markers only mark the air, which smooths their seeding out: the identified candidate's
+# misfit over five seedings had a standard deviation of 0.002 on D and 0.005 on F (seed 0, preview),
+# where the paper model's one seeding spreads 0.005-0.016; one rollout each keeps its five-parameter
+# search within the time of the paper model's three-parameter one.
 ROLLOUT_SEEDS = {"paper": 3, "carrier": 1}
 # The bounds of the search (`search_space`), each relative to what the video or the prior says.
 BUOYANCY_RANGE = (0.05, 20.0)  # x drag x the observed rise speed (x the prior's buoyancy where the smoke does not climb)
@@ -94,9 +98,15 @@ RADIUS_RANGE = (0.5, 2.0)  # x the image estimate's radius
 HEIGHT_RANGE = (-1.5, 2.0)  # the centre's height along up from the estimate's, in the estimate's radii
 SPREADING_RANGE = (0.0, 0.2)  # the spreading rate db/dz (0: the paper's column; MTT's 6/5 alpha_e for alpha_e up to 0.16)
 FIRST_STEP = 0.1  # the initial simplex's step along each parameter, as a fraction of its (log) range
-# The carrier's buoyancy (x rise^2 / source radius) and inflow speed (x rise): bounds and starts. TODO measure
-# Its smoke's turbulent diffusivity, x rise x source radius (0: markers carried by the resolved air alone).
-CARRIER_RANGES = {"buoyancy": (0.02, 20.0), "inflow_speed": (0.1, 3.0), "diffusivity": (0.0, 0.5)}
+# The carrier's search (`search_space`): its buoyancy (x rise^2 / source radius), inflow speed (x the
+# observed rise speed) and the smoke's turbulent diffusivity (x rise x source radius; 0: markers carried
+# by the resolved air alone), bounds and starts. Silhouettes tell the inflow's momentum from the
+# buoyancy poorly: searched over 0.1-3x the rise, the inflow went to half of it on D and F (seed 0,
+# 0.12 and 0.13 m/s against the truths' 0.28 and 0.22) and F's velocity error at frame 45 to 0.64;
+# held within 0.7-1.5x the rise (a forced plume's inlet blows at about the speed its smoke is seen
+# rising) it came out at 1.12x and 1.04x (0.26 m/s both) and F's error at 0.57
+# (docs/bench_generalise.md, "The buoyant-air carrier").
+CARRIER_RANGES = {"buoyancy": (0.02, 20.0), "inflow_speed": (0.7, 1.5), "diffusivity": (0.0, 0.5)}
 CARRIER_START = {"buoyancy": 0.4, "inflow_speed": 1.0, "diffusivity": 0.05}
 
 
@@ -308,8 +318,11 @@ class _Search:
     per candidate). Each rollout simulates the prior's scene (its air included) under the
     candidate's physics."""
 
-    def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str) -> None:
+    def __init__(self, observation: Observation, prior: ScenePrior, budget: int, device: torch.device | str,
+                 on_evaluation: StepProgress | None = None) -> None:
         self.observation, self.prior, self.budget, self.device = observation, prior, budget, device
+        self.on_evaluation = on_evaluation  # told (candidates rolled out, evaluations) after each
+        self.evaluations = MAX_EVALUATIONS[prior.motion]  # the most candidates the search rolls out
         self.up = prior.up_vector
         self.frames = min(len(observation.cells), prior.physics.frames_in(MAX_SECONDS))
         self.max_age = prior.physics.frames_in(MAX_AGE_SECONDS)
@@ -329,6 +342,8 @@ class _Search:
             scores = np.mean([self._age_scores(simulated) for simulated in rollouts], axis=0)
             age = int(np.argmin(scores))
             self.scores[key] = (float(scores[age]), age)
+            if self.on_evaluation is not None:
+                self.on_evaluation(min(len(self.scores), self.evaluations), self.evaluations)
         return self.scores[key]
 
     def tried(self) -> dict[str, tuple[float, float]]:
@@ -394,6 +409,7 @@ def identify(
     device: torch.device | str = "cpu",
     spreading: bool = False,
     keep: SourceKept = "nothing",
+    on_evaluation: StepProgress | None = None,
 ) -> IdentifiedRecord:
     """Buoyancy, inflow speed and rate, source and plume age for this scene (see the module
     docstring).
@@ -404,7 +420,9 @@ def identify(
     not pin it down. `prior` is the scene to start from (the preset in this scene's units, the
     estimated source's place); `budget` caps the particles seeded per step; `spreading`: whether
     the plume's spreading rate is searched too (else the paper's column). `keep`: what of the
-    prior's source the user gave and the search leaves as it is (`SourceKept`).
+    prior's source the user gave and the search leaves as it is (`SourceKept`). `on_evaluation`
+    hears of each candidate rolled out (done, the most it rolls out): the slow part of a reconstruction's
+    prepare stage, which a job reports as its progress.
     """
     if not observation.cells.any():
         raise IdentificationError("no smoke in the observed frames to identify the physics from")
@@ -412,7 +430,7 @@ def identify(
     up_v = prior.up_vector
     speed_obs = rise_speed(observation, np.asarray(place.center), 1.0 / config.dt)
     space, held = search_space(prior, speed_obs, keep, spreading)
-    search = _Search(observation, prior, budget, device)
+    search = _Search(observation, prior, budget, device, on_evaluation)
     best = _minimise(search, space, held)
     misfit, age = search.misfit(best)
     fitted = search.scene(best).source
@@ -443,5 +461,5 @@ def _minimise(search: _Search, space: list[Parameter], held: Candidate) -> Candi
                          for k in range(len(space))]
     result = optimize.minimize(lambda unit: search.misfit(candidate(unit))[0], start, method="Nelder-Mead",
                                bounds=[(0.0, 1.0)] * len(space),
-                               options={"initial_simplex": np.array(simplex), "maxfev": MAX_EVALUATIONS[search.prior.motion], "xatol": 0.01, "fatol": 1e-3})
+                               options={"initial_simplex": np.array(simplex), "maxfev": search.evaluations, "xatol": 0.01, "fatol": 1e-3})
     return _key(candidate(result.x))

@@ -31,7 +31,6 @@ one does.
 
 from __future__ import annotations
 
-import math
 import random
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -42,6 +41,7 @@ import torch
 
 from fluidcore.cameras import Camera, render_size
 from fluidcore.errors import InputError
+from fluidcore.jobs import StepProgress
 from fluidcore.physics import Box, ParticleState, interpolate_velocity, step_record
 from fluidcore.physics.build import build_simulator
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
@@ -53,6 +53,7 @@ from fluidcore.reconstruct.source_estimate import GeneratedView, estimate_source
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, image_loss, mirror_agreement, symmetry_support, symmetry_views
 from fluidcore.reconstruct.visual import OpacityTie, ScaleBounds, fit_appearance, spawn
+from fluidcore.reconstruct.yardstick import input_fit, psnr_db
 from fluidcore.render import Gaussians, render
 from fluidcore.runs import BackgroundRecord, CaptureRecord, PhysicsRecord, ReconstructSettings, Run, RunKind, SourceEstimateRecord, SymmetryRecord
 from fluidcore.smoke import Appearance, SmokeState
@@ -202,6 +203,7 @@ def prepare(
     extra_views: Sequence[ViewTarget] = (),
     pseudo_views: bool = True,
     device: str | torch.device = "cpu",
+    on_evaluation: StepProgress | None = None,
 ) -> Reconstruction:
     """Background, source and physics for reconstructing `inputs`, and every view it fits.
 
@@ -213,7 +215,7 @@ def prepare(
     source estimate's triangulation at their loss weight (`estimate_source`), so the
     identification starts from their depth too, and they take the place of the symmetry
     pseudo-views, which a single view otherwise gets; `pseudo_views=False` fits `inputs` alone
-    (a refinement fits its refined input views only).
+    (a refinement fits its refined input views only). `on_evaluation`: the identification's progress.
     """
     targets, channels = list(inputs.targets), inputs.channels
     def first_second(view: ViewTarget) -> np.ndarray:  # the smoke the source estimate and the smoke colour read
@@ -247,7 +249,8 @@ def prepare(
     prior = scene_prior(physics, sim_box, up_v, fps, place, Air(simulation.cells, simulation.air_vorticity), quality.seed,
                         simulation.motion)
     chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
-                           keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device)
+                           keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device,
+                           on_evaluation=on_evaluation)
     center = np.asarray(chosen.scene.source.center)
     pseudo, symmetry = [], None
     priors = quality.priors
@@ -374,7 +377,7 @@ class Reconstructor:
         )
         state.positions[carried.slots] = p
         state.velocities[carried.slots] = self._velocities(state, p, problem, first)
-        losses = {**terms, "appearance": app_loss, "input_psnr": self._input_psnr(index, means, appearance), "forecast_psnr": forecast}
+        losses = {**terms, "appearance": app_loss, **self._input_fit(index, means, appearance), "forecast_psnr": forecast}
         fitted = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
         losses.update({"particles": float(state.n_alive), "gaussians": float(len(fitted.means)), **step_record(carried.step)})
         return fitted, losses
@@ -414,12 +417,22 @@ class Reconstructor:
     def _input_psnr(self, index: int, means: torch.Tensor, appearance: Appearance) -> float:
         """PSNR of the fitted frame on the (first) input view at working resolution: a progress
         signal, not a score (scores come from views never fed in)."""
+        image, target, _ = self._input_render(index, means, appearance)
+        return psnr_db(image, target)
+
+    def _input_fit(self, index: int, means: torch.Tensor, appearance: Appearance) -> dict[str, float]:
+        """The frame's record of the input view: its PSNR and its yardstick (fluidcore.reconstruct.yardstick)."""
+        image, target, background = self._input_render(index, means, appearance)
+        view, scene = self.rec.views[0], self.rec.scene
+        return input_fit(image, target, background, view.noise, view.camera, scene.source.center, scene.up)
+
+    def _input_render(self, index: int, means: torch.Tensor, appearance: Appearance) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(render, footage, background) of frame `index` in the (first) input view at working resolution."""
         view = self.rec.views[0]
         camera, target, background = view.at(index, (view.camera.width, view.camera.height))
         with torch.no_grad():
             image = render(appearance.gaussians(means), camera, background, depth=False).image
-        mse = float((image - target).pow(2).mean())
-        return 10.0 * math.log10(1.0 / max(mse, 1e-12))
+        return image, target, background
 
     # -- checkpoints ---------------------------------------------------------------------
     def _resume(self, run: Run) -> SmokeState:

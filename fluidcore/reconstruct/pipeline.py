@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from fluidcore.cameras import Camera
-from fluidcore.jobs import BatchProgress, Cancelled, JobContext
+from fluidcore.jobs import BatchProgress, Cancelled, JobContext, StepProgress
 from fluidcore.reconstruct.loop import InputViews, Plate, Reconstruction, Reconstructor, prepare, read_inputs
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.reconstruct.views import ViewTarget, generated_targets
@@ -32,6 +32,11 @@ from fluidcore.spec.simulation import DEFAULT_PHYSICS
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
+
+# The share of a reconstruction's progress its prepare stage reports (the identification's trial
+# simulations, about 50 s of FluidNexus-Smoke's preview on 2 cores); its frames fill the rest.
+PREPARE_SHARE = 0.1
+IDENTIFY_STAGE = "prepare: identifying the physics"
 
 
 @dataclass(frozen=True)
@@ -78,7 +83,9 @@ def reconstruct(
     `physics`: "auto" (identified from the first input view) or a preset name. `generative`: the
     novel-view model's settings, whose views replace the symmetry pseudo-views of a single input
     view when its weights exist (None: no generated views, nor their status lines); `pseudo_views=False`
-    fits the input views alone. `first_state`, `status` and `stage` are `fit`'s.
+    fits the input views alone. `first_state`, `status` and `stage` are `fit`'s. The prepare stage
+    reports the first PREPARE_SHARE of the progress (each of the identification's trial
+    simulations), the frames the rest.
     """
     inputs = read_inputs(footage.cameras, footage.videos, frame_range=footage.frame_range, quality=quality,
                          plate=footage.plate, device=context.device)
@@ -89,19 +96,21 @@ def reconstruct(
 
         novel = novel_views(inputs, footage.cameras, footage.box, footage.up, quality, generative, context.device,
                             context.batch_progress(f"reconstruction in {out_dir}"), stored=Path(out_dir) / GENERATED_DIR)
-    rec = _prepare(footage, inputs, quality, physics, () if novel is None else novel.views, pseudo_views, context.device)
+    identifying = context.share(0.0, PREPARE_SHARE).step_progress(f"reconstruction in {out_dir}", IDENTIFY_STAGE)
+    rec = _prepare(footage, inputs, quality, physics, () if novel is None else novel.views, pseudo_views, context.device,
+                   identifying)
     return fit(
-        rec, out_dir, context=context, progress_bar=progress_bar, first_state=first_state, stage=stage,
+        rec, out_dir, context=context.share(PREPARE_SHARE, 1.0), progress_bar=progress_bar, first_state=first_state, stage=stage,
         status={**(status or {}), **({} if novel is None else novel.status)},
         on_open=None if novel is None else lambda run: save_generated_views(novel.frames, novel.key, novel.status, run.path / GENERATED_DIR),
     )
 
 
 def _prepare(footage: Footage, inputs: InputViews, quality: ReconstructConfig, physics: str, extra_views: Sequence[ViewTarget],
-             pseudo_views: bool, device: str | torch.device) -> Reconstruction:
+             pseudo_views: bool, device: str | torch.device, on_evaluation: StepProgress | None = None) -> Reconstruction:
     rec = prepare(footage.cameras, inputs, fps=footage.fps, quality=quality, box=footage.box, up=footage.up,
                   source=footage.source, physics=physics, extra_views=extra_views, pseudo_views=pseudo_views,
-                  device=device)
+                  device=device, on_evaluation=on_evaluation)
     return replace(rec, capture=footage.capture)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from fluidcore.errors import InputError
+from fluidcore.jobs import StepProgress
 from fluidcore.physics import PRESETS, Box
 from fluidcore.reconstruct.identify import Observation, ScenePrior, identify, inlet_rate, with_buoyancy
 from fluidcore.reconstruct.views import ViewTarget
@@ -102,6 +103,7 @@ def scene_physics(
     entrainment: bool,
     keep_source: SourceKept = "nothing",
     device: torch.device | str = "cpu",
+    on_evaluation: StepProgress | None = None,
 ) -> ScenePhysics:
     """Physics for a scene seen in the input `view` (its camera, working-resolution frames,
     background and noise), starting from `prior` (`scene_prior`).
@@ -110,7 +112,8 @@ def scene_physics(
     units, so no length scale of another dataset enters them; a preset name keeps that preset's
     buoyancy (the paper's setting for its datasets). `entrainment`: whether the
     identification also searches the plume's spreading rate (`identify.SPREADING_RANGE`) or keeps the paper's
-    column. `keep_source`: what of the prior's source the user gave and the identification keeps.
+    column. `keep_source`: what of the prior's source the user gave and the identification keeps;
+    `on_evaluation`: `identify`'s progress.
     The inflow leaves at the buoyancy's terminal speed; the source seeds what its inlet
     carries at rest density (`inlet_rate`, capped by `budget` per 1/30 s: `frame_budget`) at the faster of that speed and
     the rise speed of the observed smoke (`inflow_rate_speed`).
@@ -128,7 +131,7 @@ def scene_physics(
         depth = float(camera.world_to_camera[2, :3] @ center + camera.world_to_camera[2, 3])
         cell = max(1, round(camera.fx * h / max(depth, 1e-9)))
         observation = Observation.from_masks(camera, masks, cell, center, up)
-        found = identify(observation, prior, budget, device, entrainment, keep_source)
+        found = identify(observation, prior, budget, device, entrainment, keep_source, on_evaluation)
         config = replace(with_buoyancy(prior.physics, found.buoyancy, up), entrainment=found.entrainment)
         place = SourcePlace(tuple(found.source_center), found.source_radius)
         steps = found.age + 1  # identified frame t = after age + t + 1 steps

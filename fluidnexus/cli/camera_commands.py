@@ -40,7 +40,7 @@ def info(
 
     with user_errors():
         if (path / MANIFEST).is_file():
-            echo_json(scene_info.from_run(Run.open(path)))
+            echo_json(scene_info.from_run(Run.open(path), "cli"))
         else:
             echo_json(scene_info.from_cameras_file(path))
 

@@ -33,6 +33,24 @@ def test_ball_is_drawn_where_it_projects_from_its_start_frame_on() -> None:
     assert not changed[2][distance > radius_px + 2.5].any()  # and nothing beyond its anti-aliased rim
 
 
+def test_the_smoke_under_the_ball_stays_visible() -> None:
+    """Issue 48: the ball was drawn nearly opaque (0.6) over the smoke it deflects. Inside its rim
+    the smoke's texture keeps most of its contrast, and the disc is still tinted orange."""
+    rng = np.random.default_rng(0)
+    smoke = np.repeat(rng.integers(60, 200, (1, 120, 160, 1), dtype=np.uint8), 3, axis=-1)  # grey speckle
+    ball = {"center": [0.0, 0.5, 0.0], "radius": 0.15}
+    out = draw_interventions(smoke, CAMERA, [11], parse_interaction(None, ball), first_new_frame=11, dt=DT,
+                             anchor=[0, 0.8, 0], arrow_length=0.3)[0].astype(float)
+    (u, v), = CAMERA.project_numpy(np.array([0.0, 0.5, 0.0]))[0]
+    ys, xs = np.mgrid[0:120, 0:160]
+    inside = np.hypot(xs + 0.5 - u, ys + 0.5 - v) < 200 * 0.15 / 2 - 3  # within the rim
+    before = smoke[0].astype(float)[inside][:, 1]
+    after = out[inside][:, 1]
+    assert np.corrcoef(before, after)[0, 1] > 0.99  # the same speckle, not a flat disc
+    assert np.std(after) > 0.7 * np.std(before)  # at least 70% of its contrast (0.4 at the old opacity)
+    assert (out[inside][:, 0] - out[inside][:, 2]).mean() > 20  # still tinted orange
+
+
 def test_a_moving_ball_moves_in_the_picture() -> None:
     ball = {"center": [-0.2, 0.5, 0.0], "radius": 0.05, "velocity": [3.0, 0.0, 0.0]}  # 0.1 units per frame
     out = _draw(parse_interaction(None, ball))

@@ -5,6 +5,7 @@ screenshots go to (docs/screens/ with FLUIDNEXUS_SCREENSHOTS=1, else the test's 
 
 from __future__ import annotations
 
+import base64
 import functools
 import os
 import shutil
@@ -14,6 +15,7 @@ from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from urllib.parse import urlsplit
 
+import numpy as np
 import pytest
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -55,6 +57,36 @@ def static_web() -> Iterator[str]:
     yield f"http://127.0.0.1:{httpd.server_address[1]}/"
     httpd.shutdown()
     httpd.server_close()
+
+
+def signed_in(browser, static_web: str, api, auth: dict[str, str], width: int = 1280,  # type: ignore[no-untyped-def]
+              init_script: str | None = None):
+    """A page of web/ as plain files, its /v1 requests answered by the in-process API `api`, signed
+    in with `auth`'s key and on the job list; and the list its page errors are collected in.
+    `init_script` runs before the page's own scripts."""
+    from playwright.sync_api import expect
+
+    page = browser.new_page(viewport={"width": width, "height": 900})
+    if init_script is not None:
+        page.add_init_script(init_script)
+    errors: list[str] = []
+    page.on("pageerror", lambda error: errors.append(str(error)))
+    page.route("**/v1/**", in_process(api))
+    page.goto(static_web)
+    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
+    page.keyboard.press("Enter")
+    expect(page.locator("#jobs-title")).to_be_visible()
+    return page, errors
+
+
+def canvas_pixels(page, selector: str) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """(H, W, 3) uint8 RGB of the <canvas> `selector` as drawn (a WebGL one keeps its drawing
+    buffer: the what-if view's does)."""
+    import cv2
+
+    url = page.evaluate("(selector) => document.querySelector(selector).toDataURL('image/png')", selector)
+    image = cv2.imdecode(np.frombuffer(base64.b64decode(url.split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+    return image[..., ::-1]
 
 
 def in_process(api) -> Callable[[object], None]:  # type: ignore[no-untyped-def]  # tests.support.api.Service

@@ -188,3 +188,32 @@ def test_the_wind_arrows_come_from_the_one_gain(sqlite_service: Service) -> None
     overflowing = sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [1e308]}, headers=alice)
     assert overflowing.status_code == 422 and "heights" in overflowing.text  # never an infinite (null) number
     assert sqlite_service.client.post(url, json={"wind": wind, "source_height": 0.0, "heights": [0.0]}).status_code == 401
+
+
+def test_the_upload_forms_box_comes_from_the_one_single_camera(sqlite_service: Service) -> None:
+    """GET /v1/cameras/single: the box `POST /v1/scenes` makes from `fov`, and its edges where that
+    camera sees them (issue 48: the form draws them on the first frame as the field of view is
+    typed); a field of view or up the upload would refuse is a 422 naming it."""
+    import math
+
+    from fluidcore.cameras.single import single_camera
+
+    alice = sqlite_service.key("alice")
+    url = "/v1/cameras/single"
+    answer = sqlite_service.client.get(url, params={"width": 300, "height": 400, "fov": 40}, headers=alice)
+    assert answer.status_code == 200, answer.text
+    _, box = single_camera("video", 300, 400, 40.0)
+    assert answer.json()["box"] == {"min": box[0].tolist(), "max": box[1].tolist()}
+    edges = answer.json()["edges"]
+    assert len(edges) == 12
+    # the box's back face: its centre section fills the frame, so at depth 1 + tan(20 deg) it spans 1 / (1 + tan) of it
+    shrink = 1 / (1 + math.tan(math.radians(20)))
+    back = {(round(u, 6), round(v, 6)) for edge in edges for u, v in edge
+            if abs(abs(u - 150) - 150 * shrink) < 1e-6 and abs(abs(v - 200) - 200 * shrink) < 1e-6}
+    assert len(back) == 4, edges
+    wide = sqlite_service.client.get(url, params={"width": 300, "height": 400, "fov": 120}, headers=alice).json()["edges"]
+    assert len(wide) == 8 and all(math.isfinite(x) for edge in wide for end in edge for x in end)  # the front face is behind it
+    for params, field in (({"fov": 200}, "fov"), ({"fov": 40, "up": "sideways"}, "up"), ({"fov": 40, "width": 0}, "width")):
+        refused = sqlite_service.client.get(url, params={"width": 300, "height": 400, **params}, headers=alice)
+        assert refused.status_code == 422 and field in refused.text, refused.text
+    assert sqlite_service.client.get(url, params={"width": 300, "height": 400, "fov": 40}).status_code == 401

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.support.browser import CHROMIUM, ROOT, in_process
+from tests.support.browser import CHROMIUM, ROOT, canvas_pixels, in_process, signed_in
 from tests.support.service import CLI, Server
 
 pytestmark = pytest.mark.browser
@@ -236,6 +236,9 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     reconstruction = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["id"]
     air = server.client.get(f"/v1/jobs/{reconstruction}/particles").json()["air"]
     assert air is not None and max(abs(v) for v in air["velocities"]) > 0
+    # its prepare stage reported the identification's progress as a stage of its own (issue 48: no more 0 % throughout)
+    stages = server.client.get(f"/v1/jobs/{reconstruction}").json()["timings"]["stages"]
+    assert list(stages).index("prepare: identifying the physics") < list(stages).index("reconstruct"), stages
 
     # results: players of one length in sync, plots from the manifest, downloads of the MP4s too;
     # the job published its input view, the other camera and the orbit are rendered as the players ask
@@ -494,17 +497,10 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
     def answer(body: str):  # a route handler of one argument (one of two is handed the request as well)
         return lambda route: route.fulfill(body=body, content_type="application/json")
 
-    violet = """() => {  // pixels of the air's colour (0xb36bff): nothing else in the view is violet
-        const source = document.getElementById('scene3d');
-        const copy = document.createElement('canvas');
-        copy.width = source.width; copy.height = source.height;
-        const context = copy.getContext('2d');
-        context.drawImage(source, 0, 0);
-        const data = context.getImageData(0, 0, copy.width, copy.height).data;
-        let count = 0;
-        for (let i = 0; i < data.length; i += 4) if (data[i] > 130 && data[i + 1] < 140 && data[i + 2] > 200) count++;
-        return count;
-    }"""
+    def violet(page) -> int:  # type: ignore[no-untyped-def]  # pixels of the air's colour (0xb36bff): nothing else in the view is violet
+        rgb = canvas_pixels(page, "#scene3d").astype(int)
+        return int(((rgb[..., 0] > 130) & (rgb[..., 1] < 140) & (rgb[..., 2] > 200)).sum())
+
     for with_air in (True, False):
         page = browser.new_page()
         page.route("**/v1/jobs?limit=100", lambda route: route.fulfill(json={"items": [job]}))
@@ -517,10 +513,10 @@ def test_the_whatif_view_draws_the_saved_air(static_web: str, browser) -> None: 
         summary = page.locator("#whatif-summary")
         if with_air:
             sync_api.expect(summary).to_contain_text("Violet arrows: the air's velocity at 125 of 125 sampled points (fastest 0.316 units/s)")
-            assert page.evaluate(violet) > 50
+            assert violet(page) > 50
         else:
             sync_api.expect(summary).to_contain_text("This run does not simulate the air (still air): no air arrows.")
-            assert page.evaluate(violet) == 0
+            assert violet(page) == 0
         page.close()
 
 
@@ -550,14 +546,7 @@ def test_the_what_if_view_draws_one_views_depth_range_and_its_slider_fills_the_s
     store_run(api.storage, job_id, {0: np.array([[0.0, 0.2, 0.0], [0.1, 0.3, 0.0]])}, source_estimate=estimate)
     api.set_job(job_id, state=JobState.SUCCEEDED, finished_at=datetime.now(UTC))
 
-    page = browser.new_page(viewport={"width": 1366, "height": 900})
-    errors: list[str] = []
-    page.on("pageerror", lambda error: errors.append(str(error)))
-    page.route("**/v1/**", in_process(api))
-    page.goto(static_web)
-    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
-    page.keyboard.press("Enter")
-    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page, errors = signed_in(browser, static_web, api, auth, 1366)
     page.evaluate(f"location.hash = '#whatif/{job_id}'")
 
     sync_api.expect(page.locator("#source-form")).to_be_visible()

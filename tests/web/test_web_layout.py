@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from tests.support.api import Service, reconstruct, upload
-from tests.support.browser import in_process
+from tests.support.browser import signed_in
 
 pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
@@ -100,14 +100,7 @@ def test_the_pages_read_whole_at_700_and_1280_px(  # type: ignore[no-untyped-def
 ) -> None:
     api = sqlite_service
     auth, job_id = jobs_of_every_kind(api, scene_dir)
-    page = browser.new_page(viewport={"width": width, "height": 900})
-    errors: list[str] = []
-    page.on("pageerror", lambda error: errors.append(str(error)))
-    page.route("**/v1/**", in_process(api))
-    page.goto(static_web)
-    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
-    page.keyboard.press("Enter")
-    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page, errors = signed_in(browser, static_web, api, auth, width)
 
     # the upload form: the source's example whole, the box's edge at -0.001 printed as 0
     page.get_by_role("button", name="Upload", exact=True).click()

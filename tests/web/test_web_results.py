@@ -16,17 +16,21 @@ import numpy as np
 import pytest
 
 from tests.support.api import Service, reconstruct, upload
-from tests.support.browser import in_process
+from tests.support.browser import signed_in
 
 pytestmark = pytest.mark.browser
 sync_api = pytest.importorskip("playwright.sync_api")
 
 FIRST, END = 2, 6  # the run reconstructs frames 2..5 of the 6-frame clip
-LOSSES = {  # image falls to a fifth; sim is 0 on the first frame; incomp is 0 throughout
-    2: {"image": 0.05, "sim": 0.0, "incomp": 0.0, "input_psnr": 20.0, "forecast_psnr": 18.0, "particles": 10.0, "gaussians": 20.0},
-    3: {"image": 0.03, "sim": 0.002, "incomp": 0.0, "input_psnr": 22.0, "forecast_psnr": 19.0, "particles": 12.0, "gaussians": 24.0},
-    4: {"image": 0.02, "sim": 0.004, "incomp": 0.0, "input_psnr": 23.0, "forecast_psnr": 21.0, "particles": 14.0, "gaussians": 28.0},
-    5: {"image": 0.01, "sim": 0.001, "incomp": 0.0, "input_psnr": 24.0, "forecast_psnr": 22.0, "particles": 16.0, "gaussians": 32.0},
+LOSSES = {  # image falls to a fifth; sim is 0 on the first frame; incomp is 0 throughout; the fit within 2 dB of the background
+    2: {"image": 0.05, "sim": 0.0, "incomp": 0.0, "input_psnr": 20.0, "forecast_psnr": 18.0, "background_psnr": 19.0,
+        "explained": 0.2, "smoke_up": -0.3, "smoke_across": 0.0, "particles": 10.0, "gaussians": 20.0},
+    3: {"image": 0.03, "sim": 0.002, "incomp": 0.0, "input_psnr": 22.0, "forecast_psnr": 19.0, "background_psnr": 20.0,
+        "explained": 0.35, "smoke_up": -0.2, "smoke_across": 0.0, "particles": 12.0, "gaussians": 24.0},
+    4: {"image": 0.02, "sim": 0.004, "incomp": 0.0, "input_psnr": 23.0, "forecast_psnr": 21.0, "background_psnr": 21.0,
+        "explained": 0.35, "smoke_up": -0.1, "smoke_across": 0.0, "particles": 14.0, "gaussians": 28.0},
+    5: {"image": 0.01, "sim": 0.001, "incomp": 0.0, "input_psnr": 24.0, "forecast_psnr": 22.0, "background_psnr": 22.0,
+        "explained": 0.35, "smoke_up": 0.0, "smoke_across": 0.0, "particles": 16.0, "gaussians": 32.0},
 }
 # uPlot is loaded by a plain <script>: wrap its constructor to record what each chart was given
 RECORD_PLOTS = """(() => { let wrapped;
@@ -65,13 +69,7 @@ def published_reconstruction(api: Service, scene_dir: dict[str, Path], tmp_path:
 
 
 def open_results(browser, static_web: str, api: Service, auth: dict[str, str], job_id: str, width: int):  # type: ignore[no-untyped-def]
-    page = browser.new_page(viewport={"width": width, "height": 900})
-    page.add_init_script(RECORD_PLOTS)
-    page.route("**/v1/**", in_process(api))
-    page.goto(static_web)
-    page.get_by_label("API key").fill(auth["Authorization"].removeprefix("Bearer "))
-    page.keyboard.press("Enter")
-    sync_api.expect(page.locator("#jobs-title")).to_be_visible()
+    page, _ = signed_in(browser, static_web, api, auth, width, RECORD_PLOTS)
     page.evaluate(f"location.hash = '#results/{job_id}'")
     sync_api.expect(page.locator("#results-title")).to_contain_text("Results of reconstruct")
     return page
@@ -149,7 +147,8 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
     sync_api.expect(losses).to_have_count(1)
     plots = {p["title"]: p for p in page.evaluate("() => window.__plots")}
     loss_plot = plots["Loss per frame, relative to the first"]
-    assert loss_plot["distr"] == 3 and loss_plot["labels"] == ["image", "sim"]  # log; incomp (0 throughout) not drawn
+    # log; incomp (0 throughout) not drawn; the yardstick's records are no losses
+    assert loss_plot["distr"] == 3 and loss_plot["labels"] == ["image", "sim"]
     np.testing.assert_allclose(loss_plot["data"][0], [1.0, 0.6, 0.4, 0.2])  # image ÷ its first frame
     assert loss_plot["data"][1][0] is None  # sim's first frame is 0: a gap on a log axis, and sim ÷ its first non-zero
     np.testing.assert_allclose(loss_plot["data"][1][1:], [1.0, 2.0, 0.5])
@@ -160,8 +159,10 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
     assert legend == {"frame": f"{END - 1} (last)", "image": "0.2", "sim": "0.5"}, legend
     psnr = page.locator("#plots figure[aria-label='PSNR of the input view']")
     psnr_legend = [v.text_content() for v in psnr.locator(".u-legend .u-value").all()]
-    assert psnr_legend == [f"{END - 1} (last)", "24", "22"], psnr_legend
+    assert psnr_legend == [f"{END - 1} (last)", "24", "22", "22"], psnr_legend
     sync_api.expect(psnr).to_contain_text("forecast, before the fit")
+    sync_api.expect(psnr).to_contain_text("background alone")
+    sync_api.expect(psnr.locator("figcaption")).to_contain_text("Background alone: what an empty reconstruction scores")
     sync_api.expect(psnr.locator("figcaption")).to_contain_text("Forecast: before fitting a frame, the previous frame's smoke moved on")
     # hovering shows the frame under the pointer, leaving shows the last again
     plot_box = losses.locator(".u-over").bounding_box()
@@ -178,18 +179,41 @@ def test_the_loss_plot_shows_each_term_relative_to_its_first_frame_on_a_log_axis
 def test_the_health_report_says_what_to_do_when_the_fit_is_poor(  # type: ignore[no-untyped-def]
     static_web: str, browser, sqlite_service: Service, scene_dir: dict, tmp_path: Path, screens: Path,
 ) -> None:
-    """The run's input view is fitted at 20-24 dB (LOSSES): below the 30 dB healthy runs reach, so
-    the page warns and names the remedies (fluidcore.health)."""
+    """The run's input view is fitted at 20-24 dB (LOSSES): below the 30 dB healthy runs reach and
+    within 3 dB of the background alone, so the page warns twice and names the remedies
+    (fluidcore.health) as this page's form fields, not the command line's flags."""
     api = sqlite_service
     auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
     page = open_results(browser, static_web, api, auth, job_id, 700)
     # what the simulation used, said even when it is nothing
     sync_api.expect(page.locator("#results-summary")).to_contain_text("air: still; no spreading")
-    warning = page.locator("#results-health li.warning")
-    sync_api.expect(warning).to_have_count(1)
+    warnings = page.locator("#results-health li.warning")
+    sync_api.expect(warnings).to_have_count(2)
+    warning = warnings.first
     sync_api.expect(warning).to_contain_text("Warning (this reconstruction): the reconstruction fits its own input view at only 22.2 dB")
-    sync_api.expect(warning).to_contain_text("--background-frames")
+    sync_api.expect(warning).to_contain_text("give a background plate (the upload form's Background plate: frames without smoke)")
+    sync_api.expect(warnings.nth(1)).to_contain_text("the background alone scores 20.5 dB on the same frames")
+    sync_api.expect(warnings.nth(1)).to_contain_text("within 3 dB of the background")
+    for text in warnings.all_text_contents():
+        assert "--" not in text and "params." not in text, text  # neither the CLI's flags nor the API's fields
     box = warning.bounding_box()
     assert box is not None and box["x"] + box["width"] <= 700
     page.screenshot(path=screens / "results-health-700.png", full_page=True)
+    page.close()
+
+
+def test_the_results_page_states_the_scene_box_and_the_source(  # type: ignore[no-untyped-def]
+    static_web: str, browser, sqlite_service: Service, scene_dir: dict, tmp_path: Path,
+) -> None:
+    """Issue 48: the box and the source's size were on the what-if page only. The results page
+    states the run's own (its manifest's scene: box -0.5..0.5 x 0..1 x -0.5..0.5, source of
+    radius 0.05 at (0, 0.1, 0), tests.support.service.store_run) in the what-if page's words."""
+    api = sqlite_service
+    auth, job_id = published_reconstruction(api, scene_dir, tmp_path)
+    page = open_results(browser, static_web, api, auth, job_id, 700)
+    scene = page.locator("#results-scene")
+    sync_api.expect(scene).to_have_text("Scene box: x from -0.5 to 0.5, y from 0 to 1, z from -0.5 to 0.5 (world units; up (0, 1, 0)). "
+                                        "Smoke source: centre (0, 0.1, 0), radius 0.05 (0.1 across).")
+    box = scene.bounding_box()
+    assert box is not None and box["x"] + box["width"] <= 700
     page.close()

@@ -11,7 +11,7 @@
 
 import { $ } from "./dom.js";
 import { api } from "./api.js";
-import { decimal } from "./format.js";
+import { boxText, decimal, point } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 
 const SYNC_TOLERANCE_S = 0.08;
@@ -288,8 +288,10 @@ function plot(title, frames, series, unit, { caption = "", log = false, format =
 const fmt3 = (v) => (Math.abs(v) >= 100 ? decimal(v, 0) : Number(v.toPrecision(3)).toString());
 const FRAME_STEPS = [1, 2, 5, 10, 20, 50, 100, 200, 500, 1000]; // whole frames on the x axis
 const PALETTE = ["#1d5fa8", "#c0392b", "#17692a", "#8e44ad", "#d35400", "#2c3e50"];
-const PSNRS = { input_psnr: "after the fit", forecast_psnr: "forecast, before the fit" }; // dB, tens: apart from the losses
-const NOT_LOSSES = new Set([...Object.keys(PSNRS), "particles", "gaussians"]);
+// dB, tens: apart from the losses; the background alone is the fit's yardstick (fluidcore.reconstruct.yardstick)
+const PSNRS = { input_psnr: "after the fit", forecast_psnr: "forecast, before the fit", background_psnr: "background alone" };
+// Per-frame records that are no loss: the yardstick's share explained and the smoke's place (fluidcore.health pools them).
+const NOT_LOSSES = new Set([...Object.keys(PSNRS), "particles", "gaussians", "explained", "smoke_up", "smoke_across"]);
 
 /** Each loss term divided by its first non-zero value (terms differ by orders of magnitude, and
  * what matters is whether each falls): [[name, ratios]] of the terms that have one; a ratio that
@@ -327,10 +329,12 @@ function drawPlots(manifest) {
   }
   const psnrs = Object.keys(PSNRS).filter((k) => keys.includes(k));
   if (psnrs.length) {
-    plot("PSNR of the input view", t, psnrs.map((k) => [PSNRS[k], column(k)]), "dB", { caption: keys.includes("forecast_psnr")
+    plot("PSNR of the input view", t, psnrs.map((k) => [PSNRS[k], column(k)]), "dB", { caption: (keys.includes("forecast_psnr")
       ? "After the fit: the frame's render against the footage. Forecast: before fitting a frame, the previous "
         + "frame's smoke moved on by the simulator alone, scored against the footage it has not seen yet."
-      : "The frame's render against the footage." });
+      : "The frame's render against the footage.")
+      + (keys.includes("background_psnr") ? " Background alone: what an empty reconstruction scores on the same frame; "
+        + "a fit close to it reconstructs little of the smoke." : "") });
   }
   plot("Time per frame", t, [["seconds", frames.map((f) => f.seconds)]], "s");
   if (keys.includes("particles")) plot("Particles", t, [["particles", column("particles")], ["gaussians", column("gaussians")]], "count");
@@ -458,8 +462,36 @@ function simulated(manifest) {
   return `; air: ${cells ? `simulated, ${cells} cells on the box's long side` : "still"}; ${spreading}`;
 }
 
+// What to give next, in this page's words (fluidcore.health.Remedy; the CLI words them as its
+// flags, the REST API as its fields): the upload form's fields, the what-if page's source slider.
+const REMEDIES = {
+  source: "give the source (the upload form's Smoke source, or the slider under Where the smoke starts on the what-if page)",
+  background_plate: "give a background plate (the upload form's Background plate: frames without smoke)",
+  another_view: "add a view (upload a camera file with another camera's video)",
+  world_up: "give the right up (the upload form's World up; one video without a camera file: Where world up points in the image)",
+};
+
+/** A health check's finding and its remedies in this page's words, joined as fluidcore.health joins them. */
+function advised(check) {
+  const remedies = (check.advice || []).map((remedy) => REMEDIES[remedy] || remedy);
+  if (!remedies.length) return check.finding;
+  const last = remedies.pop();
+  return `${check.finding}: ${remedies.length ? `${remedies.join("; ")}; or ${last}` : last}`;
+}
+
+/** The run's scene (manifest.scene) in words: its box and up, and the smoke source's centre and size
+ * (world units), as the what-if page states them; empty before the manifest has a scene. */
+function sceneText(manifest) {
+  const scene = manifest.scene;
+  if (!scene || !scene.box || !scene.source) return ""; // an older manifest's layout: the rest of the page stands
+  const { center, radius } = scene.source;
+  return `${boxText(scene.box)} (world units; up ${point(scene.up)}). `
+    + `Smoke source: centre ${point(center)}, radius ${decimal(radius)} (${decimal(2 * radius)} across).`;
+}
+
 /** The health report of the reconstruction this job stands on (GET /v1/scenes/{id}: geometry.health,
- * fluidcore.health): warnings first, then notes; nothing before the scene has a reconstruction. */
+ * fluidcore.health), worded for this page: warnings first, then notes; nothing before the scene
+ * has a reconstruction. */
 async function showHealth(job) {
   const list = $("results-health");
   list.replaceChildren();
@@ -468,15 +500,17 @@ async function showHealth(job) {
   if (!geometry.health) return;
   const item = (text, kind) => Object.assign(document.createElement("li"), { textContent: text, className: kind });
   const of = geometry.source.job_id === job.id ? "this reconstruction" : `reconstruction ${geometry.source.job_id}`;
+  const checks = (level) => geometry.health.checks.filter((c) => c.level === level);
   list.replaceChildren(
-    ...geometry.health.warnings.map((w) => item(`Warning (${of}): ${w}`, "warning")),
-    ...geometry.health.notes.map((n) => item(`Note (${of}): ${n}`, "note")),
+    ...checks("warning").map((c) => item(`Warning (${of}): ${advised(c)}`, "warning")),
+    ...checks("note").map((c) => item(`Note (${of}): ${advised(c)}`, "note")),
   );
 }
 
 export async function showResults(jobId) {
   $("results-error").textContent = "";
   $("results-health").replaceChildren();
+  $("results-scene").textContent = "";
   $("results-title").textContent = "Results";
   $("results-summary").textContent = "Loading…";
   $("players").replaceChildren();
@@ -498,6 +532,7 @@ export async function showResults(jobId) {
           : twin ? `; shown next to the factual prediction (${describeJob(twin)}) from the same frame.`
             : "; no succeeded factual prediction with the same frames yet.");
     const rendered = () => refreshDownloads(jobId).catch(() => {});
+    $("results-scene").textContent = sceneText(manifest);
     $("players").replaceChildren(...playerPlan(job, manifest, videos.items, factual, footage).map((plan, i) => player(plan, i, rendered)));
     drawPlots(manifest);
     downloads(jobId, own.items, videos.items);

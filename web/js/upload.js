@@ -1,8 +1,9 @@
 // Upload view: drop a camera file and videos, see them (first frames, cameras and box from
-// above), read what is wrong before sending, then send with a progress bar.
+// above; for one video without a camera file, the box its field of view makes drawn on its first
+// frame), read what is wrong before sending, then send with a progress bar.
 
 import { $, showList } from "./dom.js";
-import { uploadForm } from "./api.js";
+import { api, uploadForm } from "./api.js";
 import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.js";
 import { decimal } from "./format.js";
 import { mp4Frames } from "./mp4.js";
@@ -10,6 +11,7 @@ import { allowedText, bound, limitProblem, loadLimits } from "./limits.js";
 import { insideBox, parseSource } from "./source.js";
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
+const BOX_COLOR = "#ffd23f"; // the field of view's box on the first frame: yellow, seen over smoke and most scenes
 
 const state = { camerasFile: null, parsed: null, cameraError: null, videos: [] };
 let limits = null; // the reconstruction's parameter limits (GET /v1/limits), or {error}
@@ -23,11 +25,12 @@ function firstFrame(file) {
     video.muted = true;
     video.preload = "auto";
     video.addEventListener("loadeddata", async () => {
-      const canvas = document.createElement("canvas");
-      canvas.width = video.videoWidth; canvas.height = video.videoHeight;
-      canvas.getContext("2d").drawImage(video, 0, 0);
+      const [canvas, frame] = [0, 1].map(() => Object.assign(document.createElement("canvas"),
+        { width: video.videoWidth, height: video.videoHeight }));
+      frame.getContext("2d").drawImage(video, 0, 0); // kept as decoded: `canvas` shows it, and the box over it
+      canvas.getContext("2d").drawImage(frame, 0, 0);
       const counted = await mp4Frames(file); // null for other containers: the server counts them
-      done({ width: video.videoWidth, height: video.videoHeight, duration: video.duration, canvas,
+      done({ width: video.videoWidth, height: video.videoHeight, duration: video.duration, canvas, frame,
         frames: counted && counted.frames, fps: counted && counted.fps });
     }, { once: true });
     video.addEventListener("error", () => done({ error: "this browser cannot decode it (the server will still check it)" }), { once: true });
@@ -145,16 +148,50 @@ function render() {
     summary.textContent = parsed ? `${state.camerasFile.name}: ${parsed.format}; the server reads it.`
       : state.camerasFile ? `${state.camerasFile.name} could not be read.`
         : fov !== undefined ? `No camera file: the server makes one camera with a ${fov}° field of view, 1 unit from the `
-          + "scene's centre, and a box as wide and tall as the frame there (as `fluidnexus cameras single` does)."
+          + "scene's centre, and a box as wide and tall as the frame there (as `fluidnexus cameras single` does). "
+          + "Yellow on the first frame: that box. Its middle section fills the frame and its far face shrinks as the "
+          + "field of view widens: right, its edges run with the scene's own (a floor, a table), and the smoke stays inside it."
           : "No camera file yet.";
   }
   const list = $("video-list");
   list.replaceChildren(...state.videos.map(videoCard));
   $("entrainment").disabled = $("motion").value !== "paper";  // the paper model's spreading
+  drawFovBox().catch(() => {}); // a refused value is already among the problems
   const problems = uploadProblems(state);
   showList("upload-problems", problems);
   $("upload-button").disabled = problems.length > 0;
   if (!$("scene-name").value && state.camerasFile) $("scene-name").value = state.camerasFile.name.replace(/\.[^.]*$/, "");
+}
+
+let boxAsked = 0; // numbers the requests for the box: an answer to an older field of view is dropped
+
+/** With one video and a field of view instead of a camera file: the scene box the server would
+ * make (GET /v1/cameras/single: its camera and box, `fluidcore.cameras.single`, projected there)
+ * drawn on the video's first frame, so a guessed field of view can be checked against the footage;
+ * otherwise every first frame as decoded. */
+async function drawFovBox() {
+  const asked = ++boxAsked;
+  const restore = (v) => v.canvas.getContext("2d").drawImage(v.frame, 0, 0);
+  const fov = fieldOfView().value;
+  const [video] = state.videos;
+  if (state.camerasFile || fov === undefined || state.videos.length !== 1 || !video.frame) {
+    state.videos.filter((v) => v.frame).forEach(restore);
+    return;
+  }
+  const query = new URLSearchParams({ width: video.width, height: video.height, fov, up: $("image-up").value });
+  let view = null;
+  try {
+    view = await api(`/v1/cameras/single?${query}`);
+  } finally {
+    if (asked === boxAsked) restore(video); // a refused value leaves the frame bare; a newer answer draws itself
+  }
+  if (asked !== boxAsked) return;
+  const context = video.canvas.getContext("2d");
+  context.strokeStyle = BOX_COLOR;
+  context.lineWidth = Math.max(2, Math.round(Math.max(video.width, video.height) / 160));
+  context.beginPath();
+  for (const [[u0, v0], [u1, v1]] of view.edges) { context.moveTo(u0, v0); context.lineTo(u1, v1); }
+  context.stroke();
 }
 
 /** The camera a video is for: the one picked beside it, else the one its file name names. */
@@ -302,6 +339,7 @@ export function initUpload(onDone) {
   $("upload-clear").addEventListener("click", reset);
   for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames", "fov"]) $(id).addEventListener("input", render);
   $("motion").addEventListener("change", render);
+  $("image-up").addEventListener("change", render);
   render();
   loadLimits().then((all) => { limits = all.reconstruct; showLimits(); }, (error) => { limits = { error: error.message }; })
     .finally(render);

@@ -10,7 +10,7 @@
 
 import { $, showList } from "./dom.js";
 import { api } from "./api.js";
-import { decimal } from "./format.js";
+import { boxText, decimal, point } from "./format.js";
 import { describeJob, jobs, refreshJobs } from "./jobs.js";
 import { bound, limitProblem, loadLimits } from "./limits.js";
 import { fractionAlong, hintText, insideBox, parseSource, pointAlong } from "./source.js";
@@ -143,10 +143,22 @@ function showParticles(data) {
   const centre = lo.clone().add(hi).multiplyScalar(0.5);
   const up = new Vector3(...data.scene.up).normalize();
   camera.up.copy(up);
-  const side = new Vector3(1, 0, 0).cross(up).lengthSq() > 0.1 ? new Vector3(0.4, 0, 1) : new Vector3(1, 0, 0.4);
-  camera.position.copy(centre).addScaledVector(side.normalize(), 1.6 * size).addScaledVector(up, 0.5 * size);
+  camera.position.copy(centre).addScaledVector(sideOf(up), 1.6 * size).addScaledVector(up, 0.5 * size);
   controls.target.copy(centre);
   controls.update();
+}
+
+// Directions the view looks from, in order of preference: a little off +z, else off +x (far from
+// parallel, so the second is long enough across any up the first is not).
+const SIDES = [new Vector3(0.4, 0, 1), new Vector3(1, 0.4, 0)];
+
+/** A unit vector perpendicular to `up` (unit) to place the camera along, so the view looks across
+ * the plume whichever axis is up (+y, or +z for a Blender scene), never down it: the first of
+ * SIDES with its part along `up` removed. */
+function sideOf(up) {
+  const across = (candidate) => candidate.clone().addScaledVector(up, -candidate.dot(up));
+  const side = across(SIDES[0]);
+  return (side.lengthSq() > 0.1 ? side : across(SIDES[1])).normalize();
 }
 
 /** The speed (units/s) at each of the air's sampled points. */
@@ -192,13 +204,18 @@ function drawOverlay() {
   drawWind(params.wind, lo, hi, size).catch(showError); // without WebGL too: the API's verdict on the wind
 }
 
-/** The ball (red) and its velocity arrow on a cleared overlay; the wind's arrows join it when the API answers. */
+/** The ball (red) and its velocity arrow on a cleared overlay; the wind's arrows join it when the API answers.
+ * The ball is a translucent shell with a wireframe, drawn before the smoke and writing no depth: the
+ * smoke in and around it is drawn over it and stays visible (a ball drawn over the smoke hid it). */
 function drawBall(ball, size) {
   const { overlay, renderer, scene, camera } = view;
   overlay.clear();
   if (ball && ball.radius > 0 && ball.center.every(Number.isFinite)) {
-    const mesh = new Mesh(new SphereGeometry(ball.radius, 24, 16),
-      new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, opacity: 0.55 }));
+    const behindSmoke = (material) => new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, depthWrite: false, ...material });
+    const mesh = new Mesh(new SphereGeometry(ball.radius, 24, 16), behindSmoke({ opacity: 0.3 }));
+    const wire = new Mesh(new SphereGeometry(ball.radius, 12, 8), behindSmoke({ opacity: 0.6, wireframe: true }));
+    mesh.renderOrder = wire.renderOrder = -1; // the smoke's points (order 0) come after
+    mesh.add(wire);
     mesh.position.set(...ball.center);
     overlay.add(mesh);
     const v = new Vector3(...ball.velocity);
@@ -242,8 +259,7 @@ async function drawWind(wind, lo, hi, size) {
 }
 
 function showLimits(box) {
-  $("box-limits").textContent = `Scene box: x from ${fmt(box.lo[0])} to ${fmt(box.hi[0])}, `
-    + `y from ${fmt(box.lo[1])} to ${fmt(box.hi[1])}, z from ${fmt(box.lo[2])} to ${fmt(box.hi[2])}.`;
+  $("box-limits").textContent = `${boxText(box)}.`;
   ["ball-cx", "ball-cy", "ball-cz"].forEach((id, i) => { $(id).min = String(box.lo[i]); $(id).max = String(box.hi[i]); });
   const centre = box.lo.map((l, i) => (l + box.hi[i]) / 2);
   if ($("ball-cx").dataset.placedFor !== run.jobId) { // a new run: start with the ball in the middle of its box
@@ -350,7 +366,6 @@ async function loadSourceDepth(job) {
   drawSource();
 }
 
-const point = (v) => `(${v.map(fmt).join(", ")})`;
 const showSourceError = (error) => { $("source-error").textContent = error.message; };
 
 /** The hint in the field, or null; its problems listed (and the button off) meanwhile. An empty

@@ -101,5 +101,5 @@ def test_a_scene_turned_to_z_up_reconstructs_the_same_smoke_turned(tmp_path: Pat
     assert len(last["turned"].positions) == len(last["plain"].positions)
     # particle by particle, to float rounding (the source seeds the turned draw, fluidcore.physics.source)
     np.testing.assert_allclose(last["turned"].positions, last["plain"].positions @ TURN.T, atol=5e-3)
-    checks = {check["name"]: check for check in report(turned)["checks"]}
+    checks = {check["name"]: check for check in report(turned, audience="cli")["checks"]}
     assert checks["world up"]["level"] == "note" and "+z from the cameras" in checks["world up"]["message"]

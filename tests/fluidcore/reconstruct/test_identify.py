@@ -292,6 +292,22 @@ def test_a_source_the_user_gave_is_kept_as_given(rising: synth.SynthScene) -> No
             SourceHint(center=(0, 0, 0), radius=0.1, refine=True).kept) == ("place", "center", "nothing")
 
 
+def test_each_candidate_rolled_out_is_reported(rising: synth.SynthScene) -> None:
+    """Issue 48: a reconstruction sat at "prepare 0 %" through the identification's rollouts; the
+    search now tells its caller of each candidate it rolls out (a job turns that into progress),
+    counting up to MAX_EVALUATIONS, never past it, and not again for a candidate it had scored."""
+    from fluidcore.reconstruct.identify import MAX_EVALUATIONS
+
+    observation, source = _silhouettes(rising, 0.0, frames=20)
+    heard: list[tuple[int, int]] = []
+    found = identify(observation, _prior(rising.spec, source), rising.spec.particles_per_step, keep="place",
+                     on_evaluation=lambda done, total: heard.append((done, total)))
+    assert heard, "no candidate reported"
+    most = MAX_EVALUATIONS["paper"]  # the prior's model
+    assert {total for _, total in heard} == {most}
+    assert [done for done, _ in heard] == [min(k, most) for k in range(1, found.evaluations + 1)]
+
+
 def test_the_same_plume_filmed_at_15_24_30_and_60_fps_gets_the_same_buoyancy() -> None:
     """Time is in seconds through the identification: the synthetic plume filmed for 1.5 s at each
     rate (its source seeding the same particles per second) is identified with a buoyancy within

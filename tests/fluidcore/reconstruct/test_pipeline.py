@@ -9,6 +9,7 @@ import pytest
 
 from fluidcore import artifacts, jobs, synth, video
 from fluidcore.reconstruct import job as reconstruct_job
+from fluidcore.reconstruct.pipeline import IDENTIFY_STAGE, PREPARE_SHARE
 from fluidcore.spec.reconstruct import get
 from fluidcore.runs import Run
 
@@ -25,23 +26,39 @@ def scene(tmp_path_factory):
 
 
 def test_cancel_keeps_finished_frames_and_a_rerun_resumes(scene, tmp_path):
+    videos = {"view_01": scene / "videos" / "view_01.mp4"}
+    # a cancel while the physics is identified is honoured there, before any frame
+    with pytest.raises(jobs.Cancelled, match="cancelled during prepare: identifying the physics"):
+        reconstruct_job.run_reconstruct(scene / "transforms.json", videos, tmp_path / "early", quality=QUICK,
+                                         context=jobs.JobContext(should_cancel=lambda: True))
+    assert not (tmp_path / "early").exists() or Run.open(tmp_path / "early").frames() == []
     seen: list[tuple[float, str]] = []
-    answers = iter([False, True])
     with pytest.raises(jobs.Cancelled, match="resumes from frame 1"):
         reconstruct_job.run_reconstruct(
             scene / "transforms.json",
-            {"view_01": scene / "videos" / "view_01.mp4"},
+            videos,
             tmp_path / "run",
             quality=QUICK,
-            context=jobs.JobContext(progress=lambda fraction, stage: seen.append((fraction, stage)), should_cancel=lambda: next(answers)),
+            context=jobs.JobContext(progress=lambda fraction, stage: seen.append((fraction, stage)),
+                                    should_cancel=lambda: any(stage == "reconstruct" for _, stage in seen)),  # after frame 0
         )
     assert Run.open(tmp_path / "run").frames() == [0]
-    assert seen[0] == (0.0, "prepare") and seen[-1] == (pytest.approx(1 / 3), "reconstruct")
+    # issue 48: the prepare stage moves (each of the identification's trial simulations), then the frames fill the rest
+    identifying = [fraction for fraction, stage in seen if stage == IDENTIFY_STAGE]
+    assert seen[0] == (0.0, "prepare") and len(identifying) > 3
+    assert identifying == sorted(identifying) and 0.0 < identifying[0] and identifying[-1] <= PREPARE_SHARE
+    assert seen[-1] == (pytest.approx(PREPARE_SHARE + (1 - PREPARE_SHARE) / 3), "reconstruct")
+    assert [fraction for fraction, _ in seen] == sorted(fraction for fraction, _ in seen)
     reconstruct_job.run_reconstruct(
         scene / "transforms.json", {"view_01": scene / "videos" / "view_01.mp4"}, tmp_path / "run", quality=QUICK
     )
     run = Run.open(tmp_path / "run")
     assert run.frames() == [0, 1, 2] and run.manifest["complete"]
+    # each frame records its fit with its yardstick (fluidcore.reconstruct.yardstick), which the health report reads
+    for frame in run.manifest["frames"]:
+        record = frame["losses"]
+        assert {"input_psnr", "background_psnr", "explained", "smoke_up", "smoke_across"} <= set(record), record
+        assert record["explained"] <= 1.0 and record["input_psnr"] > record["background_psnr"]
     assert json.loads((tmp_path / "run" / "manifest.json").read_text())["input_views"] == ["view_01"]
 
 
@@ -79,7 +96,7 @@ def test_the_videos_frame_rate_is_the_runs_and_a_camera_file_that_disagrees_is_r
     run = Run.open(reconstruct_job.run_reconstruct(scene / "transforms.json", {"view_01": clip}, tmp_path / "run", quality=QUICK))
     assert run.fps == pytest.approx(fps, rel=1e-3) and run.settings.capture.declared_fps == 30.0
     assert run.settings.capture.up_axis == "+y" and run.settings.capture.up_found == "cameras"
-    checks = {check["name"]: check for check in report(run)["checks"]}
+    checks = {check["name"]: check for check in report(run, audience="cli")["checks"]}
     assert checks["frame rate"]["level"] == "warning"
     assert f"play at {fps:g} fps but the camera file says 30 fps" in checks["frame rate"]["message"]
     assert checks["world up"]["level"] == "ok"

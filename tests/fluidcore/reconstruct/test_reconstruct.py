@@ -202,7 +202,7 @@ def test_the_source_estimate_and_the_depth_range_of_one_view_are_in_the_manifest
     estimate = reopened.settings.source_estimate
     assert estimate is not None and estimate.depth_cue in ("floor", "box axis")
     assert set(estimate.pixels) == {INPUT}
-    depth = scene_info.from_run(reopened)["source"]["depth"]
+    depth = scene_info.from_run(reopened, "cli")["source"]["depth"]
     near, far = (np.asarray(p) for p in depth["range"])
     lo, hi = np.asarray(reopened.scene.box_lo), np.asarray(reopened.scene.box_hi)
     assert np.all(near >= lo - 1e-9) and np.all(far <= hi + 1e-9) and np.linalg.norm(far - near) > 0.1
