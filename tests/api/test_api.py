@@ -183,7 +183,7 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     job = created.json()
     assert job["state"] == "queued" and job["progress"] == 0.0
     assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None,
-                             "motion": "carrier", "air_cells": None, "air_vorticity": 0.0, "entrainment": False,
+                             "motion": "paper", "air_cells": None, "air_vorticity": 0.0, "entrainment": False,
                              "background_frames": None,
                              "world_up": None}
     assert service.queue.sent == [(job["id"], "reconstruct")]
@@ -207,7 +207,8 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
         ({"air_cells": 4}, "air_cells"), ({"air_cells": 129}, "air_cells"), ({"air_cells": 32, "air_vorticity": 3}, "air_vorticity"),
         ({"motion": "paper", "air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
         ({"entrainment": "yes please"}, "entrainment"), ({"motion": "eulerian"}, "motion"),
-        ({"air_cells": 0}, "cannot carry the smoke"), ({"entrainment": True}, "the paper model's spreading"),
+        ({"motion": "carrier", "air_cells": 0}, "cannot carry the smoke"),
+        ({"motion": "carrier", "entrainment": True}, "the paper model's spreading"),
     ],
 )
 def test_bad_reconstruct_params_are_422(service: Service, scene_id: str, params: dict, field: str) -> None:

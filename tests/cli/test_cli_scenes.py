@@ -106,7 +106,7 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--refine-source", "--out", str(tmp_path / "r")], "give one")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "4", "--out", str(tmp_path / "r")], "air_cells must be 0")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--motion", "paper", "--air-vorticity", "0.5", "--out", str(tmp_path / "r")], "needs the simulated air")
-    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--air-cells", "0", "--out", str(tmp_path / "r")], "cannot carry the smoke")
+    _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--motion", "carrier", "--air-cells", "0", "--out", str(tmp_path / "r")], "cannot carry the smoke")
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}", "--motion", "eulerian", "--out", str(tmp_path / "r")], "motion")
     assert not (tmp_path / "r").exists()
     _fails(["synth", "--out", str(tmp_path / "odd"), "--width", "135"], "width must be even")

@@ -125,14 +125,15 @@ def scene() -> synth.SynthScene:
 def _reconstructor(scene: synth.SynthScene) -> Reconstructor:
     spec = scene.spec
     quality = get("preview").with_overrides(long_side=48, particles_per_frame=spec.particles_per_step, position_iterations=3,
-                                            appearance_iterations=2, first_frame_factor=1, air_cells=CELLS)
+                                            appearance_iterations=2, first_frame_factor=1, air_cells=CELLS,
+                                            motion="carrier")
     box = spec.box()
     inputs = read_inputs(scene.cameras, {"view_01": scene.videos["view_01"]}, frame_range=(0, 3), quality=quality)
     return Reconstructor(prepare(scene.cameras, inputs, fps=spec.fps, quality=quality, box=(np.array(box.lo), np.array(box.hi))))
 
 
 def test_reconstruction_carries_the_air_and_a_resumed_run_continues_it(scene, tmp_path: Path) -> None:
-    """S1 with the carrier's air (the default model): each frame saves the air stepped from the fitted particles; a run stopped
+    """S1 with the carrier's air: each frame saves the air stepped from the fitted particles; a run stopped
     after frame 1 and resumed writes the same air at frame 2 as an uninterrupted one."""
     straight = _reconstructor(scene).run(tmp_path / "straight")
     airs = [straight.read_frame(t).air for t in straight.frames()]

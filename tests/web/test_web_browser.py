@@ -194,11 +194,13 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     air.fill("4")  # below the grid's range: refused before anything is sent
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air must be 0 or a whole number from")
     sync_api.expect(page.locator("#upload-button")).to_be_disabled()
-    air.fill("0")  # still air cannot carry the smoke: refused for the default motion
+    motion = page.get_by_label("Motion: how the smoke moves")
+    motion.select_option("carrier")
+    air.fill("0")  # still air cannot carry the smoke: refused for the carrier
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Simulated air 0 is still air")
     air.fill("8")
     sync_api.expect(page.get_by_label("Let the plume spread")).to_be_disabled()  # the paper model's spreading
-    page.get_by_label("Motion: how the smoke moves").select_option("paper")
+    motion.select_option("paper")
     page.get_by_label("Let the plume spread").check()
     page.get_by_label("World up: the axis the smoke rises along").select_option("+y")  # the synth's, said outright
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
@@ -212,7 +214,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05, "refine": True} and sent["physics"] == "auto"
     assert (sent["motion"], sent["air_cells"], sent["entrainment"], sent["world_up"]) == ("paper", 8, True, "+y")
-    sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("paper's particles, air 8 cells, spreading")
+    sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
     sync_api.expect(row(page, "reconstruct").locator(".job-origin")).to_contain_text("scene plume")
 

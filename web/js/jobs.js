@@ -36,7 +36,7 @@ function paramSummary(job) {
     parts.push(p.quality);
     if (p.frames) parts.push(`frames ${p.frames[0]}–${p.frames[1] - 1}`);
     if (p.source) parts.push(`source ${vector(p.source.center)}${p.source.radius ? ` r ${num(p.source.radius)}` : ""}`);
-    if (p.motion === "paper") parts.push("paper's particles");
+    if (p.motion === "carrier") parts.push("buoyant air");
     if (p.air_cells) parts.push(`air ${p.air_cells} cells${p.air_vorticity ? `, vorticity ${num(p.air_vorticity)}` : ""}`);
     if (p.entrainment) parts.push("spreading");
   } else if (p.frames) parts.push(`${p.frames} new frames`);

@@ -33,10 +33,11 @@ def test_the_ends_of_the_grid_range_are_accepted_for_both_models(cells: int) -> 
 
 
 def test_each_model_has_its_own_air_when_none_is_given() -> None:
-    """The carrier is its air (48 cells unless told); the paper model's air is still unless asked
-    for, and may be still when asked (0)."""
-    assert SimulationConfig().motion == "carrier" and SimulationConfig().cells == CARRIER_CELLS
-    assert SimulationConfig(motion="paper").cells == 0 and SimulationConfig(motion="paper", air_cells=0).cells == 0
+    """The paper model (the default) has still air unless asked for, and may be still when asked (0);
+    the carrier is its air (48 cells unless told)."""
+    assert SimulationConfig().motion == "paper" and SimulationConfig().cells == 0
+    assert SimulationConfig(motion="paper", air_cells=0).cells == 0
+    assert SimulationConfig(motion="carrier").cells == CARRIER_CELLS
 
 
 @pytest.mark.parametrize(("fields", "message"), [
@@ -46,8 +47,8 @@ def test_each_model_has_its_own_air_when_none_is_given() -> None:
     ({"air_cells": 32, "air_vorticity": float("nan")}, "air_vorticity"),
     ({"air_cells": 32, "air_vorticity": 2.5}, "air_vorticity: Input should be less than or equal to 2"),
     ({"motion": "paper", "air_vorticity": 0.5}, "air_vorticity needs the simulated air"),
-    ({"air_cells": 0}, "air_cells 0 is still air, which cannot carry the smoke"),
-    ({"entrainment": True}, "entrainment is the paper model's spreading"),
+    ({"motion": "carrier", "air_cells": 0}, "air_cells 0 is still air, which cannot carry the smoke"),
+    ({"motion": "carrier", "entrainment": True}, "entrainment is the paper model's spreading"),
     ({"motion": "eulerian"}, "motion: Input should be 'carrier' or 'paper'"),
     ({"entrainment": "perhaps"}, "entrainment"),
     ({"air": 32}, "air: Extra inputs are not permitted"),
