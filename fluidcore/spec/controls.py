@@ -335,12 +335,15 @@ def parse_interaction(
     show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
     """
     try:
-        return model(wind=_as_dict(wind, "wind"), ball=_as_dict(ball, "ball"), **fields)
+        return model(wind=json_object(wind, "wind"), ball=json_object(ball, "ball"), **fields)
     except ValidationError as exc:
         raise InteractionError(describe_validation(exc)) from None
 
 
-def _as_dict(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
+def json_object(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
+    """`value` (JSON text, a mapping or a model) as a dict or the model, None as None; an
+    InteractionError naming `field` (a model's field or the command line's flag) for text that is
+    not JSON or not an object. The command line's JSON options (`--wind`, `--ball`) read through it."""
     if value is None or isinstance(value, BaseModel):
         return value
     if isinstance(value, str):
