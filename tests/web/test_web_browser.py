@@ -178,6 +178,14 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
     page.get_by_label("Let the fit move and resize this source").check()  # ... roughly
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    ball = page.get_by_label("Ball in the scene")  # a solid of the scene: refused outside the box, by its centre
+    ball.fill("0, 0.3, 0")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Ball: expected x, y, z, radius")
+    ball.fill("0, 5, 0, 0.05")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Ball centre (0, 5, 0) is outside the scene box")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    ball.fill("0, 0.3, 0, 0.05")
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     plate = page.get_by_label("Background plate")
     plate.fill("5:2")  # a plate's frames the wrong way round: refused before anything is sent
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Background plate: its end frame (2) must come after its first (5).")
@@ -211,6 +219,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05, "refine": True} and sent["physics"] == "auto"
+    assert sent["solids"] == [{"center": [0.0, 0.3, 0.0], "radius": 0.05}]
     assert (sent["motion"], sent["air_cells"], sent["entrainment"], sent["world_up"]) == ("paper", 8, True, "+y")
     sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("paper's particles, air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
