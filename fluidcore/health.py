@@ -361,8 +361,9 @@ def _solids(run: RunRecord) -> Check | None:
             untouched.append(f"solids[{index}] (centre {[round(c, 4) for c in solid.center]}, radius {solid.radius:g}; "
                              f"{nearest})")
     if not untouched:
-        return Check("solids", "ok", f"the smoke touches each of the scene's {len(scene.solids)} solid balls",
-                     float(len(scene.solids)))
+        count = len(scene.solids)
+        which = "the scene's solid ball" if count == 1 else f"each of the scene's {count} solid balls"
+        return Check("solids", "ok", f"the smoke touches {which}", float(count))
     return Check("solids", "note",
                  f"the smoke never comes within a kernel radius ({h:.3g} units) of {'; '.join(untouched)}: such a ball changes "
                  "nothing the run simulates; if it should be in the smoke's way", float(len(untouched)), ("solids",))
