@@ -273,6 +273,7 @@ class RunScene(BaseModel):
     up: list[float]
     source: dict[str, Any] = Field(description="the smoke source as the run recorded it (fluidcore.physics.Source)")
     dt: float | None = Field(default=None, description="the simulation's time step, seconds (one video frame)")
+    solids: list[SceneSolid] = Field(default_factory=list, description="the scene's static balls (world units)")
 
 
 class AirSample(BaseModel):
