@@ -109,6 +109,13 @@ class SceneSource(BaseModel):
     job_id: str | None = Field(default=None, description="the reconstruction job whose run this source is from")
 
 
+class SceneSolid(BaseModel):
+    """A static ball of the reconstruction's scene (`fluidcore.spec.solids.SolidBall`), world units."""
+
+    center: Vec3
+    radius: float
+
+
 class CameraPlace(BaseModel):
     center: Vec3
     forward: Vec3
@@ -140,6 +147,8 @@ class SceneGeometry(BaseModel):
     box: SceneBox | None
     up: Vec3
     source: SceneSource | None
+    solids: list[SceneSolid] = Field(default_factory=list, description="the static balls the scene's latest finished "
+                                     "reconstruction simulated (its params.solids); empty before one")
     cameras: dict[str, CameraPlace]
     health: HealthReport | None = Field(default=None, description="the latest finished reconstruction's; null before one")
 
@@ -264,6 +273,7 @@ class RunScene(BaseModel):
     up: list[float]
     source: dict[str, Any] = Field(description="the smoke source as the run recorded it (fluidcore.physics.Source)")
     dt: float | None = Field(default=None, description="the simulation's time step, seconds (one video frame)")
+    solids: list[SceneSolid] = Field(default_factory=list, description="the scene's static balls (world units)")
 
 
 class AirSample(BaseModel):

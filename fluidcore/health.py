@@ -51,7 +51,7 @@ MIN_RISE = 0.02
 MIN_RISE_FRAMES = 3  # frames with smoke the motion is fitted over
 
 Level = Literal["ok", "note", "warning"]
-Remedy = Literal["source", "background_plate", "another_view", "world_up"]
+Remedy = Literal["source", "background_plate", "another_view", "world_up", "solids"]
 Audience = Literal["cli", "api"]
 # What to give next, in the words of where the report is read: the command line's flags, the REST
 # API's fields. The browser words the same remedies as its form's fields (web/js/results.js).
@@ -62,6 +62,8 @@ REMEDIES: dict[Audience, dict[Remedy, str]] = {
         "another_view": "add a view (another camera's VIEW=path.mp4)",
         "world_up": "give the right up (--world-up AXIS; a camera file made by `cameras single`: its --up, where world "
                     "up points in the image)",
+        "solids": "place the ball where the smoke passes (--ball '{\"center\": [X, Y, Z], \"radius\": R}', world units; "
+                  "`fluidnexus scene info RUN` shows the box and the source)",
     },
     "api": {
         "source": "give the source (params.source of a reconstruct job)",
@@ -69,6 +71,8 @@ REMEDIES: dict[Audience, dict[Remedy, str]] = {
         "another_view": "add a view (upload a camera file and another camera's video)",
         "world_up": "give the right up (params.world_up of a reconstruct job; a scene uploaded with fov: its up, where "
                     "world up points in the image)",
+        "solids": "place the ball where the smoke passes (params.solids of a reconstruct job, world units; GET "
+                  "/v1/scenes/{id} shows the box and the source)",
     },
 }
 
@@ -101,7 +105,7 @@ def report(run: RunRecord, *, audience: Audience) -> dict[str, Any] | None:
     if run.kind is not RunKind.RECONSTRUCT:
         return None
     checks = [check for check in (_fit(run), _explained(run), _source_size(run), _identification(run), _on_bounds(run),
-                                  *_backgrounds(run), _depth(run), _frame_rate(run), _up(run), _spreading(run))
+                                  *_backgrounds(run), _depth(run), _frame_rate(run), _up(run), _spreading(run), _solids(run))
               if check is not None]
     return {
         "warnings": [c.message(audience) for c in checks if c.level == "warning"],
@@ -335,3 +339,31 @@ def _spreading(run: RunRecord) -> Check | None:
         return Check("spreading", "ok", f"the plume spreads by {rate:.2f} per unit risen, as the video showed", rate)
     return Check("spreading", "note", "spreading (entrainment) was asked for, but the video showed none: the identification "
                  "picked 0, so the predictions and what-ifs simulate none", 0.0)
+
+
+def _solids(run: RunRecord) -> Check | None:
+    """A note naming each of the scene's solids no particle came within a kernel radius of on any
+    frame: such a ball changes nothing the run simulates, and was likely placed off the smoke's path
+    (a wrong depth, another unit). Read off the frames' records of the smoke's gap to each ball
+    (`fluidcore.spec.solids.gap_record`), so it costs a pass over the manifest; a ball without any
+    record (no frame had smoke) counts as untouched."""
+    from fluidcore.spec.solids import gap_record
+
+    scene = run.scene
+    if not scene.solids:
+        return None
+    h = scene.physics.h
+    untouched = []
+    for index, solid in enumerate(scene.solids):
+        gaps = [gap for _, gap in _recorded(run, gap_record(index))]
+        if not gaps or min(gaps) >= h:
+            nearest = f"the smoke's nearest {min(gaps):.3g} units from its surface" if gaps else "no smoke recorded"
+            untouched.append(f"solids[{index}] (centre {[round(c, 4) for c in solid.center]}, radius {solid.radius:g}; "
+                             f"{nearest})")
+    if not untouched:
+        count = len(scene.solids)
+        which = "the scene's solid ball" if count == 1 else f"each of the scene's {count} solid balls"
+        return Check("solids", "ok", f"the smoke touches {which}", float(count))
+    return Check("solids", "note",
+                 f"the smoke never comes within a kernel radius ({h:.3g} units) of {'; '.join(untouched)}: such a ball changes "
+                 "nothing the run simulates; if it should be in the smoke's way", float(len(untouched)), ("solids",))

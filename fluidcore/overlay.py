@@ -1,5 +1,6 @@
 """Drawing what a what-if changed onto rendered frames: the ball where it is, and an arrow for
-the wind while it blows; and the side-by-side factual | what-if picture.
+the wind while it blows; the scene's own solid balls (`fluidcore.spec.solids`) on every frame,
+drawn as the what-if's ball is; and the side-by-side factual | what-if picture.
 
 The ball is one-way coupled and invisible to the smoke renderer, so without this a what-if
 video shows the smoke swerving around nothing. Whether (and where) an intervention is drawn on
@@ -15,7 +16,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from fluidcore.cameras import Camera
-from fluidcore.spec.controls import BallParams, InteractionParams, WindParams
+from fluidcore.spec.controls import InteractionParams, WindParams
+from fluidcore.spec.solids import SolidBall
 from fluidcore.runs import ContinuationSettings, RunRecord
 
 BALL_COLOR = (235, 120, 30)  # RGB; an orange no smoke colour is close to
@@ -28,31 +30,33 @@ LABEL_COLOR = (255, 255, 255)
 
 def draw_interventions(
     frames: np.ndarray, camera: Camera, frame_numbers: Sequence[int], params: InteractionParams, *,
-    first_new_frame: int, dt: float, anchor: Sequence[float], arrow_length: float,
+    first_new_frame: int, dt: float, anchor: Sequence[float], arrow_length: float, solids: Sequence[SolidBall] = (),
 ) -> np.ndarray:
-    """A copy of `frames` (video frames `frame_numbers`) with the ball and the wind drawn where
-    they are active. Intervention frame k is video frame first_new_frame + k; the wind arrow
-    starts at world point `anchor` and is `arrow_length` world units long."""
+    """A copy of `frames` (video frames `frame_numbers`) with the scene's `solids` on every frame
+    and the ball and the wind drawn where they are active. Intervention frame k is video frame
+    first_new_frame + k; the wind arrow starts at world point `anchor` and is `arrow_length` world
+    units long."""
     out = np.array(frames, copy=True)
     for image, t in zip(out, frame_numbers, strict=True):
         k = t - first_new_frame
+        for solid in solids:
+            _draw_ball(image, camera, solid.center, solid.radius)
         if params.ball is not None and k >= 0 and params.ball.active(k):
-            _draw_ball(image, camera, params.ball, k, dt)
+            _draw_ball(image, camera, params.ball.center_at(k, dt), params.ball.radius)
         if params.wind is not None and k >= 0 and params.wind.active(k):
             _draw_wind(image, camera, params.wind, anchor, arrow_length)
     return out
 
 
-def _draw_ball(image: np.ndarray, camera: Camera, ball: BallParams, k: int, dt: float) -> None:
-    """The sphere's outline (a disc of the projected radius) tinted lightly over the frame, with a
-    solid rim."""
+def _draw_ball(image: np.ndarray, camera: Camera, center: Sequence[float], ball_radius: float) -> None:
+    """The sphere at `center` (world) of `ball_radius`: its outline (a disc of the projected
+    radius) tinted lightly over the frame, with a solid rim."""
     import cv2
 
-    center = np.asarray(ball.center_at(k, dt))
-    uv, depth = camera.project_numpy(center)
-    if depth[0] <= ball.radius:  # behind or around the camera: nothing sensible to draw
+    uv, depth = camera.project_numpy(np.asarray(center, dtype=np.float64))
+    if depth[0] <= ball_radius:  # behind or around the camera: nothing sensible to draw
         return
-    radius = camera.fx * ball.radius / np.sqrt(depth[0] ** 2 - ball.radius**2)
+    radius = camera.fx * ball_radius / np.sqrt(depth[0] ** 2 - ball_radius**2)
     shift = 4  # cv2 draws with sub-pixel precision given as fixed point with this many bits
     pixel = tuple(int(round((c - 0.5) * (1 << shift))) for c in uv[0])  # continuous -> OpenCV pixel centres
     size = int(round(radius * (1 << shift)))
@@ -141,17 +145,18 @@ def run_interventions(run: RunRecord) -> tuple[InteractionParams, int]:
 
 
 def draw_run_interventions(run: RunRecord, camera: Camera, frame_numbers: Sequence[int], frames: np.ndarray) -> np.ndarray:
-    """`draw_interventions` with what the run recorded: its wind and ball, its branch frame, its
-    step length; the wind arrow starts above the box centre and is a quarter of the box long."""
+    """`draw_interventions` with what the run recorded: its scene's solids, its wind and ball, its
+    branch frame, its step length; the wind arrow starts above the box centre and is a quarter of
+    the box long."""
     params, first_new = run_interventions(run)
-    if params.wind is None and params.ball is None:
-        return frames
     scene = run.scene
+    if params.wind is None and params.ball is None and not scene.solids:
+        return frames
     lo, hi = np.asarray(scene.box_lo), np.asarray(scene.box_hi)
     up = np.asarray(scene.up) / np.linalg.norm(scene.up)
     height = float(np.abs(hi - lo) @ np.abs(up))
     anchor = 0.5 * (lo + hi) + 0.3 * height * up
     return draw_interventions(
         frames, camera, frame_numbers, params, first_new_frame=first_new, dt=scene.physics.dt,
-        anchor=anchor, arrow_length=0.25 * float(np.min(hi - lo)),
+        anchor=anchor, arrow_length=0.25 * float(np.min(hi - lo)), solids=scene.solids,
     )

@@ -1,5 +1,6 @@
 """Where things are in a scene, in world units: the box the smoke lives in, the smoke source the
-reconstruction estimated, the world's up axis and each camera's centre and viewing direction.
+reconstruction estimated, the solid balls in its scene, the world's up axis and each camera's
+centre and viewing direction.
 What a client needs to place a ball (it must lie inside the box, usually above the source) or
 aim a wind, served by `fluidnexus scene info` and `GET /v1/scenes/{id}`.
 
@@ -11,13 +12,14 @@ torch-free JSON/numpy, so the API answers without importing the simulator.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from fluidcore.cameras import Camera, CameraError, capture_box, load
 from fluidcore.cameras.world_up import world_up
+from fluidcore.spec.solids import SolidBall
 
 if TYPE_CHECKING:
     from fluidcore.health import Audience
@@ -28,9 +30,10 @@ WORLD_UP = (0.0, 1.0, 0.0)  # docs/architecture.md: up is +y unless a run says o
 
 def describe(
     cameras: Mapping[str, Camera], box: tuple[Any, Any] | None, *, up: Any = WORLD_UP,
-    source: Mapping[str, Any] | None = None,
+    source: Mapping[str, Any] | None = None, solids: Sequence[SolidBall] = (),
 ) -> dict[str, Any]:
-    """The JSON object both readers return (docs/cameras.md, "Scene box")."""
+    """The JSON object both readers return (docs/cameras.md, "Scene box"); `solids` is empty
+    before a reconstruction (the balls are the run's scene's, `fluidcore.spec.solids`)."""
     return {
         "box": None if box is None else {"min": [float(v) for v in box[0]], "max": [float(v) for v in box[1]]},
         "up": [float(v) for v in up],
@@ -38,6 +41,7 @@ def describe(
             "center": [float(v) for v in source["center"]], "radius": float(source["radius"]),
             **({"depth": source["depth"]} if "depth" in source else {}),
         },
+        "solids": [solid.model_dump(mode="json") for solid in solids],
         "cameras": {
             name: {"center": camera.center().tolist(), "forward": camera.forward().tolist()}
             for name, camera in cameras.items()
@@ -59,7 +63,7 @@ def from_cameras_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 def from_run(run: RunRecord, audience: Audience) -> dict[str, Any]:
     """Geometry a run was made with (its manifest, read by `fluidcore.runs`): box, up, source,
-    cameras; for a reconstruction whose source was estimated, how its depth was found and, from
+    solids, cameras; for a reconstruction whose source was estimated, how its depth was found and, from
     one view, the stretch of the input ray the centre could lie on (`source.depth`); for a
     reconstruction, its health report (`fluidcore.health`), its advice worded for `audience`."""
     from fluidcore.health import report
@@ -72,6 +76,6 @@ def from_run(run: RunRecord, audience: Audience) -> dict[str, Any]:
     if estimate is not None:
         source["depth"] = {"cue": estimate.depth_cue,
                            "range": None if estimate.depth_range is None else [list(p) for p in estimate.depth_range]}
-    found = describe(run.cameras(), box, up=scene.up, source=source)
+    found = describe(run.cameras(), box, up=scene.up, source=source, solids=scene.solids)
     health = report(run, audience=audience)
     return found if health is None else {**found, "health": health}

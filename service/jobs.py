@@ -96,7 +96,8 @@ def check_references(
     if job_type.starts_from == "scene":
         assert isinstance(params, ReconstructParams)  # the one type that starts from a scene
         scene = scenes.owned(session, source_id, owner)
-        box = scenes.capture_geometry(storage, scene)["box"] if params.source is not None else None
+        placed = params.source is not None or bool(params.solids)  # the capture's box is read only to check them
+        box = scenes.capture_geometry(storage, scene)["box"] if placed else None
         scenes.check_reconstruct_params(params, scene.n_frames, box, "params")
         return None
     # Any job that writes a run can be continued: every such type leaves the same run-folder format.

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 
 from fluidcore.errors import InputError
 from fluidcore.names import safe_join
+from fluidcore.spec.solids import SolidError, check_solids
 from fluidcore.spec.source_hint import SourceHintError
 from service.database import commit_or_conflict
 from service.errors import Conflict, DuplicateRequest, NotFound, RefusedParams
@@ -72,8 +73,8 @@ def page(session: Session, owner: str, limit: int, offset: int) -> tuple[list[Sc
 
 
 def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict[str, Any] | None, field: str) -> None:
-    """A reconstruction against its scene: frames within the videos, the source hint inside the
-    scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
+    """A reconstruction against its scene: frames within the videos, the source hint and the solids
+    inside the scene box (no box: the reconstruction refuses such a capture itself, with its own reason).
     One check for a new reconstruct job and for an upload that asks for a reconstruction;
     `field` names the parameters in the message."""
     if params.frames is not None and params.frames[1] > n_frames:
@@ -83,6 +84,11 @@ def check_reconstruct_params(params: ReconstructParams, n_frames: int, box: dict
             params.source.check_in_box(box["min"], box["max"])
         except SourceHintError as exc:
             raise RefusedParams(f"{field}.{exc}") from None
+    if box is not None:
+        try:
+            check_solids(params.solids, box["min"], box["max"], f"{field}.solids")
+        except SolidError as exc:
+            raise RefusedParams(str(exc)) from None
 
 
 def store(

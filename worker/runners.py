@@ -127,6 +127,7 @@ def reconstruct(inputs: RunInputs) -> None:
         background_frames=params.background_frames,
         world_up=params.world_up,
         simulation=params,  # a ReconstructParams is its SimulationConfig
+        solids=params.solids,
         context=inputs.context,
     )
 

@@ -43,7 +43,7 @@ def get_particles(
     max_points: Annotated[int, Query(ge=1, le=MAX_POINTS, description="subsampling cap")] = DEFAULT_POINTS,
 ) -> ParticlesOut:
     """Live particle positions (world units) of one frame, evenly subsampled to at most
-    `max_points`, with the run's scene box, up axis and smoke source."""
+    `max_points`, with the run's scene box, up axis, smoke source and solids."""
     job = jobs.owned(session, job_id, owner)
     record = stored_run(storage, job.id)
     scene = record.scene
@@ -64,7 +64,8 @@ def get_particles(
         frames=frames,
         total=len(positions),
         positions=np.round(positions[keep], 5).astype(float).ravel().tolist(),
-        scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"], dt=scene.physics.dt),
+        scene=RunScene(box_lo=scene.box_lo, box_hi=scene.box_hi, up=scene.up, source=scene.to_json()["source"], dt=scene.physics.dt,
+                       solids=scene.to_json()["solids"]),
         air=None if state.air is None else _air_sample(state.air, scene),
     )
 

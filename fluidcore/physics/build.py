@@ -3,9 +3,10 @@
 Every simulation of a scene (the reconstruction's fit, the identification's rollouts, the
 buoyancy calibration, the continuations, the synthetic plume, the benchmark) builds its
 `Simulator` here from a `fluidcore.spec.scene.Scene`, so none of them can leave out a part of
-the scene's physics: the motion model the scene names (`Scene.motion`, its integrator) and the
-air it keeps. What acts on the scene from outside (a wind, balls) is not part of it: it comes
-with each step (`fluidcore.physics.motion.Controls`).
+the scene's physics: the motion model the scene names (`Scene.motion`, its integrator), the
+air it keeps and its static solids (`Scene.solids`, which the simulator adds to every step). What
+acts on the scene from outside (a wind, a what-if's ball) is not part of it: it comes with each
+step (`fluidcore.physics.motion.Controls`).
 """
 
 from __future__ import annotations
@@ -26,8 +27,9 @@ def build_simulator(scene: Scene, *, device: torch.device | str = "cpu", backend
     "paper": the position-based particles, in the scene's air grid when `scene.air.simulated`
     (still air otherwise); `backend` picks their kernel (`PositionBasedFluid`). "carrier": the
     scene's air grid is the motion (`BuoyantAirCarrier`, with the scene's eddy viscosity and diffusivity).
+    Either way the scene's solids are in the way of every step.
     """
-    return Simulator(integrator(scene, torch.device(device), backend))
+    return Simulator(integrator(scene, torch.device(device), backend), tuple(solid.sphere for solid in scene.solids))
 
 
 def integrator(scene: Scene, device: torch.device, backend: str = "auto") -> Integrator:

@@ -41,6 +41,19 @@ def push_out(positions: Tensor, spheres: Sequence[Sphere], time: float) -> tuple
     return positions, contacts
 
 
+def surface_gaps(positions: Tensor, spheres: Sequence[Sphere], time: float) -> list[float]:
+    """How far the particles at `positions` (N, 3), N > 0, keep from each sphere (at `time`): the
+    distance from its surface to the nearest particle centre, world units (0 for one on or inside
+    it). One distance per particle and sphere, so it costs less than a step."""
+    if positions.shape[0] == 0:
+        raise ValueError("surface_gaps needs at least one particle")
+    gaps = []
+    for sphere in spheres:
+        distance = torch.linalg.vector_norm(positions - positions.new_tensor(sphere.center_at(time)), dim=1)
+        gaps.append(max(0.0, float(distance.min()) - sphere.radius))
+    return gaps
+
+
 def merge(first: Sequence[Contact], second: Sequence[Contact]) -> list[Contact]:
     """Contacts of two push-outs of the same spheres: in contact if pushed by either."""
     return [Contact(a.inside | b.inside, torch.where(b.inside[:, None], b.normal, a.normal), b.velocity)

@@ -8,8 +8,10 @@ source's particles, asks the integrator how many parts the frame needs (a CFL bo
 own), lets it move the particles (and the air it keeps) part by part, retires the particles
 that left the box, and returns a new state with the step's `StepStats`: a state in, a state
 out, as in PhiFlow's steps and Warp's integrators. What acts on the scene from outside (a wind,
-balls in the way) arrives as `Controls` with each step, never as settings of the simulator,
-so one simulator serves the factual and the what-if frames alike.
+a what-if's ball) arrives as `Controls` with each step, never as settings of the simulator,
+so one simulator serves the factual and the what-if frames alike; the scene's own static
+solids reach the integrator the same way, as `Controls.spheres`, added by the simulator to
+every step (`Simulator.with_solids`).
 
 Two integrators exist: `fluidcore.physics.paper.PositionBasedFluid` (the paper's particles with
 their own buoyancy and density-gated drag) and `fluidcore.physics.carrier.BuoyantAirCarrier`

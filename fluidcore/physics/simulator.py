@@ -1,16 +1,18 @@
-"""The simulator: a scene's box and source with a motion model's integrator behind it, stepped a
-frame at a time (a state in, a state out; fluidcore.physics.motion says how the two meet)."""
+"""The simulator: a scene's box, source and solids with a motion model's integrator behind it,
+stepped a frame at a time (a state in, a state out; fluidcore.physics.motion says how the two meet)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import replace
 
 import torch
 
 from fluidcore.physics import source as seeding
 from fluidcore.physics.motion import NO_CONTROLS, Controls, Integrator, PartStats, StepStats
 from fluidcore.physics.state import ParticleState
-from fluidcore.spec.physics import PBFConfig, PhysicsInputError, Vec3
+from fluidcore.spec.physics import PBFConfig, PhysicsInputError, Sphere, Vec3
 
 
 class Simulator:
@@ -20,13 +22,19 @@ class Simulator:
     Built by `fluidcore.physics.build.build_simulator` from a scene; `integrator` is the scene's
     motion model (`fluidcore.physics.paper.PositionBasedFluid`,
     `fluidcore.physics.carrier.BuoyantAirCarrier`), made for this simulator's config, box,
-    source and device.
+    source and device. `solids` are the scene's static balls (`fluidcore.spec.scene.Scene.solids`):
+    part of the scene, not of a step's controls, so every step adds them to the balls its
+    controls bring (`with_solids`) and no caller (the reconstruction's carry and stabilisation,
+    the identification's rollouts, the calibration, a prediction, a what-if) can leave them out.
     """
 
-    def __init__(self, integrator: Integrator) -> None:
+    def __init__(self, integrator: Integrator, solids: Sequence[Sphere] = ()) -> None:
         if not isinstance(integrator, Integrator):
             raise PhysicsInputError(f"integrator must be an Integrator, got {type(integrator).__name__}")
+        if not all(isinstance(solid, Sphere) for solid in solids):
+            raise PhysicsInputError("solids must be Sphere instances")
         self.integrator = integrator
+        self.solids = tuple(solids)
 
     @property
     def config(self) -> PBFConfig:
@@ -59,6 +67,7 @@ class Simulator:
         seeding its share of the frame's particles."""
         if not isinstance(controls, Controls):
             raise PhysicsInputError(f"controls must be a Controls, got {type(controls).__name__}")
+        controls = self.with_solids(controls)
         state = state.clone()
         start = state.time
         count = self.integrator.parts(state, self._inflow())
@@ -74,6 +83,14 @@ class Simulator:
             state.time += config.dt
         state.time, state.step = start + self.config.dt, state.step + 1
         return state, self.integrator.stats(parts, state.n_alive, seeded, state)
+
+    def with_solids(self, controls: Controls) -> Controls:
+        """`controls` with the scene's solids in the way as well as the balls they bring: what a
+        step applies, and what a caller keeping other points out of the balls (a rollout's visual
+        Gaussians) pushes them out of."""
+        if not self.solids:
+            return controls
+        return replace(controls, spheres=(*self.solids, *controls.spheres))
 
     def stabilize(self, state: ParticleState, steps: int = 20) -> ParticleState:
         """`steps` steps ending at time 0 (the paper's N_stable = 20 before the first frame)."""

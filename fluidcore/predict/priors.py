@@ -140,7 +140,7 @@ def refine_future(run: Run, generative: GenerativeSettings | None, context: JobC
     scene = run.scene
     videos = {name: _as_video(frames, run.channels) for name, frames in refined.items()}
     footage = Footage(cameras, videos, run.frame_range, run.fps, (np.asarray(scene.box_lo), np.asarray(scene.box_hi)),
-                      scene.up, SourcePlace.of(scene.source))
+                      scene.up, SourcePlace.of(scene.source), solids=scene.solids)
     first = run.frames()[0]
     reconstruct(  # the refined input views alone are the targets
         footage, quality, run.path / REFINED_RUN, physics=origin_settings.physics.mode, pseudo_views=False,

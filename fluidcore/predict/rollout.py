@@ -9,7 +9,7 @@ newborn smoke should look like the smoke the video showed coming out of it. With
 `opacity_concentration` (the reconstruction's `ReconstructConfig.visual.opacity_concentration`) each Gaussian
 follows the concentration of the smoke it carries from frame to frame, instead of keeping the
 opacity and extent last fitted (`fluidcore.smoke.Appearance.diluted`: smoke that spreads
-thins and widens, its mass kept). A ball pushes the
+thins and widens, its mass kept). A ball (the what-if's, or one of the scene's solids) pushes the
 visual Gaussians out of itself as it does the physical particles. All randomness is a function
 of (seed, frame), so a resumed rollout computes what an uninterrupted one does.
 """
@@ -76,8 +76,7 @@ class Rollout:
         carried = carry(smoke, sim, lambda rows: self._births(rows, t), self.velocity_radius, controls=controls)
         state, problem = carried.state, carried.problem
         means = visual_means(problem.p_sim, problem, dt)
-        if controls.spheres:
-            means, _ = push_out(means, controls.spheres, state.time)
+        means, _ = push_out(means, sim.with_solids(controls).spheres, state.time)  # the scene's solids, the what-if's ball
         if not bool(torch.isfinite(means).all()):
             raise FloatingPointError(f"visual Gaussians became NaN or Inf at frame {t}")
         old = carried.old

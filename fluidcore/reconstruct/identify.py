@@ -69,6 +69,7 @@ from fluidcore.runs import IdentificationPrior, IdentifiedRecord
 from fluidcore.spec.physics import Vec3
 from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import PHYSICS_MODES, MotionModel
+from fluidcore.spec.solids import SolidBall
 from fluidcore.spec.source_hint import SourceKept
 
 # Windows in seconds, counted in frames at the clip's rate (`PBFConfig.frames_in`); measured at 30 fps.
@@ -238,7 +239,8 @@ class ScenePrior:
     """A scene before its physics is chosen: box, up and air as the reconstruction sets them, the
     physics mode (`PHYSICS_MODES`) and its prior preset's physics in this scene's units, and
     where the source was estimated to be (`place`); what the source seeds, and how fast, is what
-    the physics decides. `seed` seeds the source's particles."""
+    the physics decides. `seed` seeds the source's particles. `solids`: the static balls the user
+    placed, in every candidate's rollouts as in the reconstruction."""
 
     box: Box
     up: Vec3  # unit length
@@ -248,6 +250,7 @@ class ScenePrior:
     place: SourcePlace
     seed: int
     motion: MotionModel = "paper"
+    solids: tuple[SolidBall, ...] = ()
 
     @property
     def preset(self) -> str:
@@ -270,7 +273,7 @@ class ScenePrior:
             viscosity = eddy_viscosity(float(np.linalg.norm(velocity)), place.radius)
             air = replace(air, viscosity=viscosity,
                           diffusivity=eddy_diffusivity(viscosity) if diffusivity is None else diffusivity)
-        return Scene(self.box.lo, self.box.hi, self.up, physics, source, air, self.motion)
+        return Scene(self.box.lo, self.box.hi, self.up, physics, source, air, self.motion, self.solids)
 
 
 def search_space(prior: ScenePrior, rise: float, keep: SourceKept, spreading: bool) -> tuple[list[Parameter], Candidate]:

@@ -11,7 +11,7 @@ follow `fluidcore.jobs`.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -19,6 +19,7 @@ from fluidcore.jobs import JobContext, JobInputError
 from fluidcore.spec.source_hint import SourceHint
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, ReconstructConfig, get
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, SimulationConfig
+from fluidcore.spec.solids import SolidBall, check_solids
 
 if TYPE_CHECKING:
     import numpy as np
@@ -48,6 +49,7 @@ def run_reconstruct(
     world_up: str | None = None,
     physics: str = DEFAULT_PHYSICS,
     simulation: SimulationConfig | None = None,
+    solids: Sequence[SolidBall] = (),
     progress_bar: bool = False,
     generative: GenerativeSettings | None = None,
     context: JobContext = JobContext(),
@@ -61,7 +63,9 @@ def run_reconstruct(
     source to be (otherwise estimated; one view leaves its depth to a guess). `background_frames`:
     frames of the same videos that show no smoke, the background plate (otherwise the background
     is estimated from the smoke's frames). `world_up`: the axis up points along ("+z"); otherwise
-    read from the camera file or the cameras (`fluidcore.cameras.world_up`). The videos' frame rate
+    read from the camera file or the cameras (`fluidcore.cameras.world_up`). `solids`: static balls
+    in the scene (`fluidcore.spec.solids`), checked against the scene box before any video is
+    decoded, then simulated by the reconstruction and every prediction from it. The videos' frame rate
     is the run's; one the camera file states differently is recorded, and the health report warns.
     Returns the run folder. `progress_bar` draws a
     tqdm bar on stderr (the CLI's).
@@ -94,6 +98,9 @@ def run_reconstruct(
         except camera_io.CameraError as exc:
             raise JobInputError(str(exc)) from None
     frame_range = _frame_range(infos, frames)
+    pinholes = {name: camera.pinhole() for name, camera in cameras.items()}
+    box = camera_io.capture_box(cameras_path, pinholes)
+    check_solids(solids, *box)
     plate = None
     if background_frames is not None:
         plate_range = _frame_range(infos, background_frames, "background_frames")
@@ -104,12 +111,11 @@ def run_reconstruct(
         capture = CaptureRecord(up_axis=up.axis, up_found=up.found, declared_fps=camera_io.declared_fps(cameras_path))
     except (video.VideoError, camera_io.CameraError) as exc:
         raise JobInputError(str(exc)) from None
-    pinholes = {name: camera.pinhole() for name, camera in cameras.items()}
     context.progress(0.0, "prepare")
     # handed over, not kept: the pipeline lets the decoded frames go once they are its targets
     return reconstruct(
-        Footage(pinholes, _decoded(cameras, videos, frame_range, preset.fit.long_side), frame_range, fps,
-                camera_io.capture_box(cameras_path, pinholes), up=up.vector, source=source, plate=plate, capture=capture),
+        Footage(pinholes, _decoded(cameras, videos, frame_range, preset.fit.long_side), frame_range, fps, box,
+                up=up.vector, source=source, plate=plate, capture=capture, solids=tuple(solids)),
         preset, out_dir, physics=physics, generative=generative or GenerativeSettings(), context=context,
         progress_bar=progress_bar,
     )

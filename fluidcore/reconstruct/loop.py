@@ -44,6 +44,7 @@ from fluidcore.errors import InputError
 from fluidcore.jobs import StepProgress
 from fluidcore.physics import Box, ParticleState, interpolate_velocity, step_record
 from fluidcore.physics.build import build_simulator
+from fluidcore.physics.coupling import push_out, surface_gaps
 from fluidcore.reconstruct.flow import FlowField, FlowObservation, input_flow
 from fluidcore.reconstruct.images import Background, estimate_background, plate_background, resize_image, smoke_mask, to_float
 from fluidcore.carry import PositionProblem, carry, visual_means
@@ -60,6 +61,7 @@ from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import MIN_FIT_SIDE, ReconstructConfig
 from fluidcore.spec.scene import Air, Scene, SourcePlace
 from fluidcore.spec.simulation import DEFAULT_PHYSICS
+from fluidcore.spec.solids import SolidBall, check_solids, gap_record
 
 FrameCallback = Callable[[int, dict[str, float]], None]
 
@@ -200,6 +202,7 @@ def prepare(
     up: Sequence[float] = (0.0, 1.0, 0.0),
     source: SourceHint | SourcePlace | None = None,
     physics: str = DEFAULT_PHYSICS,
+    solids: Sequence[SolidBall] = (),
     extra_views: Sequence[ViewTarget] = (),
     pseudo_views: bool = True,
     device: str | torch.device = "cpu",
@@ -210,7 +213,8 @@ def prepare(
     `source` is where the user knows the source to be (its radius, if not given, is measured at
     that depth), or the place of the source of a run this one refines; otherwise it is estimated
     from the first frames. `physics` is "auto" (identified from the first input view,
-    fluidcore.reconstruct.identify) or a preset name. `extra_views` are views made before the fit
+    fluidcore.reconstruct.identify) or a preset name. `solids`: static balls in the scene (in the
+    box), simulated from the identification's rollouts on. `extra_views` are views made before the fit
     (the generative novel views of a single input view): those of kind "generated" join the
     source estimate's triangulation at their loss weight (`estimate_source`), so the
     identification starts from their depth too, and they take the place of the symmetry
@@ -228,6 +232,7 @@ def prepare(
 
     if isinstance(source, SourceHint):
         source.check_in_box(*box)
+    check_solids(solids, *box)
     place = source.place if isinstance(source, SourceHint) else source
     estimate_record = None
     if place is None:
@@ -247,7 +252,7 @@ def prepare(
     first = targets[0]
     simulation = quality.simulation
     prior = scene_prior(physics, sim_box, up_v, fps, place, Air(simulation.cells, simulation.air_vorticity), quality.seed,
-                        simulation.motion)
+                        simulation.motion, tuple(solids))
     chosen = scene_physics(first, prior, budget=quality.fit.particles_per_frame, entrainment=quality.simulation.entrainment,
                            keep_source=source.kept if isinstance(source, SourceHint) else "nothing", device=device,
                            on_evaluation=on_evaluation)
@@ -362,7 +367,10 @@ class Reconstructor:
         flow = None if first or rec.flow is None else FlowObservation(rec.flow, index - 1, problem.p_prev, config.h)
         p, terms = fit_positions(problem, appearance, loss_fn, self.simulator.integrator, q.weights, iterations,
                                  lr.lr_position, q.priors.next_step_incompressibility, flow)
-        means = visual_means(p, problem, config.dt).detach()
+        # the image fit may pull particles (and the Gaussians on them) into a solid: the scene keeps them out
+        solids = self.simulator.solids
+        p, _ = push_out(p, solids, state.time)
+        means, _ = push_out(visual_means(p, problem, config.dt).detach(), solids, state.time)
         app_iterations = fit.appearance_iterations * (fit.first_frame_factor if first else 1)
         appearance, app_loss = fit_appearance(
             means,
@@ -379,8 +387,17 @@ class Reconstructor:
         state.velocities[carried.slots] = self._velocities(state, p, problem, first)
         losses = {**terms, "appearance": app_loss, **self._input_fit(index, means, appearance), "forecast_psnr": forecast}
         fitted = SmokeState(state, means, appearance).cropped(rec.scene.box_lo, rec.scene.box_hi)
-        losses.update({"particles": float(state.n_alive), "gaussians": float(len(fitted.means)), **step_record(carried.step)})
+        losses.update({"particles": float(state.n_alive), "gaussians": float(len(fitted.means)), **step_record(carried.step),
+                       **self._solid_gaps(fitted.particles)})
         return fitted, losses
+
+    def _solid_gaps(self, state: ParticleState) -> dict[str, float]:
+        """How far the frame's smoke kept from each of the scene's solids (`gap_record`), what the
+        health report reads to tell a ball the smoke never touched; nothing without solids or smoke."""
+        alive = state.positions[state.alive]
+        if not self.simulator.solids or alive.shape[0] == 0:
+            return {}
+        return {gap_record(index): gap for index, gap in enumerate(surface_gaps(alive, self.simulator.solids, state.time))}
 
     def _velocities(self, state: ParticleState, p: torch.Tensor, problem: PositionProblem, first: bool) -> torch.Tensor:
         """The fitted particles' velocities u_t: the motion model's own where it has a velocity

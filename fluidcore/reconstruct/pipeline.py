@@ -29,6 +29,7 @@ from fluidcore.scene_info import WORLD_UP
 from fluidcore.spec.reconstruct import ReconstructConfig
 from fluidcore.spec.scene import SourcePlace
 from fluidcore.spec.simulation import DEFAULT_PHYSICS
+from fluidcore.spec.solids import SolidBall
 
 if TYPE_CHECKING:
     from fluidcore.generative.stages import GenerativeSettings
@@ -42,7 +43,7 @@ IDENTIFY_STAGE = "prepare: identifying the physics"
 @dataclass(frozen=True)
 class Footage:
     """What a reconstruction is given, decoded: the input videos, the cameras they and the other
-    views of the scene were taken with, and the scene's box and up axis."""
+    views of the scene were taken with, and the scene's box, up axis and solids."""
 
     cameras: Mapping[str, Camera]  # every camera of the scene by name, pinhole (undistorted)
     videos: Mapping[str, np.ndarray]  # input camera -> uint8 (T, H, W, 3): the frames of frame_range
@@ -53,6 +54,7 @@ class Footage:
     source: SourceHint | SourcePlace | None = None  # where the source is known to be; None: estimated
     plate: Plate | None = None  # frames without smoke; None: the background is estimated from the videos
     capture: CaptureRecord | None = None  # how up was found, the camera file's fps; None: a refinement's
+    solids: tuple[SolidBall, ...] = ()  # static balls in the scene (world units, in the box)
 
 
 def prepared(footage: Footage, quality: ReconstructConfig, *, physics: str = DEFAULT_PHYSICS,
@@ -109,7 +111,7 @@ def reconstruct(
 def _prepare(footage: Footage, inputs: InputViews, quality: ReconstructConfig, physics: str, extra_views: Sequence[ViewTarget],
              pseudo_views: bool, device: str | torch.device, on_evaluation: StepProgress | None = None) -> Reconstruction:
     rec = prepare(footage.cameras, inputs, fps=footage.fps, quality=quality, box=footage.box, up=footage.up,
-                  source=footage.source, physics=physics, extra_views=extra_views, pseudo_views=pseudo_views,
+                  source=footage.source, physics=physics, solids=footage.solids, extra_views=extra_views, pseudo_views=pseudo_views,
                   device=device, on_evaluation=on_evaluation)
     return replace(rec, capture=footage.capture)
 

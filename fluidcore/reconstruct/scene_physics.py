@@ -22,6 +22,7 @@ from fluidcore.reconstruct.identify import Observation, ScenePrior, identify, in
 from fluidcore.reconstruct.views import ViewTarget
 from fluidcore.runs import PhysicsRecord
 from fluidcore.spec.scene import Air, Scene, SourcePlace
+from fluidcore.spec.solids import SolidBall
 from fluidcore.spec.simulation import DEFAULT_MOTION, PHYSICS_MODES, MotionModel
 from fluidcore.spec.source_hint import SourceKept
 
@@ -79,10 +80,10 @@ def check_mode(mode: str) -> str:
 
 
 def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePlace, air: Air, seed: int,
-                motion: MotionModel = DEFAULT_MOTION) -> ScenePrior:
+                motion: MotionModel = DEFAULT_MOTION, solids: tuple[SolidBall, ...] = ()) -> ScenePrior:
     """The scene of a reconstruction before its physics is chosen: the prior preset of the
     physics `mode` in this scene's units, the source at its estimated `place` (at least half a
-    kernel radius wide), moved by the `motion` model in `air`.
+    kernel radius wide), moved by the `motion` model in `air` around the static `solids`.
 
     The kernel radius is a resolution choice in the scene's own units (its box's height over
     KERNEL_RADII_PER_BOX), and the preset's buoyancy is converted with it (`KERNEL_RADIUS_SIM`).
@@ -92,7 +93,7 @@ def scene_prior(mode: str, box: Box, up: np.ndarray, fps: float, place: SourcePl
     gravity = tuple(float(c) for c in -9.8 * up)
     physics = replace(PRESETS[preset], length_scale=KERNEL_RADIUS_SIM / h, h=h, gravity=gravity, dt=1.0 / fps)
     return ScenePrior(box, tuple(float(c) for c in up), air, mode, physics,
-                      SourcePlace(place.center, max(place.radius, 0.5 * h)), seed, motion)
+                      SourcePlace(place.center, max(place.radius, 0.5 * h)), seed, motion, solids)
 
 
 def scene_physics(

@@ -27,6 +27,7 @@ from typing import Annotated, Any, Literal, Protocol, TypeVar
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fluidcore.errors import InputError, describe_validation
+from fluidcore.spec.solids import ball_box_problem
 
 Vec3 = tuple[float, float, float]
 Height = TypeVar("Height")  # a float, or a torch tensor of heights
@@ -193,13 +194,11 @@ class BallParams(BaseModel):
         )
 
     def check_in_box(self, lo: Vec3, hi: Vec3) -> None:
-        """Reject a ball whose centre lies outside the scene box (it could never touch the smoke)."""
-        if not all(l <= c <= h for c, l, h in zip(self.center, lo, hi)):
-            raise InteractionError(
-                f"ball.center {list(self.center)} is outside the scene box {list(lo)}..{list(hi)}"
-            )
-        if self.radius > max(h - l for l, h in zip(lo, hi)):
-            raise InteractionError(f"ball.radius {self.radius} is larger than the scene box {list(lo)}..{list(hi)}")
+        """Reject a ball whose centre lies outside the scene box (it could never touch the smoke),
+        by the rule a scene's solids follow too (`fluidcore.spec.solids.ball_box_problem`)."""
+        problem = ball_box_problem(self.center, self.radius, lo, hi, "ball")
+        if problem is not None:
+            raise InteractionError(problem)
 
 
 class _Physics(Protocol):  # fluidcore.physics.PBFConfig
@@ -336,12 +335,15 @@ def parse_interaction(
     show ours, which names each offending field as `wind.strength`, `ball.center[2]`, ...
     """
     try:
-        return model(wind=_as_dict(wind, "wind"), ball=_as_dict(ball, "ball"), **fields)
+        return model(wind=json_object(wind, "wind"), ball=json_object(ball, "ball"), **fields)
     except ValidationError as exc:
         raise InteractionError(describe_validation(exc)) from None
 
 
-def _as_dict(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
+def json_object(value: Given, field: str) -> dict[str, Any] | BaseModel | None:
+    """`value` (JSON text, a mapping or a model) as a dict or the model, None as None; an
+    InteractionError naming `field` (a model's field or the command line's flag) for text that is
+    not JSON or not an object. The command line's JSON options (`--wind`, `--ball`) read through it."""
     if value is None or isinstance(value, BaseModel):
         return value
     if isinstance(value, str):

@@ -20,6 +20,7 @@ from fluidcore.spec.controls import FromFrame, Intervention
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, PRESETS
 from fluidcore.spec.scene import UpAxis
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES, SimulationConfig
+from fluidcore.spec.solids import Solids
 
 _STRICT = ConfigDict(extra="forbid")
 Params = TypeVar("Params", bound=BaseModel)
@@ -42,7 +43,9 @@ class ReconstructParams(SimulationConfig):
     `air_cells`, `air_vorticity`, `entrainment`: the simulated air and the plume's spreading, off
     by default (`SimulationConfig`, whose docstring gives the measurements). `world_up`: the axis
     the world's up points along ("+z" for Blender's files); read from the camera file's `up` or the
-    cameras' mean image up when omitted (`fluidcore.cameras.world_up`)."""
+    cameras' mean image up when omitted (`fluidcore.cameras.world_up`). `solids`: static balls in
+    the scene the smoke flows around (`fluidcore.spec.solids`; checked against the scene box),
+    simulated by the reconstruction and every prediction and what-if from it."""
 
     model_config = _STRICT
     quality: QualityName = DEFAULT_QUALITY
@@ -51,6 +54,7 @@ class ReconstructParams(SimulationConfig):
     source: SourceHint | None = None
     background_frames: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=1)]] | None = None
     world_up: UpAxis | None = None
+    solids: Solids
 
     @model_validator(mode="after")
     def _ordered(self) -> ReconstructParams:

@@ -5,8 +5,9 @@ declaration and change with it.
 A field's limits are the JSON Schema keywords that bound a value (`minimum`, `maximum`,
 `exclusiveMinimum`, `exclusiveMaximum`, `enum`, `const`, and an `anyOf` of such branches, e.g.
 "0 or at least 8") with its `type`, `default` and `description`, keyed by the field's path:
-`air_cells`, `frames[1]` (an item of a tuple), `wind.strength` (a field of a nested model). An
-optional field (`X | None`) gives the limits of its value. Torch-free, like the whole spec.
+`air_cells`, `frames[1]` (an item of a tuple), `wind.strength` (a field of a nested model),
+`solids[].radius` (a field of every item of a list, whose own limits, `maxItems`, are under
+`solids`). An optional field (`X | None`) gives the limits of its value. Torch-free, like the whole spec.
 """
 
 from __future__ import annotations
@@ -16,7 +17,8 @@ from typing import Any
 from pydantic import BaseModel
 
 Limits = dict[str, Any]
-BOUNDS = ("type", "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "enum", "const", "anyOf")
+BOUNDS = ("type", "minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum", "enum", "const", "anyOf", "minItems",
+          "maxItems")
 ABOUT = ("default", "description")
 
 
@@ -42,6 +44,8 @@ def _field(field: dict[str, Any], defs: dict[str, Any], path: str, found: dict[s
             _field(item, defs, f"{path}[{index}]", found)
     else:
         found[path] = {key: value[key] for key in BOUNDS if key in value} | {key: field[key] for key in ABOUT if key in field}
+        if "items" in value:
+            _field(value["items"], defs, f"{path}[]", found)
 
 
 def _value_schema(field: dict[str, Any], defs: dict[str, Any]) -> dict[str, Any]:

@@ -6,10 +6,11 @@ that moves the smoke (`MOTION_MODELS`). Reconstruction, identification, calibrat
 continuation build their simulator from one of these, so they all simulate the same physics
 (the air included when it is on).
 
-In a run's manifest the "scene" record holds box, up, physics, source, air and motion
+In a run's manifest the "scene" record holds box, up, physics, source, air, motion and solids
 (`to_json`): it is the one record of the physics the run simulates, which a continuation reads
 back as it is (`fluidcore.runs.RunRecord.scene`). A record without the air is still air; one
-without the motion model is the paper's (every run written before the carrier existed).
+without the motion model is the paper's (every run written before the carrier existed); one
+without solids has none (every run written before them, issue 48).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Any, Literal
 from fluidcore.errors import InputError
 from fluidcore.spec.physics import Box, PBFConfig, PhysicsInputError, Source, Vec3, vec3
 from fluidcore.spec.simulation import AIR_CELLS, MOTION_MODELS, MotionModel
+from fluidcore.spec.solids import SolidBall, SolidError, check_solids
 
 
 # The scene box is axis-aligned, so up is one of its six axis directions (fluidcore.cameras.world_up
@@ -101,8 +103,10 @@ class Scene:
 
     `physics` is the scene's `PBFConfig` (world units, with the `length_scale` and kernel radius
     `h` chosen for this scene), `source` its `Source`, (`box_lo`, `box_hi`) the simulation box,
-    `up` the scene's up axis, `air` the air around the smoke and `motion` the model that moves
-    it (`MOTION_MODELS`; the carrier is its air, so it needs `air.simulated`).
+    `up` the scene's up axis, `air` the air around the smoke, `motion` the model that moves
+    it (`MOTION_MODELS`; the carrier is its air, so it needs `air.simulated`) and `solids` the
+    static balls in the box the smoke flows around (`fluidcore.spec.solids`; the simulator built
+    from the scene steps with them, `fluidcore.physics.build.build_simulator`).
     """
 
     box_lo: Vec3
@@ -112,6 +116,7 @@ class Scene:
     source: Source
     air: Air = field(default_factory=Air)
     motion: MotionModel = "paper"
+    solids: tuple[SolidBall, ...] = ()
 
     def __post_init__(self) -> None:
         try:
@@ -130,6 +135,13 @@ class Scene:
             raise SceneError(f"scene.motion must be one of {', '.join(MOTION_MODELS)}, got {self.motion!r}")
         if self.motion == "carrier" and not self.air.simulated:
             raise SceneError("scene.air.cells must be > 0 for the carrier: its air is the motion")
+        object.__setattr__(self, "solids", tuple(self.solids))
+        if not all(isinstance(solid, SolidBall) for solid in self.solids):
+            raise SceneError("scene.solids must be SolidBall instances")
+        try:
+            check_solids(self.solids, self.box_lo, self.box_hi, "scene.solids")
+        except SolidError as exc:
+            raise SceneError(str(exc)) from None
 
     @property
     def box(self) -> Box:
@@ -145,12 +157,13 @@ class Scene:
             "source": asdict(self.source),
             "air": asdict(self.air),
             "motion": self.motion,
+            "solids": [solid.model_dump(mode="json") for solid in self.solids],
         }))
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> Scene:
         """The scene of a manifest's "scene" record; a record without "air" is still air, one
-        without "motion" the paper's."""
+        without "motion" the paper's, one without "solids" has none."""
         def tuples(d: Mapping[str, Any]) -> dict[str, Any]:
             return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
 
@@ -163,6 +176,7 @@ class Scene:
                 source=Source(**tuples(data["source"])),
                 air=Air(**data.get("air", {})),
                 motion=data.get("motion", "paper"),
+                solids=tuple(SolidBall(**solid) for solid in data.get("solids", [])),
             )
         except (KeyError, TypeError, ValueError, InputError) as exc:
             raise SceneError(f"scene: malformed ({exc})") from None

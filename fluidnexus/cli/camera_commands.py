@@ -3,7 +3,7 @@
 `single` declares one camera from its field of view (a phone video, a clip shot with one
 camera); `colmap` calibrates a rig of fixed cameras from the static background its videos
 share. Both write nerfstudio's transforms.json with FluidNexus's `scene_box` (docs/cameras.md).
-`scene info` prints where the box, the source and the cameras are, to place a ball.
+`scene info` prints where the box, the source, the run's solid balls and the cameras are, to place a ball.
 """
 
 from __future__ import annotations
@@ -31,9 +31,9 @@ def register(app: typer.Typer, bench: typer.Typer) -> None:
 
 
 def info(
-    path: Path = typer.Argument(..., exists=True, help="A run folder (box, source, cameras) or a camera file (box, cameras)."),
+    path: Path = typer.Argument(..., exists=True, help="A run folder (box, source, solids, cameras) or a camera file (box, cameras)."),
 ) -> None:
-    """Print the scene box, the estimated source and the camera centres (world units) as JSON."""
+    """Print the scene box, the estimated source, the run's solid balls and the camera centres (world units) as JSON."""
     from fluidcore import scene_info
     from fluidcore.runs import MANIFEST, Run
     from fluidnexus.reporting import echo_json

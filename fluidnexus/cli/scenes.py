@@ -15,6 +15,7 @@ from fluidcore.names import check_name
 from fluidcore.spec.jobs import ReconstructParams
 from fluidcore.spec.reconstruct import DEFAULT_QUALITY, QUALITY_HELP
 from fluidcore.spec.simulation import DEFAULT_PHYSICS, PHYSICS_MODES
+from fluidcore.spec.solids import MAX_SOLIDS
 from fluidnexus.reporting import UserError, check_device, emit, emit_run, user_errors
 from fluidnexus.cli.generative import ModelsDir
 from fluidnexus.cli.options import spec_option
@@ -96,6 +97,11 @@ def reconstruct(
     air_cells: int | None = spec_option(ReconstructParams, "air_cells", "--air-cells"),
     air_vorticity: float = spec_option(ReconstructParams, "air_vorticity", "--air-vorticity"),
     entrainment: bool = spec_option(ReconstructParams, "entrainment", "--entrainment"),
+    ball: list[str] = typer.Option(
+        [], "--ball", help='\'{"center": [x, y, z], "radius": r}\': a static ball in the scene the smoke flows around '
+        f"(world units, inside the scene box; repeat for up to {MAX_SOLIDS}; the n-th is solids[n-1] in messages), "
+        "simulated by the reconstruction and every prediction and what-if from it.",
+    ),
     out: Path = typer.Option(..., "--out", help="Run folder; an unfinished run there is resumed."),
     device: str = typer.Option("cpu", "--device", help="torch device: cpu, cuda, ..."),
     threads: int | None = typer.Option(None, "--threads", min=1, help="torch CPU threads (default: all cores)."),
@@ -109,6 +115,7 @@ def reconstruct(
     from fluidcore.generative.stages import GenerativeSettings
     from fluidcore.jobs import JobContext, parse_frames
     from fluidcore.reconstruct.job import run_reconstruct
+    from fluidcore.spec.controls import json_object
     from fluidcore.spec.source_hint import parse_source
     from fluidcore.spec.jobs import job_params
 
@@ -120,13 +127,14 @@ def reconstruct(
             source=None if source is None else parse_source(source, refine_source), motion=motion, air_cells=air_cells,
             air_vorticity=air_vorticity,
             entrainment=entrainment, background_frames=parse_frames(background_frames, "--background-frames"),
-            world_up=world_up,
+            world_up=world_up, solids=[json_object(text, "--ball") for text in ball],
         )
         check_device(device)
         _set_threads(threads)
         path = run_reconstruct(
             cameras, parse_videos(video), out, quality=params.quality, physics=params.physics, frames=params.frames,
             source=params.source, background_frames=params.background_frames, world_up=params.world_up, simulation=params,  # a ReconstructParams is its SimulationConfig
+            solids=params.solids,
             progress_bar=True, generative=GenerativeSettings(models_root=models), context=JobContext(device),
         )
         emit_run(as_json, path)

@@ -185,7 +185,7 @@ def test_create_get_and_list_jobs(service: Service, scene_id: str) -> None:
     assert job["params"] == {"quality": "standard", "physics": "auto", "frames": [1, 5], "source": None,
                              "motion": "paper", "air_cells": None, "air_vorticity": 0.0, "entrainment": False,
                              "background_frames": None,
-                             "world_up": None}
+                             "world_up": None, "solids": []}
     assert service.queue.sent == [(job["id"], "reconstruct")]
     fetched = service.client.get(f"/v1/jobs/{job['id']}", headers=alice).json()
     assert fetched["id"] == job["id"] and fetched["timings"]["started_at"] is None
@@ -234,6 +234,30 @@ def test_a_source_hint_is_checked_against_the_capture_box(service: Service, tmp_
     assert created.json()["params"]["source"] == {"center": inside, "radius": 0.05, "refine": False}  # kept as given
     refined = reconstruct(service, alice, scene_id, source={"center": inside, "refine": True})
     assert refined.status_code == 202 and refined.json()["params"]["source"]["refine"] is True
+
+
+def test_solids_are_checked_against_the_capture_box_by_name(service: Service, tmp_path: Path) -> None:
+    alice = service.key("alice")
+    files = scene_files(tmp_path)
+    box = {"min": [-0.5, 0.0, -0.5], "max": [0.5, 1.0, 0.5]}
+    files["cameras"].write_text(json.dumps({**json.loads(files["cameras"].read_text()), "scene_box": box}))
+    scene_id = upload(service, alice, files).json()["id"]
+    inside = {"center": [0.1, 0.5, -0.1], "radius": 0.1}
+    for solids, message in (
+        ([inside, {"center": [0.1, 1.5, -0.1], "radius": 0.1}], "params.solids[1].center [0.1, 1.5, -0.1] is outside the scene box"),
+        ([{"center": [0.1, 0.5, -0.1], "radius": 2.0}], "params.solids[0].radius 2.0 is larger than the scene box"),
+        ([{"center": [0.1, 0.5, -0.1], "radius": 0}], '"params","solids",0,"radius"'),  # the request schema's own 422s
+        ([inside] * 9, "at most 8 items"),
+        ([{"center": [0.1, 0.5, -0.1], "radius": 0.1, "velocity": [1, 0, 0]}], '"params","solids",0,"velocity"'),
+    ):
+        refused = reconstruct(service, alice, scene_id, solids=solids)
+        assert refused.status_code == 422 and message in refused.text, refused.text
+    assert service.queue.sent == []
+    created = reconstruct(service, alice, scene_id, solids=[inside])
+    assert created.status_code == 202, created.text
+    assert created.json()["params"]["solids"] == [inside]
+    limits = service.client.get("/v1/limits").json()["reconstruct"]
+    assert limits["solids"]["maxItems"] == 8 and limits["solids[].radius"]["exclusiveMinimum"] == 0
 
 
 def test_reconstruct_takes_the_motion_model_the_simulated_air_and_the_spreading(service: Service, scene_id: str) -> None:

@@ -17,6 +17,7 @@ from fluidcore.runs import ReconstructSettings, Run, SourceEstimateRecord
 from fluidcore.spec.physics import PBFConfig, Source
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import Scene as RunScene
+from fluidcore.spec.solids import SolidBall
 from service.database import session_scope
 from service.models import Job, JobState, Scene
 from service.storage import run_prefix
@@ -97,7 +98,7 @@ def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
     loaded = cameras.load(files["cameras"])
     with pytest.raises(cameras.CameraError):  # these test cameras share no bounded view and declare no box
         cameras.frusta_box(loaded)
-    assert geometry["box"] is None and geometry["source"] is None and geometry["up"] == [0, 1, 0]
+    assert geometry["box"] is None and geometry["source"] is None and geometry["up"] == [0, 1, 0] and geometry["solids"] == []
     for name, camera in loaded.items():
         assert geometry["cameras"][name]["center"] == pytest.approx(camera.center().tolist())
     assert http.get("/v1/scenes", headers=auth).json()["items"][0]["geometry"] is None  # listings stay light
@@ -122,14 +123,23 @@ def test_scene_geometry_over_http(client, tmp_path: Path) -> None:
     schema = http.get("/openapi.json").json()["components"]["schemas"]
     assert "depth" in schema["SceneSource"]["properties"] and "range" in schema["SourceDepth"]["properties"]
 
+    # one with a solid ball in its scene: the geometry shows it, and the health report notes that no smoke touched it
+    ball = SolidBall(center=(0.5, 0.5, 0.0), radius=0.2)
+    _finished_reconstruction(http, auth, scene["id"], loaded, tmp_path / "ball", None, (ball,))
+    geometry = http.get(f"/v1/scenes/{scene['id']}", headers=auth).json()["geometry"]
+    assert geometry["solids"] == [{"center": [0.5, 0.5, 0.0], "radius": 0.2}]
+    (note,) = [check for check in geometry["health"]["checks"] if check["name"] == "solids"]
+    assert note["level"] == "note" and note["advice"] == ["solids"] and "params.solids" in note["message"]
 
-def _finished_reconstruction(http, auth, scene_id: str, loaded, folder: Path, estimate) -> str:  # noqa: ANN001
+
+def _finished_reconstruction(http, auth, scene_id: str, loaded, folder: Path, estimate, solids=()) -> str:  # noqa: ANN001
     """A reconstruct job of the scene marked succeeded, with a run manifest in storage whose source
-    was given whole (`estimate` None) or estimated as `estimate` says; its job id."""
+    was given whole (`estimate` None) or estimated as `estimate` says, its scene holding `solids`; its job id."""
     run = Run.create(
         folder, kind="reconstruct", cameras=loaded, input_views=["cam0"], frame_range=(0, 2), fps=30.0,
         channels=1, background_color=[0.0], settings=ReconstructSettings(quality=get("preview"), source_estimate=estimate),
-        scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.5, -0.8, 0.0), 0.1, 1)),
+        scene=RunScene((0.0, -1.0, -1.0), (1.0, 1.0, 1.0), (0.0, 1.0, 0.0), PBFConfig(h=0.05), Source((0.5, -0.8, 0.0), 0.1, 1),
+                       solids=solids),
     )
     job = http.post("/v1/jobs", json={"type": "reconstruct", "scene_id": scene_id}, headers=auth).json()
     http.app.state.storage.put_file(f"{run_prefix(job['id'])}/manifest.json", run.path / "manifest.json")

@@ -118,3 +118,28 @@ def test_bad_input_is_one_clear_error(scene, run_dir, tmp_path):
     before = (run_dir / "manifest.json").read_text()
     _fails(["reconstruct", "--cameras", cams, "--video", f"view_00={scene / 'videos' / 'view_00.mp4'}", "--frames", "0:2", "--out", str(run_dir)], "different run")
     assert (run_dir / "manifest.json").read_text() == before
+
+
+BALL = {"center": [0.0, 0.3, 0.0], "radius": 0.05}  # on the plume's axis, above its source
+
+
+def test_reconstruct_with_a_ball_records_it_and_scene_info_shows_it(scene, tmp_path):
+    out = tmp_path / "ball"
+    _ok(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}",
+         "--frames", "0:2", "--ball", json.dumps(BALL), "--physics", "fluidnexus", "--out", str(out), "--threads", "1"])
+    assert Run.open(out).manifest["scene"]["solids"] == [BALL]
+    info = json.loads(_ok(["scene", "info", str(out)]))
+    assert info["solids"] == [BALL]
+
+
+@pytest.mark.parametrize(("ball", "message"), [
+    ({"center": [0.0, 3.0, 0.0], "radius": 0.05}, "error: solids[0].center [0.0, 3.0, 0.0] is outside the scene box"),
+    ({"center": [0.0, 0.3, 0.0], "radius": -1}, "error: solids[0].radius: Input should be greater than 0"),
+    ({"center": [0.0, 0.3], "radius": 0.1}, "error: solids[0].center[2]: Field required"),
+    ("{not json", "error: --ball is not valid JSON"),
+])
+def test_a_bad_ball_exits_2_naming_the_field_and_writes_nothing(scene, tmp_path, ball, message):
+    out = tmp_path / "refused"
+    _fails(["reconstruct", "--cameras", str(scene / "transforms.json"), "--video", f"view_01={scene / 'videos' / 'view_01.mp4'}",
+            "--frames", "0:2", "--ball", ball if isinstance(ball, str) else json.dumps(ball), "--out", str(out)], message)
+    assert not out.exists()

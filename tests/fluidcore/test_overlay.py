@@ -8,6 +8,7 @@ import pytest
 from fluidcore.cameras import Camera, look_at
 from fluidcore.spec.controls import parse_interaction
 from fluidcore.overlay import BALL_COLOR, WIND_LABEL_SHARE, draw_interventions, side_by_side, wind_label
+from fluidcore.spec.solids import SolidBall
 
 CAMERA = look_at([0, 0.5, 2], [0, 0.5, 0], [0, 1, 0], Camera("c", 200, 200, 80, 60, 160, 120, np.eye(4)), "c")
 DT = 1 / 30
@@ -130,3 +131,13 @@ def test_the_wind_label_tags_the_arrow_without_covering_the_smoke(size: tuple[in
     assert widths[0.0] < widths[1.0]  # "wind" against "wind (exponential)"
     assert [wind_label(parse_interaction({"direction": [1, 0, 0], "strength": 1.0, "growth": g, "profile": p}, None).wind)
             for g, p in ((0.0, "exponential"), (0.0, "linear"), (0.0, "uniform"), (0.5, "linear"))] == ["wind"] * 3 + ["wind (linear)"]
+
+
+def test_the_scenes_solids_are_drawn_on_every_frame_as_the_what_ifs_ball_is() -> None:
+    solid = SolidBall(center=(0.2, 0.5, 0.0), radius=0.1)
+    blank = np.full((4, 120, 160, 3), 20, np.uint8)
+    out = draw_interventions(blank, CAMERA, [10, 11, 12, 13], parse_interaction(None, None), first_new_frame=11, dt=DT,
+                             anchor=[0, 0.8, 0], arrow_length=0.3, solids=(solid,))
+    as_ball = _draw(parse_interaction(None, {"center": list(solid.center), "radius": solid.radius}))
+    for frame in range(4):  # before the new frames too: a solid is there from the first step
+        np.testing.assert_array_equal(out[frame], as_ball[1])

@@ -19,6 +19,7 @@ from fluidcore.runs import FrameState, PhysicsRecord, ReconstructSettings, Run, 
 from fluidcore.smoke import Appearance, SmokeState
 from fluidcore.spec.reconstruct import get
 from fluidcore.spec.scene import Air, Scene
+from fluidcore.spec.solids import SolidBall
 from fluidcore.synth import SynthSpec, particle_gaussians
 
 SPEC = SynthSpec(width=24, height=32, views=2, particles_per_step=16)
@@ -42,16 +43,18 @@ def frame_state(state: ParticleState, spec: SynthSpec = SPEC) -> FrameState:
 
 
 def plume_run(path: Path, frames: int = 4, warmup: int = 30, spec: SynthSpec = SPEC,
-              quality: dict | None = None, physics: str = "scalarflow") -> Path:
+              quality: dict | None = None, physics: str = "scalarflow", solids: tuple[SolidBall, ...] = ()) -> Path:
     """A 'reconstruct' run of `frames` frames of a plume that has risen for `warmup` steps
     (`quality`: overrides of the preview quality its settings record, whose Gaussians are one per
     particle with fixed opacity unless they say otherwise; its motion the paper model's unless they
     say "motion": "carrier"; with `air_cells` there the plume is simulated with the air, and every
-    frame saves it; `physics`: the physics mode it records, a preset's unless "auto")."""
+    frame saves it; `physics`: the physics mode it records, a preset's unless "auto"; `solids`: the
+    static balls in its scene, in the plume's way from its first step)."""
     config = get("preview").with_overrides(**{"per_physical": 1, "opacity_concentration": False, "motion": "paper",
                                               **(quality or {})})
     simulation = config.simulation
-    scene = scene_of(spec, Air(simulation.cells, simulation.air_vorticity), simulation.motion)  # the air its quality asks for
+    scene = replace(scene_of(spec, Air(simulation.cells, simulation.air_vorticity), simulation.motion),  # the air its quality asks for
+                    solids=solids)
     simulator = build_simulator(scene)
     state = simulator.stabilize(simulator.new_state(), 20)
     for _ in range(warmup):

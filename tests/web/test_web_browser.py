@@ -178,6 +178,14 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     source.fill("0, 0.075, 0, 0.05")  # the synth's source, where whoever built the rig knows it is
     page.get_by_label("Let the fit move and resize this source").check()  # ... roughly
     sync_api.expect(page.locator("#upload-button")).to_be_enabled()
+    ball = page.get_by_label("Ball in the scene")  # a solid of the scene: refused outside the box, by its centre
+    ball.fill("0, 0.3, 0")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Ball: expected x, y, z, radius")
+    ball.fill("0, 5, 0, 0.05")
+    sync_api.expect(page.locator("#upload-problems")).to_contain_text("Ball centre (0, 5, 0) is outside the scene box")
+    sync_api.expect(page.locator("#upload-button")).to_be_disabled()
+    ball.fill("0, 0.3, 0, 0.05")
+    sync_api.expect(page.locator("#upload-button")).to_be_enabled()
     plate = page.get_by_label("Background plate")
     plate.fill("5:2")  # a plate's frames the wrong way round: refused before anything is sent
     sync_api.expect(page.locator("#upload-problems")).to_contain_text("Background plate: its end frame (2) must come after its first (5).")
@@ -213,6 +221,7 @@ def test_browser_journey(server: Server, browser, scene: dict, screens: Path) ->
     assert "stored: 2 frames at 30 fps" in page.locator("#upload-percent").text_content()  # the XHR's answer
     sent = server.client.get("/v1/jobs", params={"type": "reconstruct"}).json()["items"][0]["params"]
     assert sent["source"] == {"center": [0.0, 0.075, 0.0], "radius": 0.05, "refine": True} and sent["physics"] == "auto"
+    assert sent["solids"] == [{"center": [0.0, 0.3, 0.0], "radius": 0.05}]
     assert (sent["motion"], sent["air_cells"], sent["entrainment"], sent["world_up"]) == ("paper", 8, True, "+y")
     sync_api.expect(row(page, "reconstruct").locator(".job-params")).to_contain_text("air 8 cells, spreading")
     assert server.client.get("/v1/scenes").json()["total"] == 1  # one scene, with its reconstruction
@@ -645,3 +654,45 @@ def upload_by_hand(server: Server, browser, scene: dict, screens: Path) -> None:
 def named(server: Server, name: str) -> dict:
     """The newest scene of that name."""
     return next(s for s in server.client.get("/v1/scenes", params={"limit": 100}).json()["items"] if s["name"] == name)
+
+
+def test_the_whatif_view_draws_the_runs_solids(static_web: str, browser) -> None:  # type: ignore[no-untyped-def]
+    """The particles answer's `scene.solids` (faked here) are drawn in the 3D what-if view as the
+    what-if's ball is (red shells); a run without solids draws none (the what-if's own ball off)."""
+    import json
+
+    from api.routers.limits import limits
+    from service.settings import Settings
+
+    job = {"id": "job-solid", "type": "reconstruct", "state": "succeeded", "scene_id": None, "parent_job_id": None, "params": {}}
+
+    def particles(solids: list) -> str:
+        return json.dumps({
+            "job_id": job["id"], "frame": 1, "frames": [0, 1], "total": 3, "positions": [0.0, -0.3, 0.0] * 3,
+            "scene": {"box_lo": [-0.5, -0.5, -0.5], "box_hi": [0.5, 0.5, 0.5], "up": [0.0, 1.0, 0.0],
+                      "source": {"center": [0.0, -0.4, 0.0], "radius": 0.05}, "dt": 1 / 30, "solids": solids},
+            "air": None,
+        })
+
+    def answer(body: str):  # a route handler of one argument (one of two is handed the request as well)
+        return lambda route: route.fulfill(body=body, content_type="application/json")
+
+    def red(page) -> int:  # type: ignore[no-untyped-def]  # pixels of the balls' colour (0xe74c3c over the dark view)
+        rgb = canvas_pixels(page, "#scene3d").astype(int)
+        return int(((rgb[..., 0] > 60) & (rgb[..., 0] > 2 * rgb[..., 1]) & (rgb[..., 0] > 2 * rgb[..., 2])).sum())
+
+    counts = {}
+    for solids in ([{"center": [0.0, 0.2, 0.0], "radius": 0.15}], []):
+        page = browser.new_page()
+        page.route("**/v1/jobs?limit=100", lambda route: route.fulfill(json={"items": [job]}))
+        page.route("**/v1/jobs/job-solid/particles*", answer(particles(solids)))
+        page.route("**/v1/limits", answer(json.dumps(limits(Settings()))))
+        page.goto(static_web)
+        page.evaluate("""async () => { document.getElementById('view-whatif').hidden = false;
+                                       await (await import('/js/whatif.js')).showWhatif('job-solid'); }""")
+        sync_api.expect(page.locator("#whatif-summary")).to_contain_text("particles at frame 1")
+        if page.locator("#ball-on").is_checked():
+            page.locator("#ball-on").uncheck()
+        counts[len(solids)] = red(page)
+        page.close()
+    assert counts[0] == 0 and counts[1] > 100, counts

@@ -469,6 +469,7 @@ const REMEDIES = {
   background_plate: "give a background plate (the upload form's Background plate: frames without smoke)",
   another_view: "add a view (upload a camera file with another camera's video)",
   world_up: "give the right up (the upload form's World up; one video without a camera file: Where world up points in the image)",
+  solids: "place the ball where the smoke passes (a new reconstruction's ball, in world units)",
 };
 
 /** A health check's finding and its remedies in this page's words, joined as fluidcore.health joins them. */

@@ -3,16 +3,30 @@
 // reconstruction from one view could have put the source on (GET /v1/scenes/{id}:
 // geometry.source.depth.range, the nearest and farthest centres inside the box).
 
+/** "a, b, ..." -> numbers (NaN for a part that is not one). */
+const numbersOf = (text) => text.split(",").map((part) => (part.trim() ? Number(part) : NaN));
+
 /** "x, y, z[, r]" -> {value: {center, radius?}} (empty text: {value: null}) or {error}; the API's SourceHint. */
 export function parseSource(text) {
   if (!text.trim()) return { value: null };
-  const numbers = text.split(",").map((part) => (part.trim() ? Number(part) : NaN));
+  const numbers = numbersOf(text);
   if (![3, 4].includes(numbers.length) || !numbers.every(Number.isFinite) || (numbers.length === 4 && numbers[3] <= 0)) {
     return { error: `Smoke source: expected x, y, z or x, y, z, radius (radius > 0) in world units, got "${text}".` };
   }
   const value = { center: numbers.slice(0, 3) };
   if (numbers.length === 4) value.radius = numbers[3];
   return { value };
+}
+
+/** "x, y, z, r" -> {value: {center, radius}} (empty text: {value: null}) or {error}: a static ball of the
+ * scene (the API's SolidBall, one of a reconstruction's params.solids). */
+export function parseBall(text) {
+  if (!text.trim()) return { value: null };
+  const numbers = numbersOf(text);
+  if (numbers.length !== 4 || !numbers.every(Number.isFinite) || numbers[3] <= 0) {
+    return { error: `Ball: expected x, y, z, radius (radius > 0) in world units, got "${text}".` };
+  }
+  return { value: { center: numbers.slice(0, 3), radius: numbers[3] } };
 }
 
 export function insideBox(point, box) {

@@ -8,7 +8,7 @@ import { drawTopDown, lookPoint, matchCamera, parseCameraFile } from "./cameras.
 import { decimal } from "./format.js";
 import { mp4Frames } from "./mp4.js";
 import { allowedText, bound, limitProblem, loadLimits } from "./limits.js";
-import { insideBox, parseSource } from "./source.js";
+import { insideBox, parseBall, parseSource } from "./source.js";
 
 const VIDEO_NAME = /\.(mp4|mov|m4v|webm|mkv|avi)$/i;
 const BOX_COLOR = "#ffd23f"; // the field of view's box on the first frame: yellow, seen over smoke and most scenes
@@ -83,6 +83,7 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
   else if (source.value && parsed && parsed.box && !insideBox(source.value.center, parsed.box)) {
     problems.push(`Smoke source ${fmt(source.value.center)} is outside the scene box ${fmt(parsed.box.lo)} to ${fmt(parsed.box.hi)}.`);
   }
+  problems.push(...ballProblems(parseBall($("ball").value), parsed && parsed.box));
   if (!limits) problems.push("Reading the server's limits…");
   else if (limits.error) problems.push(`The server's limits could not be read: ${limits.error}`);
   else {
@@ -111,6 +112,17 @@ function uploadProblems({ camerasFile, parsed, cameraError, videos }) {
     }
   }
   return [...problems, ...frameRangeProblems(videos)];
+}
+
+/** A ball's problems the server would refuse it for (fluidcore.spec.solids.ball_box_problem): its centre
+ * outside the scene box, a radius beyond the box's size; against the box where the camera file declares one. */
+function ballProblems(ball, box) {
+  if (ball.error) return [ball.error];
+  if (!ball.value || !box) return [];
+  const { center, radius } = ball.value;
+  if (!insideBox(center, box)) return [`Ball centre ${fmt(center)} is outside the scene box ${fmt(box.lo)} to ${fmt(box.hi)}.`];
+  const size = Math.max(...box.hi.map((h, k) => h - box.lo[k]));
+  return radius > size ? [`Ball radius ${radius} is larger than the scene box (${decimal(size)}).`] : [];
 }
 
 /** The frame range against its limits and the shortest video's frame count, where the browser could count it. */
@@ -301,6 +313,8 @@ function reconstructParams() {
   if ($("entrainment").checked && params.motion === "paper") params.entrainment = true;
   const source = parseSource($("source").value).value;
   if (source) params.source = $("source-refine").checked ? { ...source, refine: true } : source;
+  const ball = parseBall($("ball").value).value;
+  if (ball) params.solids = [ball];
   const plate = parseFrameSpan($("background-frames").value).value;
   if (plate) params.background_frames = plate;
   if ($("world-up").value) params.world_up = $("world-up").value;
@@ -317,6 +331,7 @@ function reset() {
   $("scene-name").value = "";
   $("source").value = "";
   $("source-refine").checked = false;
+  $("ball").value = "";
   $("background-frames").value = "";
   $("world-up").value = "";
   $("fov").value = "";
@@ -337,7 +352,7 @@ export function initUpload(onDone) {
   $("upload-files").addEventListener("change", (event) => addFiles([...event.target.files]));
   $("upload-form").addEventListener("submit", (event) => submit(event, onDone));
   $("upload-clear").addEventListener("click", reset);
-  for (const id of ["source", "frame-start", "frame-end", "air-cells", "background-frames", "fov"]) $(id).addEventListener("input", render);
+  for (const id of ["source", "ball", "frame-start", "frame-end", "air-cells", "background-frames", "fov"]) $(id).addEventListener("input", render);
   $("motion").addEventListener("change", render);
   $("image-up").addEventListener("change", render);
   render();

@@ -121,9 +121,9 @@ function createView() {
   const camera = new PerspectiveCamera(40, 4 / 3, 0.001, 1000);
   const controls = new OrbitControls(camera, canvas);
   controls.listenToKeyEvents(canvas);
-  const overlay = new Group(), sourceLayer = new Group(), air = new Group();
-  scene.add(overlay, sourceLayer, air);
-  const current = { renderer, scene, camera, controls, overlay, sourceLayer, air, points: null, box: null };
+  const overlay = new Group(), sourceLayer = new Group(), air = new Group(), solids = new Group();
+  scene.add(overlay, sourceLayer, air, solids);
+  const current = { renderer, scene, camera, controls, overlay, sourceLayer, air, solids, points: null, box: null };
   controls.addEventListener("change", () => renderer.render(scene, camera));
   return current;
 }
@@ -140,6 +140,8 @@ function showParticles(data) {
   view.points = new Points(geometry, new PointsMaterial({ color: 0xe8edf3, size: size / 60, transparent: true, opacity: 0.85, depthWrite: false }));
   view.box = new Box3Helper(new Box3(lo, hi), 0x4f9bea);
   scene.add(view.points, view.box);
+  view.solids.clear(); // the run's own balls (its scene's solids), drawn as the what-if's ball is
+  for (const solid of data.scene.solids || []) view.solids.add(ballMesh(solid.center, solid.radius));
   const centre = lo.clone().add(hi).multiplyScalar(0.5);
   const up = new Vector3(...data.scene.up).normalize();
   camera.up.copy(up);
@@ -211,17 +213,24 @@ function drawBall(ball, size) {
   const { overlay, renderer, scene, camera } = view;
   overlay.clear();
   if (ball && ball.radius > 0 && ball.center.every(Number.isFinite)) {
-    const behindSmoke = (material) => new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, depthWrite: false, ...material });
-    const mesh = new Mesh(new SphereGeometry(ball.radius, 24, 16), behindSmoke({ opacity: 0.3 }));
-    const wire = new Mesh(new SphereGeometry(ball.radius, 12, 8), behindSmoke({ opacity: 0.6, wireframe: true }));
-    mesh.renderOrder = wire.renderOrder = -1; // the smoke's points (order 0) come after
-    mesh.add(wire);
-    mesh.position.set(...ball.center);
+    const mesh = ballMesh(ball.center, ball.radius);
     overlay.add(mesh);
     const v = new Vector3(...ball.velocity);
     if (v.length() > 0) overlay.add(new ArrowHelper(v.clone().normalize(), mesh.position, 0.3 * size, 0xe74c3c));
   }
   renderer.render(scene, camera);
+}
+
+/** A ball at `center` of `radius` (world units) as this view draws every ball, the what-if's and the
+ * scene's solids: a translucent red shell with a wireframe, before the smoke and writing no depth. */
+function ballMesh(center, radius) {
+  const behindSmoke = (material) => new MeshBasicMaterial({ color: 0xe74c3c, transparent: true, depthWrite: false, ...material });
+  const mesh = new Mesh(new SphereGeometry(radius, 24, 16), behindSmoke({ opacity: 0.3 }));
+  const wire = new Mesh(new SphereGeometry(radius, 12, 8), behindSmoke({ opacity: 0.6, wireframe: true }));
+  mesh.renderOrder = wire.renderOrder = -1; // the smoke's points (order 0) come after
+  mesh.add(wire);
+  mesh.position.set(...center);
+  return mesh;
 }
 
 /** The wind's arrows up the box's height, each as long as the API's acceleration there (the

@@ -19,14 +19,16 @@ from tests.support.simulators import paper, run
 from fluidcore.physics.air import AirGrid
 from fluidcore.physics.build import build_simulator
 from fluidcore.physics.carrier import BuoyantAirCarrier
-from fluidcore.physics.motion import NO_CONTROLS
+from fluidcore.physics.motion import NO_CONTROLS, Controls
 from fluidcore.physics.paper import PositionBasedFluid
 from fluidcore.physics.simulator import Simulator
 from fluidcore.predict.identification import calibrate_buoyancy
 from fluidcore.reconstruct.identify import Candidate, Observation, ScenePrior, _Search
 from fluidcore.runs import ContinuationSettings, ReconstructSettings, Run
 from fluidcore.spec.reconstruct import VisualSettings, get
+from fluidcore.spec.physics import Sphere
 from fluidcore.spec.scene import Air, Scene, SceneError, SourcePlace
+from fluidcore.spec.solids import MAX_SOLIDS, SolidBall
 from fluidcore.spec.simulation import AIR_CELLS
 
 OLD_RUNS = Path(__file__).parents[1] / "fixtures" / "runs_v1"
@@ -72,7 +74,7 @@ def test_a_scene_is_checked_where_it_is_made() -> None:
 def test_the_scene_record_round_trips_and_keeps_its_layout() -> None:
     scene = replace(_scene(), air=Air(16, 0.3))
     record = scene.to_json()
-    assert sorted(record) == ["air", "box", "motion", "physics", "source", "up"]  # the manifest's layout
+    assert sorted(record) == ["air", "box", "motion", "physics", "solids", "source", "up"]  # the manifest's layout
     assert record["air"] == {"cells": 16, "vorticity": 0.3, "viscosity": 0.0, "diffusivity": 0.0} and record["motion"] == "paper"
     assert Scene.from_json(json.loads(json.dumps(record))) == scene
     assert Scene.from_json({k: v for k, v in record.items() if k != "air"}).air == Air()  # no air recorded: still air
@@ -83,6 +85,49 @@ def test_the_scene_record_round_trips_and_keeps_its_layout() -> None:
         Scene.from_json({**record, "up": [0.0, 0.0]})
     with pytest.raises(SceneError, match="air.cells must be 0"):
         Scene.from_json({**record, "air": {"cells": 4, "vorticity": 0.0}})
+
+
+def test_a_scenes_solids_round_trip_are_checked_and_an_old_record_has_none() -> None:
+    balls = (SolidBall(center=(0.0, 1.0, 0.0), radius=0.2), SolidBall(center=(0.5, 1.5, -0.5), radius=0.1))
+    scene = replace(_scene(), solids=balls)
+    record = scene.to_json()
+    assert record["solids"] == [{"center": [0.0, 1.0, 0.0], "radius": 0.2}, {"center": [0.5, 1.5, -0.5], "radius": 0.1}]
+    assert Scene.from_json(json.loads(json.dumps(record))) == scene
+    assert Scene.from_json({k: v for k, v in record.items() if k != "solids"}).solids == ()  # written before solids
+    assert _scene().to_json()["solids"] == []
+    with pytest.raises(SceneError, match=r"scene.solids\[1\].center \[0.5, 3.0, -0.5\] is outside the scene box"):
+        replace(scene, solids=(balls[0], SolidBall(center=(0.5, 3.0, -0.5), radius=0.1)))
+    with pytest.raises(SceneError, match=r"scene.solids\[0\].radius 5.0 is larger than the scene box"):
+        replace(scene, solids=(SolidBall(center=(0.0, 1.0, 0.0), radius=5.0),))
+    with pytest.raises(SceneError, match=f"scene.solids: 9 balls, at most {MAX_SOLIDS}"):
+        replace(scene, solids=balls[:1] * 9)
+    with pytest.raises(SceneError, match="scene: malformed"):
+        Scene.from_json({**record, "solids": [{"center": [0.0, 1.0, 0.0], "radius": -1.0}]})
+    for kind in ("reconstruct", "predict", "interact"):  # runs written before solids: none
+        assert Run.open(OLD_RUNS / kind).scene.solids == ()
+
+
+def test_every_step_of_a_scene_with_solids_keeps_the_smoke_out_of_them_and_adds_a_what_ifs_ball() -> None:
+    """The simulator built from a scene puts its solids in the way of every step, with the balls a
+    step's controls bring (a what-if's); the same scene without them lets the smoke through."""
+    ball = SolidBall(center=(0.0, 0.35, 0.0), radius=0.12)
+    scene = replace(_scene(), source=replace(_scene().source, rate=40, velocity=(0.0, 1.5, 0.0)), solids=(ball,))
+    moving = Sphere(center=(1.0, 1.0, 1.0), radius=0.1)
+    simulator = build_simulator(scene)
+    assert simulator.with_solids(Controls(spheres=(moving,))).spheres == (ball.sphere, moving)
+
+    def nearest(simulator: Simulator) -> float:
+        state = simulator.new_state()
+        closest = np.inf
+        for _ in range(12):
+            state, _ = simulator.step(state)
+            positions = state.positions[state.alive]
+            if len(positions):
+                closest = min(closest, float(torch.linalg.vector_norm(positions - torch.tensor(ball.center), dim=1).min()))
+        return closest
+
+    assert nearest(simulator) >= ball.radius * (1 - 1e-5)
+    assert nearest(build_simulator(replace(scene, solids=()))) < 0.5 * ball.radius
 
 
 def test_a_runs_scene_is_the_air_it_records(tmp_path: Path) -> None:
