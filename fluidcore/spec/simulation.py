@@ -4,11 +4,11 @@ and the plume's spreading, and the physics modes a reconstruction may simulate w
 The motion model (`MOTION_MODELS`, issue 46): "paper", the paper's position-based particles with
 their own buoyancy and density-gated drag (fluidcore.physics.paper), the default because its
 images measure better: over seeds 0-2 its predicted future is 0.5 / 0.2 / 0.8 dB better on D /
-F / ScalarFlow, its input-view fit 1.3-2.8 dB better, and its reconstruction takes 0.3-0.6x the
+F / ScalarFlow, its input-view fit 1.3-2.8 dB better, and its reconstruction takes 0.3-0.8x the
 carrier's CPU time; "carrier", buoyant air on a grid carrying the smoke's particles as markers
 (fluidcore.physics.carrier), selectable for what its motion measures better: a ball's effect
 (score 0.35 / 0.51 on D / F against 0.25 / 0.30), F's velocities (0.56 / 0.64 of zero at f45 /
-f90 against 0.70 / 0.73), the plume's head within 2 cm, and novel views 0.3-0.4 dB better on D
+f90 against 0.70 / 0.73), the plume's head (0.9 / 1.1 cm off against 1.6-2.0), and novel views 0.3-0.4 dB better on D
 and ScalarFlow (0.4 worse on F) (docs/bench_generalise.md, "The buoyant-air
 carrier"). The air settings below are the paper model's options; for the carrier the air is the
 motion, `air_cells` its grid.
@@ -88,7 +88,7 @@ class SimulationConfig(BaseModel):
     motion: MotionModel = Field(default=DEFAULT_MOTION, description=(
         "how the smoke moves: paper (the paper's particles with their own buoyancy and drag, the default) or carrier "
         "(buoyant air on a grid carrying the smoke). On the dev scenes and ScalarFlow the paper model's future and "
-        "input-view fit measure better and it takes 0.6x the time; the carrier's ball what-ifs, plume head and, on "
+        "input-view fit measure better and it takes 0.3-0.8x the time; the carrier's ball what-ifs, plume head and, on "
         "one dev scene, velocities measure better (docs/bench_generalise.md)"))
 
     # The air around the smoke (fluidcore.physics.air.AirGrid): 0 = still air, the default until issue
